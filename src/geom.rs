@@ -106,6 +106,41 @@ impl Segment {
     }
 }
 
+/// A set of segments, optionally grouped into input 3D lines (Line3D++ `.txt` groups the
+/// segments of one line; SPEC 3 step 6 and the "different input lines" rule of step 7).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LineSet {
+    pub segments: Vec<Segment>,
+    /// `groups[i]` is the input line of segment `i`; `None` when the format has no groups
+    /// (every segment is then its own line).
+    pub groups: Option<Vec<u32>>,
+}
+
+impl LineSet {
+    pub fn new(segments: Vec<Segment>) -> Self {
+        LineSet {
+            segments,
+            groups: None,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.segments.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.segments.is_empty()
+    }
+
+    /// Input line of segment `i` (its own index when ungrouped).
+    pub fn group(&self, i: usize) -> u32 {
+        match &self.groups {
+            Some(g) => g[i],
+            None => i as u32,
+        }
+    }
+}
+
 /// Closest distance between segments `[p1,q1]` and `[p2,q2]` (Ericson, Real-Time Collision
 /// Detection, 5.1.9), robust for degenerate and parallel segments.
 pub fn segment_segment_distance(p1: DVec3, q1: DVec3, p2: DVec3, q2: DVec3) -> f64 {
