@@ -75,14 +75,7 @@ impl Segment {
 
     /// Inclusive flat-capped cylinder test of SPEC 2.
     pub fn cylinder_contains(&self, p: DVec3, r: f64) -> bool {
-        let d = self.dir();
-        let w = p - self.p1;
-        let t1 = w.dot(d);
-        let t2 = (self.p2 - p).dot(d);
-        if t1 < 0.0 || t2 < 0.0 {
-            return false;
-        }
-        (w - d * t1).length_squared() <= r * r
+        Cylinder::new(self, r).test(p).is_some()
     }
 
     /// Both endpoints moved by `t`.
@@ -132,11 +125,60 @@ impl LineSet {
         self.segments.is_empty()
     }
 
+    /// The segments at `idx` (in that order), with their groups.
+    pub fn select(&self, idx: &[usize]) -> LineSet {
+        LineSet {
+            segments: idx.iter().map(|&i| self.segments[i]).collect(),
+            groups: self
+                .groups
+                .as_ref()
+                .map(|g| idx.iter().map(|&i| g[i]).collect()),
+        }
+    }
+
     /// Input line of segment `i` (its own index when ungrouped).
     pub fn group(&self, i: usize) -> u32 {
         match &self.groups {
             Some(g) => g[i],
             None => i as u32,
+        }
+    }
+}
+
+/// `C(s, r)` with its direction precomputed. Every exact membership test in the crate goes
+/// through [`Cylinder::test`], so the CPU engine and the brute-force checks agree bit for bit.
+#[derive(Clone, Copy, Debug)]
+pub struct Cylinder {
+    pub p1: DVec3,
+    pub p2: DVec3,
+    pub d: DVec3,
+    pub r2: f64,
+}
+
+impl Cylinder {
+    pub fn new(s: &Segment, r: f64) -> Self {
+        Cylinder {
+            p1: s.p1,
+            p2: s.p2,
+            d: s.dir(),
+            r2: r * r,
+        }
+    }
+
+    /// `Some((t1, v))` when `p` is inside: `t1 = (p-P1)·d` and `v` the perpendicular
+    /// offset from the axis; `None` otherwise.
+    #[inline]
+    pub fn test(&self, p: DVec3) -> Option<(f64, DVec3)> {
+        let w = p - self.p1;
+        let t1 = w.dot(self.d);
+        if t1 < 0.0 || (self.p2 - p).dot(self.d) < 0.0 {
+            return None;
+        }
+        let v = w - self.d * t1;
+        if v.length_squared() <= self.r2 {
+            Some((t1, v))
+        } else {
+            None
         }
     }
 }

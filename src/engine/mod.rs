@@ -1,0 +1,147 @@
+//! The cylinder-query interface (SPEC 4): every step asks its questions about the
+//! Gaussians as one batch of [`Query`]s, and one of two engines answers: [`cpu::CpuEngine`]
+//! (rayon, f64) or the GPU engine (wgpu + WGSL). Steps never know which.
+
+pub mod cpu;
+
+use crate::geom::Segment;
+use glam::DVec3;
+
+/// A cylinder query `C(seg, r)`, with the plane used by side counts: through `plane`,
+/// normal `d` of `seg`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Query {
+    pub seg: Segment,
+    pub r: f64,
+    pub plane: DVec3,
+}
+
+impl Query {
+    pub fn new(seg: Segment, r: f64) -> Self {
+        Query {
+            seg,
+            r,
+            plane: seg.midpoint(),
+        }
+    }
+
+    pub fn with_plane(seg: Segment, r: f64, plane: DVec3) -> Self {
+        Query { seg, r, plane }
+    }
+}
+
+/// Which sums a [`Engine::stats`] batch needs beyond the count.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Want {
+    /// `sum_d2` and `sum_offset`.
+    pub sums: bool,
+    /// `side_pos`.
+    pub sides: bool,
+}
+
+impl Want {
+    pub const COUNT: Want = Want {
+        sums: false,
+        sides: false,
+    };
+    pub const SUMS: Want = Want {
+        sums: true,
+        sides: false,
+    };
+    pub const SIDES: Want = Want {
+        sums: false,
+        sides: true,
+    };
+    pub const ALL: Want = Want {
+        sums: true,
+        sides: true,
+    };
+}
+
+/// What one query found in `X(s, r)`. Fields not asked for are zero.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CylStats {
+    /// `N(s)`.
+    pub count: u64,
+    /// Sum over `X` of the squared distance to the line.
+    pub sum_d2: f64,
+    /// Sum over `X` of the perpendicular offsets `v = (p-P1) - ((p-P1)·d) d`.
+    pub sum_offset: DVec3,
+    /// Points with `(p - plane)·d > 0`; the others (`<= 0`) are `count - side_pos`.
+    pub side_pos: u64,
+}
+
+impl CylStats {
+    /// `E(s)`: RMS distance to the line, `+inf` when empty.
+    pub fn rmse(&self) -> f64 {
+        if self.count == 0 {
+            f64::INFINITY
+        } else {
+            (self.sum_d2 / self.count as f64).sqrt()
+        }
+    }
+
+    pub fn side_neg(&self) -> u64 {
+        self.count - self.side_pos
+    }
+}
+
+/// Sums over the `k` points of `X(s, r)` nearest to the line (ties by grid order).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct NearestSum {
+    /// `min(k, N(s))`.
+    pub k: u64,
+    pub sum_offset: DVec3,
+    pub sum_d2: f64,
+}
+
+/// Union of the members of a batch, as a bitmask over the grid's sorted points.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Coverage {
+    pub mask: Vec<u64>,
+}
+
+impl Coverage {
+    /// `|union of X(s)|`.
+    pub fn count(&self) -> u64 {
+        self.mask.iter().map(|w| w.count_ones() as u64).sum()
+    }
+}
+
+/// Work counters, for tests that prove batching and upload-once.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Counters {
+    /// Times the Gaussians were uploaded to a device (GPU engine: 1).
+    pub uploads: u64,
+    /// Batches answered.
+    pub batches: u64,
+    /// Queries answered.
+    pub queries: u64,
+}
+
+#[derive(thiserror::Error, Debug)]
+pub enum EngineError {
+    #[error("no GPU adapter found ({0}); install a Vulkan driver (Debian: apt-get install mesa-vulkan-drivers) or use --backend cpu")]
+    NoAdapter(String),
+    #[error("GPU error: {0}")]
+    Gpu(String),
+    #[error("invalid query {index}: {why}")]
+    BadQuery { index: usize, why: String },
+}
+
+/// Answers batches of cylinder queries over one fixed set of Gaussian centers.
+pub trait Engine: Send + Sync {
+    /// `cpu`, or `gpu`.
+    fn backend(&self) -> &'static str;
+    /// Device description (`cpu (N threads)`, or the adapter name and driver).
+    fn adapter(&self) -> String;
+    /// `N_box`: points in the working set.
+    fn n_points(&self) -> usize;
+    /// Count (and sums, side counts) for every query.
+    fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError>;
+    /// For query `i`, sums over its `k[i]` members nearest to the line.
+    fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError>;
+    /// The union of all members of the batch.
+    fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError>;
+    fn counters(&self) -> Counters;
+}

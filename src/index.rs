@@ -1,0 +1,409 @@
+//! The working set and the uniform grid shared by both engines (SPEC 2, SPEC 4).
+//!
+//! Centers are sorted by cell with a counting sort; cells are numbered x-fastest, so the
+//! cells `x0..=x1` of one `(y, z)` row hold one contiguous range of the sorted points. A
+//! cylinder query is answered by visiting only the rows its capped cylinder can touch,
+//! each as one point range.
+
+use crate::geom::{p64, Aabb, Segment};
+use glam::DVec3;
+use rayon::prelude::*;
+
+/// Upper bound on the number of cells: the table stays small next to the points even when
+/// the scene is huge compared with the radius (the cell then grows beyond `r`).
+const MAX_CELLS: f64 = (1u64 << 24) as f64;
+
+/// Gaussian centers inside the box of all segment endpoints grown by 0.1x its longest edge.
+#[derive(Clone, Debug)]
+pub struct WorkingSet {
+    pub bounds: Aabb,
+    pub points: Vec<[f32; 3]>,
+}
+
+impl WorkingSet {
+    /// Keeps the centers inside `Aabb::of_segments(segments).grown(0.1)` (inclusive).
+    pub fn new(centers: &[[f32; 3]], segments: &[Segment]) -> Self {
+        let bounds = Aabb::of_segments(segments).grown(0.1);
+        let points = if bounds.is_empty() {
+            Vec::new()
+        } else {
+            centers
+                .par_iter()
+                .copied()
+                .filter(|&p| bounds.contains(p64(p)))
+                .collect()
+        };
+        WorkingSet { bounds, points }
+    }
+
+    /// `N_box`.
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+}
+
+/// One row of cells `x0..=x1` at `(y, z)` and the sorted points it holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Row {
+    pub y: u32,
+    pub z: u32,
+    pub x0: u32,
+    pub x1: u32,
+}
+
+/// Uniform grid over the working set.
+#[derive(Clone, Debug)]
+pub struct Grid {
+    /// Corner of cell (0,0,0).
+    pub origin: DVec3,
+    /// Edge length of a cubic cell.
+    pub cell: f64,
+    pub dims: [u32; 3],
+    /// `cell_start[c]..cell_start[c+1]` are the sorted points of cell `c`; length cells+1.
+    pub cell_start: Vec<u32>,
+    /// Centers sorted by cell (absolute coordinates, as read).
+    pub points: Vec<[f32; 3]>,
+    /// Index in the working set of each sorted point.
+    pub ids: Vec<u32>,
+}
+
+impl Grid {
+    /// Builds the grid over `points` (all inside `bounds`) with cells near `cell_hint`
+    /// (the query radius), never more than 2^24 cells.
+    pub fn build(points: &[[f32; 3]], bounds: Aabb, cell_hint: f64) -> Grid {
+        let mut b = bounds;
+        for p in points {
+            b.extend(p64(*p));
+        }
+        if b.is_empty() {
+            b = Aabb {
+                min: DVec3::ZERO,
+                max: DVec3::ZERO,
+            };
+        }
+        let ext = (b.max - b.min).max(DVec3::splat(1e-9));
+        let mut cell = if cell_hint.is_finite() && cell_hint > 0.0 {
+            cell_hint
+        } else {
+            ext.max_element()
+        };
+        let vol = ext.x * ext.y * ext.z;
+        let n_cells = |c: f64| {
+            ((ext.x / c).floor() + 1.0) * ((ext.y / c).floor() + 1.0) * ((ext.z / c).floor() + 1.0)
+        };
+        if n_cells(cell) > MAX_CELLS {
+            cell = cell.max((vol / MAX_CELLS).cbrt());
+            while n_cells(cell) > MAX_CELLS {
+                cell *= 1.1;
+            }
+        }
+        let dims = [
+            (ext.x / cell).floor() as u32 + 1,
+            (ext.y / cell).floor() as u32 + 1,
+            (ext.z / cell).floor() as u32 + 1,
+        ];
+        let mut grid = Grid {
+            origin: b.min,
+            cell,
+            dims,
+            cell_start: Vec::new(),
+            points: Vec::new(),
+            ids: Vec::new(),
+        };
+        let total = dims[0] as usize * dims[1] as usize * dims[2] as usize;
+        let keys: Vec<u32> = points.par_iter().map(|p| grid.cell_of(p64(*p))).collect();
+        let mut start = vec![0u32; total + 1];
+        for &k in &keys {
+            start[k as usize + 1] += 1;
+        }
+        for c in 0..total {
+            start[c + 1] += start[c];
+        }
+        let mut fill = start.clone();
+        let mut sorted = vec![[0f32; 3]; points.len()];
+        let mut ids = vec![0u32; points.len()];
+        for (i, &k) in keys.iter().enumerate() {
+            let slot = fill[k as usize] as usize;
+            fill[k as usize] += 1;
+            sorted[slot] = points[i];
+            ids[slot] = i as u32;
+        }
+        grid.cell_start = start;
+        grid.points = sorted;
+        grid.ids = ids;
+        grid
+    }
+
+    pub fn n_cells(&self) -> usize {
+        self.cell_start.len() - 1
+    }
+
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    #[inline]
+    fn axis_cell(&self, v: f64, axis: usize) -> u32 {
+        let c = ((v - self.origin[axis]) / self.cell).floor();
+        c.clamp(0.0, (self.dims[axis] - 1) as f64) as u32
+    }
+
+    /// Linear index (x fastest) of the cell holding `p` (clamped into the grid).
+    #[inline]
+    pub fn cell_of(&self, p: DVec3) -> u32 {
+        self.linear(
+            self.axis_cell(p.x, 0),
+            self.axis_cell(p.y, 1),
+            self.axis_cell(p.z, 2),
+        )
+    }
+
+    #[inline]
+    pub fn linear(&self, x: u32, y: u32, z: u32) -> u32 {
+        (z * self.dims[1] + y) * self.dims[0] + x
+    }
+
+    /// Corner of cell `(x, y, z)`.
+    pub fn cell_origin(&self, x: u32, y: u32, z: u32) -> DVec3 {
+        self.origin + DVec3::new(x as f64, y as f64, z as f64) * self.cell
+    }
+
+    /// Sorted point range of a row.
+    #[inline]
+    pub fn row_range(&self, row: &Row) -> std::ops::Range<usize> {
+        let a = self.linear(row.x0, row.y, row.z) as usize;
+        let b = self.linear(row.x1, row.y, row.z) as usize + 1;
+        self.cell_start[a] as usize..self.cell_start[b] as usize
+    }
+
+    /// Sorted point range of one cell.
+    #[inline]
+    pub fn cell_range(&self, x: u32, y: u32, z: u32) -> std::ops::Range<usize> {
+        let a = self.linear(x, y, z) as usize;
+        self.cell_start[a] as usize..self.cell_start[a + 1] as usize
+    }
+
+    /// Calls `f` for every row of cells that the capped cylinder `C(seg, r)` can touch, in a
+    /// fixed order (z, then y). A superset: every point inside the cylinder lies in a
+    /// visited row; the exact test is the caller's.
+    pub fn visit_rows(&self, seg: &Segment, r: f64, mut f: impl FnMut(Row)) {
+        if self.points.is_empty()
+            || r.is_nan()
+            || r < 0.0
+            || !seg.p1.is_finite()
+            || !seg.p2.is_finite()
+        {
+            return;
+        }
+        let l = seg.length();
+        let d = seg.dir();
+        let p = seg.p1;
+        // Extent of the radial disc along each axis: r sqrt(1 - d_j^2), plus a margin that
+        // covers rounding in the cell assignment of points lying on a cell face.
+        let margin = 1e-6 * self.cell + 1e-9 * (self.origin.abs().max_element() + 1.0);
+        let rr = DVec3::new(
+            r * (1.0 - d.x * d.x).max(0.0).sqrt(),
+            r * (1.0 - d.y * d.y).max(0.0).sqrt(),
+            r * (1.0 - d.z * d.z).max(0.0).sqrt(),
+        ) + DVec3::splat(margin);
+        let full = (0.0, l);
+        let z_span = axis_span(p.z, d.z, full, rr.z);
+        let Some((z0, z1)) = self.cell_span(z_span, 2) else {
+            return;
+        };
+        for z in z0..=z1 {
+            let slab = self.slab(z, 2, rr.z);
+            let Some(tz) = t_interval(p.z, d.z, slab, full) else {
+                continue;
+            };
+            let Some((y0, y1)) = self.cell_span(axis_span(p.y, d.y, tz, rr.y), 1) else {
+                continue;
+            };
+            for y in y0..=y1 {
+                let slab = self.slab(y, 1, rr.y);
+                let Some(tyz) = t_interval(p.y, d.y, slab, tz) else {
+                    continue;
+                };
+                if let Some((x0, x1)) = self.cell_span(axis_span(p.x, d.x, tyz, rr.x), 0) {
+                    f(Row { y, z, x0, x1 });
+                }
+            }
+        }
+    }
+
+    /// Coordinate interval of cell layer `i` on `axis`, grown by `grow`.
+    fn slab(&self, i: u32, axis: usize, grow: f64) -> (f64, f64) {
+        let lo = self.origin[axis] + i as f64 * self.cell;
+        (lo - grow, lo + self.cell + grow)
+    }
+
+    /// Cell index range covering the coordinate interval, or `None` when it misses the grid.
+    fn cell_span(&self, span: (f64, f64), axis: usize) -> Option<(u32, u32)> {
+        let lo = (span.0 - self.origin[axis]) / self.cell;
+        let hi = (span.1 - self.origin[axis]) / self.cell;
+        let n = self.dims[axis] as f64;
+        if lo.is_nan() || hi.is_nan() || hi < 0.0 || lo >= n || lo > hi {
+            return None;
+        }
+        let a = lo.floor().max(0.0) as u32;
+        let b = (hi.floor().min(n - 1.0)) as u32;
+        Some((a, b))
+    }
+}
+
+/// Range of `p + t d` over `t` in `ts`, grown by `grow`.
+fn axis_span(p: f64, d: f64, ts: (f64, f64), grow: f64) -> (f64, f64) {
+    let a = p + ts.0 * d;
+    let b = p + ts.1 * d;
+    (a.min(b) - grow, a.max(b) + grow)
+}
+
+/// `{t in ts : p + t d in slab}`, or `None` when empty.
+fn t_interval(p: f64, d: f64, slab: (f64, f64), ts: (f64, f64)) -> Option<(f64, f64)> {
+    if d.abs() < 1e-12 {
+        return if p >= slab.0 && p <= slab.1 {
+            Some(ts)
+        } else {
+            None
+        };
+    }
+    let a = (slab.0 - p) / d;
+    let b = (slab.1 - p) / d;
+    let (a, b) = if a <= b { (a, b) } else { (b, a) };
+    // Widen by a relative epsilon so that rounding in the division never drops a row.
+    let eps = 1e-9 * (ts.1 - ts.0).abs().max(1e-12);
+    let lo = a.max(ts.0) - eps;
+    let hi = b.min(ts.1) + eps;
+    if lo > hi {
+        None
+    } else {
+        Some((lo.max(ts.0), hi.min(ts.1)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geom::Cylinder;
+
+    fn lcg(seed: &mut u64) -> f64 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*seed >> 11) as f64) / ((1u64 << 53) as f64)
+    }
+
+    #[test]
+    fn counting_sort_keeps_every_point_in_its_cell() {
+        let mut s = 7u64;
+        let pts: Vec<[f32; 3]> = (0..5000)
+            .map(|_| {
+                [
+                    lcg(&mut s) as f32,
+                    lcg(&mut s) as f32 * 2.0,
+                    lcg(&mut s) as f32,
+                ]
+            })
+            .collect();
+        let mut b = Aabb::empty();
+        for p in &pts {
+            b.extend(p64(*p));
+        }
+        let g = Grid::build(&pts, b, 0.1);
+        assert_eq!(g.len(), 5000);
+        let mut seen = vec![false; 5000];
+        for c in 0..g.n_cells() {
+            for i in g.cell_start[c] as usize..g.cell_start[c + 1] as usize {
+                assert_eq!(g.cell_of(p64(g.points[i])) as usize, c);
+                assert_eq!(g.points[i], pts[g.ids[i] as usize]);
+                seen[g.ids[i] as usize] = true;
+            }
+        }
+        assert!(seen.iter().all(|&x| x));
+    }
+
+    #[test]
+    fn rows_cover_every_point_inside_the_cylinder() {
+        let mut s = 11u64;
+        let pts: Vec<[f32; 3]> = (0..20000)
+            .map(|_| [lcg(&mut s) as f32, lcg(&mut s) as f32, lcg(&mut s) as f32])
+            .collect();
+        let mut b = Aabb::empty();
+        for p in &pts {
+            b.extend(p64(*p));
+        }
+        let g = Grid::build(&pts, b, 0.05);
+        for _ in 0..300 {
+            let a = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 1.4 - 0.2;
+            let c = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 1.4 - 0.2;
+            let seg = Segment::new(a, c);
+            let r = 0.01 + 0.1 * lcg(&mut s);
+            let cyl = Cylinder::new(&seg, r);
+            let mut visited = vec![false; pts.len()];
+            let mut touched = 0usize;
+            g.visit_rows(&seg, r, |row| {
+                for i in g.row_range(&row) {
+                    visited[i] = true;
+                    touched += 1;
+                }
+            });
+            for (i, p) in g.points.iter().enumerate() {
+                if cyl.test(p64(*p)).is_some() {
+                    assert!(visited[i], "missed point {i} for {seg:?} r={r}");
+                }
+            }
+            // The traversal is tight: far fewer points than the whole grid.
+            assert!(touched < pts.len());
+        }
+    }
+
+    #[test]
+    fn segment_outside_the_grid_visits_nothing() {
+        let pts = vec![[0.0f32, 0.0, 0.0], [1.0, 1.0, 1.0]];
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::ONE,
+        };
+        let g = Grid::build(&pts, b, 0.1);
+        let mut n = 0;
+        g.visit_rows(
+            &Segment::new(DVec3::new(5.0, 5.0, 5.0), DVec3::new(6.0, 5.0, 5.0)),
+            0.1,
+            |_| n += 1,
+        );
+        assert_eq!(n, 0);
+    }
+
+    #[test]
+    fn huge_scene_caps_the_cell_table() {
+        let pts = vec![[0.0f32, 0.0, 0.0], [1000.0, 1000.0, 1000.0]];
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::splat(1000.0),
+        };
+        let g = Grid::build(&pts, b, 0.03);
+        assert!(g.n_cells() as f64 <= MAX_CELLS);
+        assert!(g.cell > 0.03);
+    }
+
+    #[test]
+    fn working_set_uses_the_grown_box() {
+        let segs = [Segment::new(DVec3::ZERO, DVec3::new(10.0, 0.0, 0.0))];
+        let c = [
+            [-1.0f32, 0.0, 0.0],
+            [-1.01, 0.0, 0.0],
+            [5.0, 1.0, -1.0],
+            [11.0, 0.0, 1.1],
+        ];
+        let ws = WorkingSet::new(&c, &segs);
+        assert_eq!(ws.points, vec![[-1.0f32, 0.0, 0.0], [5.0, 1.0, -1.0]]);
+    }
+}

@@ -1,0 +1,350 @@
+//! Every threshold of SPEC 3 with its default, in one struct that the CLI derives from and
+//! the JSON report serializes.
+
+use clap::{Args, ValueEnum};
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+
+/// `reference` reproduces the authors' published code (quirks included); `default`
+/// follows the paper's intent with every **[fix]** of SPEC 3 on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Profile {
+    #[default]
+    Default,
+    Reference,
+}
+
+/// Denominator of `R_L` (SPEC 5).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RlMode {
+    /// `sum L / ln(sum N(s))`, the paper's equation.
+    Paper,
+    /// `sum L / ln(N_box)`, what the authors' code computes.
+    Authors,
+}
+
+/// `--radius 0.03` or `--radius auto`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum RadiusArg {
+    Fixed(f64),
+    #[serde(with = "auto_str")]
+    Auto,
+}
+
+mod auto_str {
+    use serde::{Deserialize, Deserializer, Serializer};
+    pub fn serialize<S: Serializer>(s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str("auto")
+    }
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<(), D::Error> {
+        let s = String::deserialize(d)?;
+        if s == "auto" {
+            Ok(())
+        } else {
+            Err(serde::de::Error::custom("expected \"auto\""))
+        }
+    }
+}
+
+impl FromStr for RadiusArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.eq_ignore_ascii_case("auto") {
+            return Ok(RadiusArg::Auto);
+        }
+        match s.parse::<f64>() {
+            Ok(r) if r.is_finite() && r > 0.0 => Ok(RadiusArg::Fixed(r)),
+            _ => Err(format!("expected a positive number or `auto`, got `{s}`")),
+        }
+    }
+}
+
+impl fmt::Display for RadiusArg {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            RadiusArg::Fixed(r) => write!(f, "{r}"),
+            RadiusArg::Auto => write!(f, "auto"),
+        }
+    }
+}
+
+fn positive(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("expected a positive number, got `{s}`")),
+    }
+}
+
+fn finite(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        _ => Err(format!("expected a finite number, got `{s}`")),
+    }
+}
+
+fn fraction(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("expected a number in [0, 1], got `{s}`")),
+    }
+}
+
+/// Evaluation options (SPEC 5), shared by `eval` and `refine`.
+#[derive(Clone, Debug, PartialEq, Args, Serialize, Deserialize)]
+pub struct EvalParams {
+    /// Evaluation radius r_e of the cylinders (scene units).
+    #[arg(long, default_value_t = 0.1, value_parser = positive)]
+    pub eval_radius: f64,
+    /// Metres per scene unit, for E_rms in centimetres.
+    #[arg(long, default_value_t = 1.0, value_parser = positive)]
+    pub unit_scale: f64,
+    /// lambda of the score (the paper uses 1 for real scenes).
+    #[arg(long, default_value_t = 0.1, value_parser = positive)]
+    pub score_lambda: f64,
+    /// Denominator of R_L: `paper` (ln of summed N(s)) or `authors` (ln N_box).
+    /// Default: the profile's (`paper` for default, `authors` for reference).
+    #[arg(long, value_enum)]
+    pub r_l: Option<RlMode>,
+}
+
+impl Default for EvalParams {
+    fn default() -> Self {
+        EvalParams {
+            eval_radius: 0.1,
+            unit_scale: 1.0,
+            score_lambda: 0.1,
+            r_l: None,
+        }
+    }
+}
+
+/// The refinement thresholds of SPEC 3 (defaults from the paper / the authors' code).
+#[derive(Clone, Debug, PartialEq, Args, Serialize, Deserialize)]
+pub struct Params {
+    /// `default` (the paper's intent, all fixes on) or `reference` (the authors' code,
+    /// quirks included).
+    #[arg(long, value_enum, default_value_t = Profile::Default)]
+    pub profile: Profile,
+    /// Cylinder radius r for refinement (scene units), or `auto` (0.02 x the 95th
+    /// percentile distance of the working set from its centroid). Also the clustering
+    /// distance scale r_c.
+    #[arg(long, default_value = "0.03")]
+    pub radius: RadiusArg,
+
+    /// Translate: fraction of the points nearest to the line whose mean offset moves it.
+    #[arg(long, default_value_t = 0.4, value_parser = fraction)]
+    pub translate_keep: f64,
+
+    /// Outliers: drop segments with density <= ratio x mean density; -1 uses
+    /// max(mean - 2 std, 0).
+    #[arg(long, default_value_t = 0.2, value_parser = finite, allow_hyphen_values = true)]
+    pub outlier_ratio: f64,
+
+    /// Run the collinear merge inside input lines (Line3D++ `.txt` groups).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub collinear_merge: bool,
+
+    /// Cluster: minimum similarity w of an edge.
+    #[arg(long, default_value_t = 0.4, value_parser = fraction)]
+    pub cluster_min_weight: f64,
+    /// Cluster: initial per-root threshold c (thr = w + c / size after a join).
+    #[arg(long, default_value_t = 1.5, value_parser = positive)]
+    pub cluster_c: f64,
+    /// Cluster: |cos| between directions above which the length weight is non-zero.
+    #[arg(long, default_value_t = 0.5, value_parser = fraction)]
+    pub cluster_min_cos: f64,
+
+    /// Merge: largest angle between the two directions (degrees).
+    #[arg(long, default_value_t = 30.0, value_parser = positive)]
+    pub merge_angle_deg: f64,
+    /// Merge: reject when both endpoints of the shorter are farther than this x L_long
+    /// from the longer's line.
+    #[arg(long, default_value_t = 0.2, value_parser = positive)]
+    pub merge_dist_frac: f64,
+    /// Merge: reject when rho(G') < ratio x rho(G).
+    #[arg(long, default_value_t = 0.6, value_parser = positive)]
+    pub merge_density_ratio: f64,
+
+    /// Join: largest angle between the joined segment and each input (degrees).
+    #[arg(long, default_value_t = 10.0, value_parser = positive)]
+    pub join_angle_deg: f64,
+    /// Join: reject gaps longer than this x either length.
+    #[arg(long, default_value_t = 0.8, value_parser = positive)]
+    pub join_gap_frac: f64,
+    /// Join: the gap chord is shrunk by this fraction at each end before counting.
+    #[arg(long, default_value_t = 0.02, value_parser = fraction)]
+    pub join_chord_shrink: f64,
+    /// Join (fix): the gap must hold at least this x mean density x chord length points.
+    #[arg(long, default_value_t = 0.6, value_parser = positive)]
+    pub join_gap_density: f64,
+    /// Join: reject J when rho(J) < ratio x rho of either input.
+    #[arg(long, default_value_t = 0.6, value_parser = positive)]
+    pub join_density_ratio: f64,
+    /// Join: reject J when E(J) > ratio x E of either input.
+    #[arg(long, default_value_t = 1.1, value_parser = positive)]
+    pub join_rmse_ratio: f64,
+
+    /// Crop: length of each end window as a fraction of L.
+    #[arg(long, default_value_t = 0.02, value_parser = fraction)]
+    pub crop_end_frac: f64,
+    /// Crop: length of the middle window as a fraction of L.
+    #[arg(long, default_value_t = 0.6, value_parser = fraction)]
+    pub crop_mid_frac: f64,
+    /// Crop: an end (or probe) is sparse below this x the middle density.
+    #[arg(long, default_value_t = 0.5, value_parser = fraction)]
+    pub crop_ratio: f64,
+    /// Crop: half length of a binary-search probe window, as a fraction of L.
+    #[arg(long, default_value_t = 0.1, value_parser = positive)]
+    pub crop_probe_half: f64,
+    /// Crop: most probes of the binary search.
+    #[arg(long, default_value_t = 10)]
+    pub crop_max_probes: u32,
+    /// Crop: the binary search stops when its interval is shorter than this.
+    #[arg(long, default_value_t = 1e-4, value_parser = positive)]
+    pub crop_min_interval: f64,
+
+    /// Fix: cluster distance is the true 3D segment-to-segment distance (reference:
+    /// lateral offset ignored when the shorter does not project inside). Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_cluster_distance: Option<bool>,
+    /// Fix: a merge keeps the union of both extents along the kept line. Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_merge_extent: Option<bool>,
+    /// Fix: join sorts endpoints by projection on the first direction (reference: by
+    /// distance from its P1). Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_join_order: Option<bool>,
+    /// Fix: join's gap test needs 0.6 x mean density x chord points, at least 1
+    /// (reference: floor(mean density x chord)). Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_join_gap: Option<bool>,
+    /// Fix: crop probes use the paper's density test (reference: side-count balance).
+    /// Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_crop_density: Option<bool>,
+    /// Order each segment's endpoints so that |P1| <= |P2| at load, as the authors' code
+    /// does. Default: on for reference, off for default.
+    #[arg(long, value_name = "BOOL")]
+    pub order_endpoints: Option<bool>,
+
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub eval: EvalParams,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            profile: Profile::Default,
+            radius: RadiusArg::Fixed(0.03),
+            translate_keep: 0.4,
+            outlier_ratio: 0.2,
+            collinear_merge: true,
+            cluster_min_weight: 0.4,
+            cluster_c: 1.5,
+            cluster_min_cos: 0.5,
+            merge_angle_deg: 30.0,
+            merge_dist_frac: 0.2,
+            merge_density_ratio: 0.6,
+            join_angle_deg: 10.0,
+            join_gap_frac: 0.8,
+            join_chord_shrink: 0.02,
+            join_gap_density: 0.6,
+            join_density_ratio: 0.6,
+            join_rmse_ratio: 1.1,
+            crop_end_frac: 0.02,
+            crop_mid_frac: 0.6,
+            crop_ratio: 0.5,
+            crop_probe_half: 0.1,
+            crop_max_probes: 10,
+            crop_min_interval: 1e-4,
+            fix_cluster_distance: None,
+            fix_merge_extent: None,
+            fix_join_order: None,
+            fix_join_gap: None,
+            fix_crop_density: None,
+            order_endpoints: None,
+            eval: EvalParams::default(),
+        }
+    }
+}
+
+/// The switches after the profile's defaults and the user's overrides are applied.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct Fixes {
+    pub cluster_distance: bool,
+    pub merge_extent: bool,
+    pub join_order: bool,
+    pub join_gap: bool,
+    pub crop_density: bool,
+    pub order_endpoints: bool,
+    pub r_l: RlMode,
+}
+
+impl Params {
+    pub fn reference() -> Self {
+        Params {
+            profile: Profile::Reference,
+            ..Params::default()
+        }
+    }
+
+    pub fn fixes(&self) -> Fixes {
+        let on = self.profile == Profile::Default;
+        Fixes {
+            cluster_distance: self.fix_cluster_distance.unwrap_or(on),
+            merge_extent: self.fix_merge_extent.unwrap_or(on),
+            join_order: self.fix_join_order.unwrap_or(on),
+            join_gap: self.fix_join_gap.unwrap_or(on),
+            crop_density: self.fix_crop_density.unwrap_or(on),
+            order_endpoints: self.order_endpoints.unwrap_or(!on),
+            r_l: self
+                .eval
+                .r_l
+                .unwrap_or(if on { RlMode::Paper } else { RlMode::Authors }),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn profiles_switch_every_fix() {
+        let d = Params::default().fixes();
+        assert!(d.cluster_distance && d.merge_extent && d.join_order && d.join_gap);
+        assert!(d.crop_density && !d.order_endpoints && d.r_l == RlMode::Paper);
+        let r = Params::reference().fixes();
+        assert!(!r.cluster_distance && !r.merge_extent && !r.join_order && !r.join_gap);
+        assert!(!r.crop_density && r.order_endpoints && r.r_l == RlMode::Authors);
+        let one = Params {
+            fix_join_gap: Some(true),
+            ..Params::reference()
+        }
+        .fixes();
+        assert!(one.join_gap && !one.join_order);
+    }
+
+    #[test]
+    fn radius_parses_numbers_and_auto() {
+        assert_eq!("auto".parse::<RadiusArg>(), Ok(RadiusArg::Auto));
+        assert_eq!("0.05".parse::<RadiusArg>(), Ok(RadiusArg::Fixed(0.05)));
+        assert!("-1".parse::<RadiusArg>().is_err());
+        assert!("nan".parse::<RadiusArg>().is_err());
+    }
+
+    #[test]
+    fn params_serialize_with_every_field() {
+        let v = serde_json::to_value(Params::default()).unwrap();
+        assert_eq!(v["radius"], serde_json::json!(0.03));
+        assert_eq!(v["eval_radius"], serde_json::json!(0.1));
+        assert_eq!(v["crop_max_probes"], serde_json::json!(10));
+        let a = serde_json::to_value(RadiusArg::Auto).unwrap();
+        assert_eq!(a, serde_json::json!("auto"));
+    }
+}

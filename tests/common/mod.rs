@@ -1,0 +1,131 @@
+//! Scene builders and brute-force answers shared by the engine tests.
+#![allow(dead_code)]
+
+use glam::DVec3;
+use linegs_gpu::engine::{CylStats, Query};
+use linegs_gpu::geom::{p64, Aabb, Cylinder, Segment};
+use linegs_gpu::index::Grid;
+
+/// Deterministic LCG so the tests need no RNG crate.
+pub struct Lcg(pub u64);
+
+impl Lcg {
+    pub fn f(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 11) as f64) / ((1u64 << 53) as f64)
+    }
+    pub fn v(&mut self) -> DVec3 {
+        DVec3::new(self.f(), self.f(), self.f())
+    }
+}
+
+pub fn grid_of(points: &[[f32; 3]], cell: f64) -> Grid {
+    let mut b = Aabb::empty();
+    for p in points {
+        b.extend(p64(*p));
+    }
+    Grid::build(points, b, cell)
+}
+
+/// Random centers in the unit cube, denser along a few lines like a trained 3DGS model.
+pub fn random_scene(n: usize, seed: u64) -> Vec<[f32; 3]> {
+    let mut r = Lcg(seed);
+    let lines: Vec<(DVec3, DVec3)> = (0..6).map(|_| (r.v(), r.v())).collect();
+    (0..n)
+        .map(|i| {
+            let p = if i % 3 == 0 {
+                r.v()
+            } else {
+                let (a, b) = lines[i % lines.len()];
+                a + (b - a) * r.f() + (r.v() - 0.5) * 0.02
+            };
+            [p.x as f32, p.y as f32, p.z as f32]
+        })
+        .collect()
+}
+
+pub fn random_queries(n: usize, seed: u64, r: f64) -> Vec<Query> {
+    let mut g = Lcg(seed);
+    (0..n)
+        .map(|_| {
+            let a = g.v() * 1.2 - 0.1;
+            let b = a + (g.v() - 0.5) * 0.6;
+            let s = Segment::new(a, b);
+            let rr = r * (0.5 + g.f());
+            Query::with_plane(s, rr, s.point_at(s.length() * g.f()))
+        })
+        .collect()
+}
+
+/// Brute force over the grid's sorted points (the same order the CPU engine sums in).
+pub fn brute_stats(grid: &Grid, q: &Query) -> (CylStats, Vec<usize>) {
+    let mut s = CylStats::default();
+    let mut members = Vec::new();
+    if !q.seg.is_valid() {
+        return (s, members);
+    }
+    let cyl = Cylinder::new(&q.seg, q.r);
+    let d = q.seg.dir();
+    for (i, p) in grid.points.iter().enumerate() {
+        let p = p64(*p);
+        if q.seg.cylinder_contains(p, q.r) {
+            let (_, v) = cyl.test(p).unwrap();
+            s.count += 1;
+            s.sum_d2 += v.length_squared();
+            s.sum_offset += v;
+            if (p - q.plane).dot(d) > 0.0 {
+                s.side_pos += 1;
+            }
+            members.push(i);
+        }
+    }
+    (s, members)
+}
+
+/// Brute-force k nearest: sort members by (distance², index).
+pub fn brute_nearest(grid: &Grid, q: &Query, k: usize) -> (u64, DVec3, f64) {
+    let (_, members) = brute_stats(grid, q);
+    let mut m: Vec<(f64, usize, DVec3)> = members
+        .iter()
+        .map(|&i| {
+            let v = q.seg.perp_offset(p64(grid.points[i]));
+            (v.length_squared(), i, v)
+        })
+        .collect();
+    m.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let k = k.min(m.len());
+    let mut off = DVec3::ZERO;
+    let mut d2 = 0.0;
+    for x in &m[..k] {
+        off += x.2;
+        d2 += x.0;
+    }
+    (k as u64, off, d2)
+}
+
+/// Points exactly on the cylinder's boundaries (binary fractions, exact in f32 and f64).
+pub fn boundary_scene() -> (Vec<[f32; 3]>, Vec<Query>) {
+    let mut pts = Vec::new();
+    for i in 0..=16 {
+        let x = i as f32 / 16.0;
+        pts.push([x, 0.25, 0.0]);
+        pts.push([x, 0.0, -0.25]);
+        pts.push([x, 0.0, 0.0]);
+        pts.push([x, 0.125, 0.125]);
+    }
+    pts.push([0.0, 0.0, 0.0]);
+    pts.push([1.0, 0.0, 0.0]);
+    pts.push([-0.0625, 0.0, 0.0]);
+    pts.push([1.0625, 0.0, 0.0]);
+    pts.push([0.5, 0.25 + 1.0 / 1024.0, 0.0]);
+    let s = Segment::new(DVec3::ZERO, DVec3::new(1.0, 0.0, 0.0));
+    let q = vec![
+        Query::with_plane(s, 0.25, DVec3::new(0.5, 0.0, 0.0)),
+        Query::with_plane(s.reversed(), 0.25, DVec3::new(0.5, 0.0, 0.0)),
+        Query::with_plane(s, 0.125, DVec3::new(0.25, 0.0, 0.0)),
+    ];
+    (pts, q)
+}
