@@ -129,3 +129,36 @@ pub fn boundary_scene() -> (Vec<[f32; 3]>, Vec<Query>) {
     ];
     (pts, q)
 }
+
+/// `n` centers along `seg` (uniform) with isotropic normal noise `sigma` — a dense edge
+/// of a trained 3DGS model.
+pub fn edge_points(seg: &Segment, n: usize, sigma: f64, rng: &mut Lcg) -> Vec<[f32; 3]> {
+    (0..n)
+        .map(|_| {
+            let mut g = || {
+                // Box–Muller
+                let u1 = rng.f().max(1e-300);
+                let u2 = rng.f();
+                (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+            };
+            let noise = DVec3::new(g(), g(), g()) * sigma;
+            let p = seg.point_at(seg.length() * rng.f()) + noise;
+            [p.x as f32, p.y as f32, p.z as f32]
+        })
+        .collect()
+}
+
+pub fn seg(a: [f64; 3], b: [f64; 3]) -> Segment {
+    Segment::from_arrays(a, b)
+}
+
+/// A CPU engine over the working set of `points` for `segments` (SPEC 2 box).
+pub fn cpu_engine(
+    points: &[[f32; 3]],
+    segments: &[Segment],
+    cell: f64,
+) -> linegs_gpu::engine::cpu::CpuEngine {
+    let ws = linegs_gpu::index::WorkingSet::new(points, segments);
+    let grid = Grid::build(&ws.points, ws.bounds, cell);
+    linegs_gpu::engine::cpu::CpuEngine::new(std::sync::Arc::new(grid))
+}

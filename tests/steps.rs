@@ -1,0 +1,110 @@
+//! Each refinement step does its job on a scene built for it (SPEC 8).
+
+mod common;
+
+use common::*;
+use linegs_gpu::refine::{crop, outliers, translate, Params};
+
+const R: f64 = 0.03;
+
+#[test]
+fn an_offset_edge_is_pulled_back_onto_its_gaussians() {
+    let mut rng = Lcg(1);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 3000, 0.004, &mut rng);
+    for offset in [0.5 * R, 0.7 * R] {
+        let input = seg([0.0, offset, 0.0], [1.0, offset, 0.0]);
+        let e = cpu_engine(&pts, &[input], R);
+        let out = translate::translate(&e, &[input], R, 0.4).unwrap();
+        let moved = out[0];
+        // back within a quarter of the radius, both ends, and no motion along the edge
+        assert!(moved.p1.y.abs() < 0.25 * R, "offset {offset}: {moved:?}");
+        assert!(moved.p2.y.abs() < 0.25 * R);
+        assert!((moved.p1.x - 0.0).abs() < 1e-12 && (moved.p2.x - 1.0).abs() < 1e-12);
+        assert!(moved.p1.y < offset * 0.6);
+    }
+}
+
+#[test]
+fn a_segment_with_no_gaussians_stays_where_it_is() {
+    let mut rng = Lcg(2);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 500, 0.004, &mut rng);
+    let lonely = seg([0.0, 0.5, 0.5], [1.0, 0.5, 0.5]);
+    let e = cpu_engine(&pts, &[edge, lonely], R);
+    let out = translate::translate(&e, &[lonely], R, 0.4).unwrap();
+    assert_eq!(out[0], lonely);
+}
+
+#[test]
+fn a_planted_outlier_is_dropped() {
+    let mut rng = Lcg(3);
+    let edges = [
+        seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
+        seg([0.0, 0.0, 0.0], [0.0, 1.0, 0.0]),
+        seg([1.0, 0.0, 0.0], [1.0, 1.0, 0.0]),
+    ];
+    let mut pts = Vec::new();
+    for e in &edges {
+        pts.extend(edge_points(e, 1500, 0.004, &mut rng));
+    }
+    // a sparse background
+    for _ in 0..300 {
+        let v = rng.v();
+        pts.push([v.x as f32, v.y as f32, v.z as f32]);
+    }
+    let outlier = seg([0.2, 0.6, 0.7], [0.8, 0.5, 0.6]);
+    let mut segs = edges.to_vec();
+    segs.insert(1, outlier);
+    let e = cpu_engine(&pts, &segs, R);
+    let res = outliers::outliers(&e, &segs, R, 0.2).unwrap();
+    assert_eq!(res.kept, vec![0, 2, 3]);
+    assert!(res.density[1] <= res.theta && res.density[0] > res.theta);
+    // the mean - 2 std rule keeps the edges too
+    let res2 = outliers::outliers(&e, &segs, R, -1.0).unwrap();
+    assert!(res2.kept.contains(&0) && res2.kept.contains(&2) && res2.kept.contains(&3));
+}
+
+#[test]
+fn an_overextended_edge_is_cropped_back_to_its_dense_part() {
+    let mut rng = Lcg(4);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 4000, 0.004, &mut rng);
+    // overextended by 0.3 at P1 and by 0.15 at P2
+    let input = seg([-0.3, 0.0, 0.0], [1.15, 0.0, 0.0]);
+    let l = input.length();
+    for params in [Params::default(), Params::reference()] {
+        let e = cpu_engine(&pts, &[input], R);
+        let out = crop::crop(&e, &[input], R, &params, &params.fixes()).unwrap()[0];
+        let tol = 0.05 * l;
+        assert!(out.p1.x.abs() < tol, "{:?}: {out:?}", params.profile);
+        assert!(
+            (out.p2.x - 1.0).abs() < tol,
+            "{:?}: {out:?}",
+            params.profile
+        );
+        // never extends, stays on the line
+        assert!(out.p1.x >= input.p1.x && out.p2.x <= input.p2.x);
+        assert_eq!(out.p1.y, 0.0);
+        if params.fixes().crop_density {
+            // the density test finds the end of the dense part closely
+            assert!(out.p1.x.abs() < 0.01 * l, "{out:?}");
+        } else {
+            // the side-balance test stops inside the dense part: it over-crops by about
+            // a third of the probe's half window (0.1 L / 3)
+            assert!(out.p1.x > 0.0 && out.p2.x < 1.0, "{out:?}");
+        }
+    }
+}
+
+#[test]
+fn a_segment_dense_to_its_ends_is_not_cropped() {
+    let mut rng = Lcg(5);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 4000, 0.004, &mut rng);
+    let input = seg([0.01, 0.0, 0.0], [0.99, 0.0, 0.0]);
+    let e = cpu_engine(&pts, &[input], R);
+    let p = Params::default();
+    let out = crop::crop(&e, &[input], R, &p, &p.fixes()).unwrap();
+    assert_eq!(out[0], input);
+}
