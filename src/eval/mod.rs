@@ -1,6 +1,8 @@
 //! The paper's metrics (SPEC 5): E_rms, R_covered, R_L and the score, at an evaluation
 //! radius, over the working set that refinement uses.
 
+pub mod gt;
+
 use crate::engine::{Engine, EngineError, Query, Want};
 use crate::geom::Segment;
 use crate::refine::{EvalParams, RlMode};
