@@ -7,16 +7,22 @@
 //!
 //! - [`toy_scene`]: the paper's toy scene (about 20,000 Gaussians, about 300 segments).
 //! - [`scaled_scene`]: the same kind of world tiled for benchmarks, 10^5 to 10^7 Gaussians.
+//! - [`mesh`]: OBJ meshes, their sharp edges and Gaussians sampled from them.
 //! - [`gaussians_around_segments`]: centres for line sets that come without a model.
 //!
 //! Every generator is deterministic for its seed and independent of the thread count.
 
+pub mod mesh;
 pub mod rng;
 mod sample;
 mod scaled;
 mod toy;
 mod world;
 
+pub use mesh::{
+    gaussians_from_mesh, read_obj_mesh, sharp_edges, sharp_lines, MeshError, MeshGaussianOptions,
+    TriMesh,
+};
 pub use rng::Rng;
 pub use sample::gaussians_around_segments;
 pub use scaled::{scaled_scene, SCALED_GAUSSIANS_PER_BOX, SCALED_MAX_SEGMENTS_PER_EDGE};
