@@ -100,11 +100,6 @@ impl Rng {
         ((self.next_u64() as u128 * n as u128) >> 64) as u64
     }
 
-    /// True with probability `p`.
-    pub fn chance(&mut self, p: f64) -> bool {
-        self.uniform() < p
-    }
-
     /// Standard normal variate (Box–Muller; the second value of each pair is kept for the
     /// next call).
     pub fn normal(&mut self) -> f64 {
