@@ -6,3 +6,4 @@ pub mod eval;
 pub mod geom;
 pub mod index;
 pub mod refine;
+pub mod synth;
