@@ -1,0 +1,10 @@
+//! Files in, files out (SPEC 6): Gaussian models and line segments in every format the
+//! line-reconstruction tools write, detected by content; writers that never leave a partial
+//! file; and `info` for a quick look at either.
+
+mod chunked;
+mod error;
+mod ply;
+
+pub use error::{Error, Position, KNOWN_FORMATS};
+pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
