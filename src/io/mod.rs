@@ -4,7 +4,10 @@
 
 mod chunked;
 mod error;
+mod lines;
+mod npy;
 mod ply;
 
 pub use error::{Error, Position, KNOWN_FORMATS};
+pub use lines::{read_lines, LineFile, LineFormat};
 pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
