@@ -7,7 +7,12 @@ mod error;
 mod lines;
 mod npy;
 mod ply;
+mod write;
 
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use lines::{read_lines, LineFile, LineFormat};
 pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
+pub use write::{
+    gaussian_3dgs_properties, write_gaussians_3dgs, write_lines, write_lines_ply_layers,
+    DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT,
+};
