@@ -1,2 +1,3 @@
 pub mod geom;
 pub mod io;
+pub mod mem;

@@ -4,12 +4,14 @@
 
 mod chunked;
 mod error;
+mod info;
 mod lines;
 mod npy;
 mod ply;
 mod write;
 
 pub use error::{Error, Position, KNOWN_FORMATS};
+pub use info::{info, FileInfo, FileKind};
 pub use lines::{read_lines, LineFile, LineFormat};
 pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
 pub use write::{
