@@ -653,6 +653,16 @@ fn broken_ply_headers_and_ascii_bodies_name_the_line() {
     assert_names(&e, &p, "vertex 2: file ends early");
     assert!(e.to_string().contains("property `z`"), "{e}");
 
+    let mut bytes = h.clone().into_bytes();
+    bytes.extend_from_slice(&[0x80, 0xff, 0x00, 0x3f, b'\n']);
+    let (_d5, p) = file("bin.ply", &bytes);
+    let e = read_gaussians(&p, &PlyOptions::default()).unwrap_err();
+    assert_names(
+        &e,
+        &p,
+        &format!("line {}: vertex 0: the ASCII PLY body holds bytes", n + 1),
+    );
+
     let (_d4, p) = file(
         "nov.ply",
         b"ply\nformat ascii 1.0\nelement face 0\nend_header\n",
