@@ -5,5 +5,7 @@ pub mod engine;
 pub mod eval;
 pub mod geom;
 pub mod index;
+pub mod io;
+pub mod mem;
 pub mod refine;
 pub mod synth;

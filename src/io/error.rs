@@ -1,0 +1,209 @@
+//! One error type for everything that reads or writes files (SPEC 6): every variant names
+//! the file, parse errors also name the place, so the CLI can print one line and exit 2.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// Where in a file something went wrong.
+///
+/// Text positions are 1-based like an editor's (`line 12, value 5` is the fifth number on
+/// line 12); record, row and byte positions are 0-based like array indices (`vertex 0` is
+/// the first vertex, `byte 0` the first byte of the file).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Position {
+    /// A whole text line.
+    Line(usize),
+    /// One number on a text line.
+    LineValue { line: usize, value: usize },
+    /// A byte offset from the start of the file.
+    Byte(u64),
+    /// A record of a binary element (`vertex 17`, `edge 3`, `facet 9`), with its byte offset
+    /// where known.
+    Record {
+        element: String,
+        index: usize,
+        byte: Option<u64>,
+    },
+    /// One value of an array row (`.npy`: row = segment, values 0..6 = x1 y1 z1 x2 y2 z2).
+    RowValue { row: usize, value: usize },
+}
+
+impl Position {
+    pub(crate) fn record(element: &str, index: usize, byte: Option<u64>) -> Self {
+        Position::Record {
+            element: element.to_string(),
+            index,
+            byte,
+        }
+    }
+}
+
+impl fmt::Display for Position {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Position::Line(l) => write!(f, "line {l}"),
+            Position::LineValue { line, value } => write!(f, "line {line}, value {value}"),
+            Position::Byte(b) => write!(f, "byte {b}"),
+            Position::Record {
+                element,
+                index,
+                byte: Some(b),
+            } => write!(f, "{element} {index} (byte {b})"),
+            Position::Record {
+                element,
+                index,
+                byte: None,
+            } => write!(f, "{element} {index}"),
+            Position::RowValue { row, value } => write!(f, "row {row}, value {value}"),
+        }
+    }
+}
+
+/// The formats `read_lines` and `read_gaussians` understand, for the unknown-format hint.
+pub const KNOWN_FORMATS: &str = "PLY (Gaussians: binary or ASCII; lines: vertex + edge), \
+Line3D++ .txt, .obj (v/l records), .stl (ASCII or binary, degenerate line facets), \
+.npy (N x 2 x 3 float), plain text with 6 numbers per row";
+
+/// Errors of the `io` module. Display is `<path>: <position>: <what is wrong>`, followed
+/// where it helps by what to do.
+#[derive(thiserror::Error, Debug)]
+pub enum Error {
+    /// The operating system refused (missing file, permissions, full disk, ...).
+    #[error("{}: cannot {action}: {source}", .path.display())]
+    Io {
+        path: PathBuf,
+        action: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+
+    /// Zero bytes, or nothing but whitespace and comments.
+    #[error("{}: the file is empty", .path.display())]
+    Empty { path: PathBuf },
+
+    /// Neither content nor extension matches a format we read.
+    #[error("{}: unknown format: {why}; expected one of: {}", .path.display(), KNOWN_FORMATS)]
+    UnknownFormat { path: PathBuf, why: String },
+
+    /// Malformed content: a bad header line, a token that is not a number, wrong counts.
+    #[error("{}: {pos}: {msg}", .path.display())]
+    Parse {
+        path: PathBuf,
+        pos: Position,
+        msg: String,
+    },
+
+    /// The file ends before the data its header (or its own counts) promise.
+    #[error("{}: {pos}: file ends early: {msg}", .path.display())]
+    Truncated {
+        path: PathBuf,
+        pos: Position,
+        msg: String,
+    },
+
+    /// A NaN or infinite coordinate where none is allowed: a line endpoint always, a
+    /// Gaussian center with `strict`.
+    #[error("{}: {pos}: {what} is not finite ({value}){hint}", .path.display())]
+    NonFinite {
+        path: PathBuf,
+        pos: Position,
+        what: &'static str,
+        value: f64,
+        /// What to do about it, starting with "; " (empty when there is nothing to add).
+        hint: &'static str,
+    },
+
+    /// A PLY without the element or property we need (`vertex`, `x`, `opacity`, ...).
+    #[error("{}: {msg}", .path.display())]
+    Missing { path: PathBuf, msg: String },
+
+    /// A file that parses but holds nothing usable (no Gaussians, no valid segment).
+    #[error("{}: {msg}", .path.display())]
+    NoData { path: PathBuf, msg: String },
+
+    /// A writer was asked for something it cannot produce.
+    #[error("{}: {msg}", .path.display())]
+    Unsupported { path: PathBuf, msg: String },
+}
+
+impl Error {
+    /// The file the error is about.
+    pub fn path(&self) -> &Path {
+        match self {
+            Error::Io { path, .. }
+            | Error::Empty { path }
+            | Error::UnknownFormat { path, .. }
+            | Error::Parse { path, .. }
+            | Error::Truncated { path, .. }
+            | Error::NonFinite { path, .. }
+            | Error::Missing { path, .. }
+            | Error::NoData { path, .. }
+            | Error::Unsupported { path, .. } => path,
+        }
+    }
+
+    /// The position in the file, for errors that have one.
+    pub fn position(&self) -> Option<&Position> {
+        match self {
+            Error::Parse { pos, .. }
+            | Error::Truncated { pos, .. }
+            | Error::NonFinite { pos, .. } => Some(pos),
+            _ => None,
+        }
+    }
+
+    pub(crate) fn io(path: &Path, action: &'static str, source: std::io::Error) -> Self {
+        Error::Io {
+            path: path.to_path_buf(),
+            action,
+            source,
+        }
+    }
+
+    pub(crate) fn parse(path: &Path, pos: Position, msg: impl Into<String>) -> Self {
+        Error::Parse {
+            path: path.to_path_buf(),
+            pos,
+            msg: msg.into(),
+        }
+    }
+
+    pub(crate) fn truncated(path: &Path, pos: Position, msg: impl Into<String>) -> Self {
+        Error::Truncated {
+            path: path.to_path_buf(),
+            pos,
+            msg: msg.into(),
+        }
+    }
+
+    pub(crate) fn non_finite(path: &Path, pos: Position, what: &'static str, value: f64) -> Self {
+        Error::NonFinite {
+            path: path.to_path_buf(),
+            pos,
+            what,
+            value,
+            hint: "",
+        }
+    }
+
+    pub(crate) fn unknown(path: &Path, why: impl Into<String>) -> Self {
+        Error::UnknownFormat {
+            path: path.to_path_buf(),
+            why: why.into(),
+        }
+    }
+
+    pub(crate) fn missing(path: &Path, msg: impl Into<String>) -> Self {
+        Error::Missing {
+            path: path.to_path_buf(),
+            msg: msg.into(),
+        }
+    }
+
+    pub(crate) fn no_data(path: &Path, msg: impl Into<String>) -> Self {
+        Error::NoData {
+            path: path.to_path_buf(),
+            msg: msg.into(),
+        }
+    }
+}

@@ -1,0 +1,308 @@
+//! Writers (SPEC 6). Every writer goes through [`write_atomic`]: the bytes land in a
+//! temporary file beside the target, which is renamed over it only once complete, so a
+//! failed or interrupted write never leaves a partial output file.
+
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::Path;
+
+use crate::geom::Segment;
+
+use super::error::{Error, Position};
+use super::npy;
+
+/// Colour of `write_lines`' single PLY layer: visible on both light and dark backgrounds.
+pub const DEFAULT_LINE_COLOR: [u8; 3] = [220, 40, 40];
+
+/// Writes `path` through a temporary file in the same directory and a rename.
+pub(crate) fn write_atomic(
+    path: &Path,
+    body: impl FnOnce(&mut BufWriter<&File>) -> io::Result<()>,
+) -> Result<(), Error> {
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".linegs-").suffix(".tmp");
+    // Temporary files are private (0600); outputs should get the usual umask-filtered mode.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let tmp = builder
+        .tempfile_in(parent)
+        .map_err(|e| Error::io(path, "create a temporary file beside", e))?;
+    {
+        let mut w = BufWriter::with_capacity(1 << 20, tmp.as_file());
+        body(&mut w).map_err(|e| Error::io(path, "write", e))?;
+        w.flush().map_err(|e| Error::io(path, "write", e))?;
+    }
+    tmp.as_file()
+        .sync_all()
+        .map_err(|e| Error::io(path, "flush", e))?;
+    tmp.persist(path)
+        .map_err(|e| Error::io(path, "rename the temporary file onto", e.error))?;
+    Ok(())
+}
+
+/// Shortest text that reads back to the same f64, without the 300-digit expansions that
+/// plain `Display` gives for tiny or huge values.
+pub(crate) fn num(x: f64) -> String {
+    let a = x.abs();
+    if a == 0.0 || (1e-4..1e15).contains(&a) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
+/// Writers cannot produce what the readers reject.
+fn check_finite(path: &Path, lines: &[Segment], first: usize) -> Result<(), Error> {
+    for (i, s) in lines.iter().enumerate() {
+        if !(s.p1.is_finite() && s.p2.is_finite()) {
+            let bad =
+                s.p1.to_array()
+                    .into_iter()
+                    .chain(s.p2.to_array())
+                    .find(|v| !v.is_finite())
+                    .unwrap_or(f64::NAN);
+            return Err(Error::Unsupported {
+                path: path.to_path_buf(),
+                msg: format!(
+                    "segment {} has a coordinate {bad}; refusing to write a file no reader accepts",
+                    first + i
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Writes segments in the format named by the extension: `.obj`, `.stl` (Line3D++ style),
+/// `.ply` (vertex + edge), `.txt` (x1 y1 z1 x2 y2 z2 per row) or `.npy` (N x 2 x 3 f64).
+pub fn write_lines(path: &Path, lines: &[Segment]) -> Result<(), Error> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    if !matches!(ext.as_str(), "obj" | "stl" | "ply" | "txt" | "npy") {
+        return Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: format!(
+                "cannot tell the line format from the extension `{ext}`; use .obj, .stl, .ply, .txt or .npy"
+            ),
+        });
+    }
+    check_finite(path, lines, 0)?;
+    match ext.as_str() {
+        "obj" => write_atomic(path, |w| {
+            writeln!(w, "# {} line segments, written by linegs-gpu", lines.len())?;
+            for (i, s) in lines.iter().enumerate() {
+                writeln!(w, "v {} {} {}", num(s.p1.x), num(s.p1.y), num(s.p1.z))?;
+                writeln!(w, "v {} {} {}", num(s.p2.x), num(s.p2.y), num(s.p2.z))?;
+                writeln!(w, "l {} {}", 2 * i + 1, 2 * i + 2)?;
+            }
+            Ok(())
+        }),
+        "stl" => write_atomic(path, |w| {
+            // Line3D++'s saveSTL layout: one degenerate facet P1 P2 P1 per segment.
+            writeln!(w, "solid lineModel")?;
+            for s in lines {
+                writeln!(w, " facet normal 1.0e+000 0.0e+000 0.0e+000")?;
+                writeln!(w, "  outer loop")?;
+                for p in [s.p1, s.p2, s.p1] {
+                    writeln!(w, "   vertex {:e} {:e} {:e}", p.x, p.y, p.z)?;
+                }
+                writeln!(w, "  endloop")?;
+                writeln!(w, " endfacet")?;
+            }
+            writeln!(w, "endsolid lineModel")
+        }),
+        "ply" => write_lines_ply_layers(path, &[(lines, DEFAULT_LINE_COLOR)]),
+        "txt" => write_atomic(path, |w| {
+            writeln!(
+                w,
+                "# x1 y1 z1 x2 y2 z2 ({} segments, linegs-gpu)",
+                lines.len()
+            )?;
+            for s in lines {
+                writeln!(
+                    w,
+                    "{} {} {} {} {} {}",
+                    num(s.p1.x),
+                    num(s.p1.y),
+                    num(s.p1.z),
+                    num(s.p2.x),
+                    num(s.p2.y),
+                    num(s.p2.z)
+                )?;
+            }
+            Ok(())
+        }),
+        _ => {
+            let bytes = npy::encode(lines);
+            write_atomic(path, |w| w.write_all(&bytes))
+        }
+    }
+}
+
+/// Writes several coloured sets of segments into one binary PLY: a `vertex` element
+/// (x y z as double, plus the layer colour) and an `edge` element
+/// (vertex1 vertex2 red green blue), which MeshLab and CloudCompare display.
+pub fn write_lines_ply_layers(path: &Path, layers: &[(&[Segment], [u8; 3])]) -> Result<(), Error> {
+    let mut first = 0;
+    for (segs, _) in layers {
+        check_finite(path, segs, first)?;
+        first += segs.len();
+    }
+    let n: usize = layers.iter().map(|(s, _)| s.len()).sum();
+    if 2 * n > i32::MAX as usize {
+        return Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: format!("{n} segments exceed the int vertex indices of a PLY edge"),
+        });
+    }
+    write_atomic(path, |w| {
+        write!(
+            w,
+            "ply\nformat binary_little_endian 1.0\ncomment linegs-gpu line segments, {} layer(s)\n\
+             element vertex {}\nproperty double x\nproperty double y\nproperty double z\n\
+             property uchar red\nproperty uchar green\nproperty uchar blue\n\
+             element edge {n}\nproperty int vertex1\nproperty int vertex2\n\
+             property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
+            layers.len(),
+            2 * n
+        )?;
+        let mut rec = [0u8; 27];
+        for (segs, rgb) in layers {
+            rec[24..27].copy_from_slice(rgb);
+            for s in segs.iter() {
+                for p in [s.p1, s.p2] {
+                    for (k, v) in p.to_array().into_iter().enumerate() {
+                        rec[8 * k..8 * k + 8].copy_from_slice(&v.to_le_bytes());
+                    }
+                    w.write_all(&rec)?;
+                }
+            }
+        }
+        let mut edge = [0u8; 11];
+        let mut i = 0i32;
+        for (segs, rgb) in layers {
+            edge[8..11].copy_from_slice(rgb);
+            for _ in segs.iter() {
+                edge[0..4].copy_from_slice(&i.to_le_bytes());
+                edge[4..8].copy_from_slice(&(i + 1).to_le_bytes());
+                w.write_all(&edge)?;
+                i += 2;
+            }
+        }
+        Ok(())
+    })
+}
+
+/// The 62 float properties of a 3DGS `point_cloud.ply`, in the order 3DGS writes them.
+pub fn gaussian_3dgs_properties() -> Vec<String> {
+    let mut names: Vec<String> = ["x", "y", "z", "nx", "ny", "nz"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    names.extend((0..3).map(|i| format!("f_dc_{i}")));
+    names.extend((0..45).map(|i| format!("f_rest_{i}")));
+    names.push("opacity".into());
+    names.extend((0..3).map(|i| format!("scale_{i}")));
+    names.extend((0..4).map(|i| format!("rot_{i}")));
+    names
+}
+
+/// Opacity logit written when none is given: sigmoid(2) = 0.88, a well-trained surface.
+pub const DEFAULT_OPACITY_LOGIT: f32 = 2.0;
+
+/// Writes Gaussians in the standard 62-property 3DGS layout, binary little endian, with
+/// plausible values for what only the centers define: no normals, a mid-grey DC colour,
+/// no higher SH bands, small isotropic scales (log 0.01) and the identity rotation.
+pub fn write_gaussians_3dgs(
+    path: &Path,
+    centers: &[[f32; 3]],
+    opacity_logit: Option<&[f32]>,
+) -> Result<(), Error> {
+    if let Some(op) = opacity_logit {
+        if op.len() != centers.len() {
+            return Err(Error::Unsupported {
+                path: path.to_path_buf(),
+                msg: format!(
+                    "{} opacities for {} centers; give one per Gaussian",
+                    op.len(),
+                    centers.len()
+                ),
+            });
+        }
+    }
+    if let Some(i) = centers
+        .iter()
+        .position(|c| !c.iter().all(|v| v.is_finite()))
+    {
+        return Err(Error::non_finite(
+            path,
+            Position::record("vertex", i, None),
+            "Gaussian center to write",
+            centers[i]
+                .iter()
+                .copied()
+                .find(|v| !v.is_finite())
+                .unwrap_or(f32::NAN) as f64,
+        ));
+    }
+    let names = gaussian_3dgs_properties();
+    let mut header = format!(
+        "ply\nformat binary_little_endian 1.0\nelement vertex {}\n",
+        centers.len()
+    );
+    for n in &names {
+        header.push_str(&format!("property float {n}\n"));
+    }
+    header.push_str("end_header\n");
+    write_atomic(path, |w| {
+        w.write_all(header.as_bytes())?;
+        let mut rec = [0f32; 62];
+        // f_dc = 0 is SH band 0 at grey 0.5; log-scale of 0.01; quaternion (w,x,y,z) = (1,0,0,0).
+        rec[55..58].fill((0.01f32).ln());
+        rec[58] = 1.0;
+        let mut bytes = [0u8; 62 * 4];
+        for (i, c) in centers.iter().enumerate() {
+            rec[0..3].copy_from_slice(c);
+            rec[54] = opacity_logit.map_or(DEFAULT_OPACITY_LOGIT, |o| o[i]);
+            for (b, v) in bytes.chunks_exact_mut(4).zip(&rec) {
+                b.copy_from_slice(&v.to_le_bytes());
+            }
+            w.write_all(&bytes)?;
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn numbers_round_trip_without_long_expansions() {
+        for x in [0.0, 1.5, -2.110460, 1e-300, 6.02e23, 1e-4, 123456.789, -0.0] {
+            let s = num(x);
+            assert!(s.len() < 25, "{s}");
+            assert_eq!(s.parse::<f64>().unwrap(), x);
+        }
+    }
+
+    #[test]
+    fn the_3dgs_layout_has_62_properties_in_order() {
+        let n = gaussian_3dgs_properties();
+        assert_eq!(n.len(), 62);
+        assert_eq!(&n[..3], ["x", "y", "z"]);
+        assert_eq!(n[54], "opacity");
+        assert_eq!(n[55], "scale_0");
+        assert_eq!(n[58], "rot_0");
+        assert_eq!(n[61], "rot_3");
+    }
+}
