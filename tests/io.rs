@@ -693,7 +693,7 @@ fn empty_and_foreign_files_are_not_gaussians() {
 
 #[test]
 fn many_gaussians_across_read_chunks_round_trip_exactly() {
-    // 50,000 x 248 bytes = 12.4 MB: records straddle the 8 MiB chunk boundary.
+    // 50,000 x 248 bytes = 12.4 MB: records straddle a dozen 1 MiB read chunks.
     let n: usize = 50_000;
     let centers: Vec<[f32; 3]> = (0..n)
         .map(|i| {
@@ -872,7 +872,13 @@ fn plain_text_rows_must_have_six_numbers() {
     let (_d2, p) = file("w.txt", b"0 0 0 1 1 1\n0 0 zero 1 1 1\n");
     let e = read_lines(&p).unwrap_err();
     assert_names(&e, &p, "line 2, value 3: `zero` is not a number");
-    // CSV exports and trailing comments are fine.
+    // A byte-order mark, CSV exports and trailing comments are fine.
+    let (_d4, p) = file("bom.txt", b"\xEF\xBB\xBF1 2 3 4 5 6\r\n");
+    let f = read_lines(&p).unwrap();
+    assert_eq!(
+        f.lines.segments,
+        vec![seg([1.0, 2.0, 3.0], [4.0, 5.0, 6.0])]
+    );
     let (_d3, p) = file("c.csv", b"0,0,0,1,2,3 # first\n\n4, 5, 6, 7, 8, 9\n");
     let f = read_lines(&p).unwrap();
     assert_eq!(f.lines.segments[1], seg([4.0, 5.0, 6.0], [7.0, 8.0, 9.0]));

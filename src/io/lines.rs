@@ -99,7 +99,11 @@ impl Parsed {
 /// infinite coordinate is an error naming its position; a file with no valid segment is an
 /// error.
 pub fn read_lines(path: &Path) -> Result<LineFile, Error> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, "read", e))?;
+    let mut bytes = std::fs::read(path).map_err(|e| Error::io(path, "read", e))?;
+    // Editors on Windows prefix text with a UTF-8 byte-order mark; no binary format starts so.
+    if bytes.starts_with(b"\xEF\xBB\xBF") {
+        bytes.drain(..3);
+    }
     let format = detect(path, &bytes)?;
     let mut parsed = match format {
         LineFormat::Ply => parse_ply(path, &bytes)?,
@@ -277,7 +281,9 @@ fn looks_like_line3dpp(row: &str) -> bool {
     let Some(n) = toks.first().and_then(|t| t.parse::<usize>().ok()) else {
         return false;
     };
+    // `n < len / 6` first, so a huge count cannot overflow `6 n`.
     n >= 1
+        && n < toks.len() / 6 + 1
         && toks.len() > 1 + 6 * n
         && toks[1..=6 * n].iter().all(|t| t.parse::<f64>().is_ok())
         && toks[1 + 6 * n].parse::<usize>().is_ok()
@@ -361,9 +367,20 @@ fn parse_line3dpp(path: &Path, text: &str) -> Result<Parsed, Error> {
             })
         };
         let n = count(0, "segment count n")?;
+        // Checked before `6 n` is computed, so a huge count cannot overflow it.
+        if n > toks.len() / 6 {
+            return Err(Error::parse(
+                path,
+                Position::Line(line),
+                format!(
+                    "Line3D++ row says n = {n} segments, but the row has only {} values",
+                    toks.len()
+                ),
+            ));
+        }
         let m = count(1 + 6 * n, "residual count m")?;
-        let need = 2 + 6 * n + 6 * m;
-        if toks.len() != need {
+        let need = 2 + 6 * n as u128 + 6 * m as u128;
+        if toks.len() as u128 != need {
             return Err(Error::parse(
                 path,
                 Position::Line(line),
@@ -821,5 +838,19 @@ mod tests {
                 .contains("needs 2 + 6n + 6m = 14 values, found 13"),
             "{e}"
         );
+        // Counts near usize::MAX must be rejected, not overflow `6 n` or `6 m`.
+        let e = parse_line3dpp(p, "18446744073709551615 0 0 0 1 1 1 0\n").unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("n = 18446744073709551615 segments, but the row has only 8 values"),
+            "{e}"
+        );
+        let e = parse_line3dpp(p, "1 0 0 0 1 1 1 18446744073709551615 1\n").unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("needs 2 + 6n + 6m = 110680464442257309698 values"),
+            "{e}"
+        );
+        assert!(!looks_like_line3dpp("18446744073709551615 0 0 0 1 1 1 0"));
     }
 }

@@ -768,7 +768,7 @@ fn f32_le(rec: &[u8], o: usize) -> f32 {
 
 /// Reads the Gaussian centers (`vertex` x, y, z) of a PLY file.
 ///
-/// Memory stays at the 12 bytes per kept center plus one 8 MiB read buffer: records are
+/// Memory stays at the 12 bytes per kept center plus one 1 MiB read buffer: records are
 /// decoded straight out of the buffer. NaN/Inf centers are skipped and counted with one
 /// warning (an error with `strict`); a file with no usable Gaussian is an error.
 pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, Error> {
