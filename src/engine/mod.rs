@@ -3,6 +3,8 @@
 //! (rayon, f64) or the GPU engine (wgpu + WGSL). Steps never know which.
 
 pub mod cpu;
+pub mod gpu;
+pub mod select;
 
 use crate::geom::Segment;
 use glam::DVec3;
