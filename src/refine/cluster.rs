@@ -245,6 +245,10 @@ fn edges_hashed(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64)
         hi = hi.max(s.p1).max(s.p2);
         total_len += s.length();
     }
+    if !(lo.is_finite() && hi.is_finite() && total_len.is_finite() && total_len > 0.0) {
+        // Invalid segments are dropped at load; should one get here, no grid is needed.
+        return edges_all_pairs(lines, r_c, true, min_w, min_cos);
+    }
     // Cells near the bound, but no finer than a quarter of the mean length, which keeps
     // the samples per segment bounded.
     let h = bound.max(total_len / n as f64 / 4.0);
@@ -652,6 +656,47 @@ mod tests {
                 assert!(all.len() > n / 4, "scene too sparse: {} edges", all.len());
                 assert_eq!(hashed, all, "seed {seed} grouped {grouped}");
             }
+        }
+    }
+
+    /// The segments of a Line3D++ `.obj` (`v` records, `l a b` records).
+    fn read_obj(path: &str) -> LineSet {
+        let text = std::fs::read_to_string(path).unwrap();
+        let mut v = Vec::new();
+        let mut segments = Vec::new();
+        for line in text.lines() {
+            let mut f = line.split_whitespace();
+            match f.next() {
+                Some("v") => {
+                    let c: Vec<f64> = f.map(|x| x.parse().unwrap()).collect();
+                    v.push(DVec3::new(c[0], c[1], c[2]));
+                }
+                Some("l") => {
+                    let k: Vec<usize> = f.map(|x| x.parse().unwrap()).collect();
+                    segments.push(Segment::new(v[k[0] - 1], v[k[1] - 1]));
+                }
+                _ => {}
+            }
+        }
+        LineSet::new(segments)
+    }
+
+    #[test]
+    fn the_index_finds_exactly_the_all_pairs_edges_on_real_segments() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/data/line3dpp_optimized.obj"
+        );
+        let lines = read_obj(path);
+        assert_eq!(lines.len(), 2503);
+        // The paper's radii for synthetic and real scenes, and a coarse one.
+        for r_c in [0.03, 0.05, 0.2] {
+            let b = distance_bound(r_c, 0.4).unwrap();
+            let mut hashed = edges_hashed(&lines, r_c, b, 0.4, 0.5);
+            hashed.sort_by(|a, b| (a.i, a.j).cmp(&(b.i, b.j)));
+            let all = edges_all_pairs(&lines, r_c, true, 0.4, 0.5);
+            assert!(all.len() > 100, "{} edges at r_c {r_c}", all.len());
+            assert_eq!(hashed, all, "r_c {r_c}");
         }
     }
 
