@@ -693,7 +693,7 @@ mod tests {
         for r_c in [0.03, 0.05, 0.2] {
             let b = distance_bound(r_c, 0.4).unwrap();
             let mut hashed = edges_hashed(&lines, r_c, b, 0.4, 0.5);
-            hashed.sort_by(|a, b| (a.i, a.j).cmp(&(b.i, b.j)));
+            hashed.sort_by_key(|e| (e.i, e.j));
             let all = edges_all_pairs(&lines, r_c, true, 0.4, 0.5);
             assert!(all.len() > 100, "{} edges at r_c {r_c}", all.len());
             assert_eq!(hashed, all, "r_c {r_c}");
