@@ -115,7 +115,7 @@ impl Machine {
     /// join scan (whose pairs are then speculative: they count only if no merge succeeds).
     fn list(&self, cx: Ctx) -> Listing {
         let mut l = Listing::default();
-        let mut asked: Vec<Option<usize>> = vec![None; self.items.len()];
+        let mut asked = vec![false; self.items.len()];
         let m = self.items.len();
         let mut phase = self.phase;
         let (mut i, mut j) = self.next;
@@ -147,8 +147,8 @@ impl Machine {
             };
             if merge.is_some() || join.is_some() {
                 for k in [i, j] {
-                    if self.items[k].stats.is_none() && asked[k].is_none() {
-                        asked[k] = Some(l.queries.len());
+                    if self.items[k].stats.is_none() && !asked[k] {
+                        asked[k] = true;
                         l.inputs.push((k, l.queries.len()));
                         l.queries.push(Query::new(self.items[k].seg, cx.r));
                     }
