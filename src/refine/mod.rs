@@ -5,7 +5,9 @@ pub mod params;
 
 pub use params::{EvalParams, Fixes, Params, Profile, RadiusArg, RlMode};
 
+pub mod cluster;
 pub mod crop;
+pub mod mergejoin;
 pub mod outliers;
 pub mod translate;
 

@@ -1,0 +1,767 @@
+//! Step 7, duplication and discontinuity: segments of different input lines that are
+//! similar (close and nearly parallel) are grouped by a thresholded union-find, so that
+//! step 8 merges and joins only inside a group.
+//!
+//! The similarity of SPEC 3 step 7 is `w = dist_w x len_w` with
+//! `dist_w = 1 / (1 + 2 (dist / r_c)^2)` and `len_w < 1`, so an edge `w >= w_min` needs
+//! `dist_w >= w_min`, that is `dist <= B = r_c sqrt((1/w_min - 1) / 2)` (`r_c sqrt(0.75)`
+//! for the default 0.4). With the fixed distance the candidate pairs come from a spatial
+//! hash built on that bound (see [`edges`]); the `reference` distance ignores the lateral
+//! offset of segments that do not overlap, so it has no spatial bound and uses all pairs.
+
+use crate::geom::{LineSet, Segment};
+use crate::refine::{Fixes, Params};
+use glam::DVec3;
+use rayon::prelude::*;
+
+/// A similarity edge between segments `i < j` of different input lines.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Edge {
+    pub i: usize,
+    pub j: usize,
+    pub w: f64,
+}
+
+/// Similarity `w` of SPEC 3 step 7. The longer segment is `a` when the lengths are equal,
+/// so callers pass pairs in a fixed order (`i < j`) to get a repeatable value.
+pub fn similarity(a: &Segment, b: &Segment, r_c: f64, fix_distance: bool, min_cos: f64) -> f64 {
+    let (la, lb) = (a.length(), b.length());
+    let (long, short, l_long, l_short) = if la >= lb {
+        (a, b, la, lb)
+    } else {
+        (b, a, lb, la)
+    };
+    let d = long.dir();
+    let cos = d.dot(short.dir()).clamp(-1.0, 1.0).abs();
+    if cos <= min_cos {
+        return 0.0;
+    }
+    let ratio = l_long / l_short;
+    let len_w = (ratio * ratio * cos).tanh();
+    let dist = pair_distance(long, short, d, l_long, fix_distance);
+    let x = dist / r_c;
+    let dist_w = 1.0 / (1.0 + 2.0 * x * x);
+    dist_w * len_w
+}
+
+/// `dist` of step 7 between the longer segment (direction `d`, length `l_long`) and the
+/// shorter one.
+fn pair_distance(long: &Segment, short: &Segment, d: DVec3, l_long: f64, fix: bool) -> f64 {
+    let t = [(short.p1 - long.p1).dot(d), (short.p2 - long.p1).dot(d)];
+    if t.iter().any(|&t| 0.0 < t && t < l_long) {
+        // Overlap: the nearer of the shorter's endpoints to the longer's (infinite) line.
+        long.line_dist2(short.p1)
+            .min(long.line_dist2(short.p2))
+            .sqrt()
+    } else if fix {
+        long.distance_to(short)
+    } else {
+        // The authors' gap: along the longer's axis only, lateral offset ignored.
+        t.iter()
+            .flat_map(|&t| [t.abs(), (t - l_long).abs()])
+            .fold(f64::INFINITY, f64::min)
+    }
+}
+
+/// Largest `dist` an edge can have: `dist_w >= w_min` (because `len_w < 1`). `None` when
+/// every pair can be an edge (`w_min <= 0`).
+fn distance_bound(r_c: f64, min_weight: f64) -> Option<f64> {
+    if min_weight <= 0.0 {
+        return None;
+    }
+    let b = r_c * ((1.0 / min_weight - 1.0) / 2.0).max(0.0).sqrt();
+    // Slack so that rounding in `similarity` can never put an edge just outside the bound.
+    b.is_finite().then_some(b * (1.0 + 1e-9) + 1e-12)
+}
+
+/// Every edge `w >= p.cluster_min_weight` between segments of different input lines,
+/// sorted ascending by `w` (ties in `(i, j)` order, which is what a stable sort of the
+/// all-pairs loop gives).
+pub fn edges(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Edge> {
+    let bound = distance_bound(r_c, p.cluster_min_weight);
+    let mut e = match bound {
+        Some(b) if fixes.cluster_distance && lines.len() > 1 => {
+            edges_hashed(lines, r_c, b, p.cluster_min_weight, p.cluster_min_cos)
+        }
+        _ => edges_all_pairs(
+            lines,
+            r_c,
+            fixes.cluster_distance,
+            p.cluster_min_weight,
+            p.cluster_min_cos,
+        ),
+    };
+    e.par_sort_unstable_by(|a, b| a.w.total_cmp(&b.w).then((a.i, a.j).cmp(&(b.i, b.j))));
+    e
+}
+
+/// Every pair `i < j`, in parallel over `i` (the result is in `(i, j)` order).
+fn edges_all_pairs(lines: &LineSet, r_c: f64, fix: bool, min_w: f64, min_cos: f64) -> Vec<Edge> {
+    let segs = &lines.segments;
+    (0..segs.len())
+        .into_par_iter()
+        .flat_map_iter(|i| {
+            (i + 1..segs.len()).filter_map(move |j| {
+                if lines.group(i) == lines.group(j) {
+                    return None;
+                }
+                let w = similarity(&segs[i], &segs[j], r_c, fix, min_cos);
+                (w >= min_w).then_some(Edge { i, j, w })
+            })
+        })
+        .collect()
+}
+
+/// Most cells of the segment grid (a `u32` start per cell): 16 MiB of table.
+const MAX_CELLS: f64 = (1u64 << 22) as f64;
+
+/// A uniform grid of cubic cells over the segments' box, numbered x-fastest.
+struct CellGrid {
+    origin: DVec3,
+    h: f64,
+    dims: [i64; 3],
+}
+
+impl CellGrid {
+    /// Cells of edge `h` or larger, so that there are at most [`MAX_CELLS`].
+    fn new(lo: DVec3, hi: DVec3, mut h: f64) -> Self {
+        loop {
+            let span = (hi - lo) / h;
+            let dims = [
+                span.x.ceil() as i64 + 1,
+                span.y.ceil() as i64 + 1,
+                span.z.ceil() as i64 + 1,
+            ];
+            if (dims[0] as f64) * (dims[1] as f64) * (dims[2] as f64) <= MAX_CELLS {
+                return CellGrid {
+                    origin: lo,
+                    h,
+                    dims,
+                };
+            }
+            h *= 1.25;
+        }
+    }
+
+    fn n_cells(&self) -> usize {
+        (self.dims[0] * self.dims[1] * self.dims[2]) as usize
+    }
+
+    fn key(&self, c: [i64; 3]) -> u32 {
+        (c[0] + self.dims[0] * (c[1] + self.dims[1] * c[2])) as u32
+    }
+
+    /// Every cell that holds a point within `radius` of segment `[a, b]` (a superset),
+    /// each once. A point within `radius` of the segment lies in a cell whose center is
+    /// within `keep = radius + sqrt(3)/2 h` of it; those centers are found piece by piece
+    /// (pieces of about `2h`, each scanning the cells of its box grown by `keep`), and a
+    /// center belongs to the piece that holds its closest point on the segment, so no cell
+    /// comes twice and no sort is needed.
+    fn cells(&self, a: DVec3, b: DVec3, radius: f64, out: &mut Vec<u32>) {
+        out.clear();
+        let ab = b - a;
+        let l2 = ab.length_squared();
+        let n = ((l2.sqrt() / (2.0 * self.h)).ceil() as usize).max(1);
+        let keep = radius + 0.87 * self.h;
+        let keep2 = keep * keep;
+        let grow = DVec3::splat(keep * (1.0 + 1e-9));
+        for k in 0..n {
+            let (t0, t1) = (k as f64 / n as f64, (k + 1) as f64 / n as f64);
+            let (pa, pb) = (a + ab * t0, a + ab * t1);
+            let lo = self.center_index(pa.min(pb) - grow, f64::ceil);
+            let hi = self.center_index(pa.max(pb) + grow, f64::floor);
+            for z in lo[2]..=hi[2] {
+                for y in lo[1]..=hi[1] {
+                    for x in lo[0]..=hi[0] {
+                        let c = self.origin
+                            + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * self.h;
+                        let t = if l2 > 0.0 {
+                            ((c - a).dot(ab) / l2).clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
+                        let mine = (k == 0 || t >= t0) && (k + 1 == n || t < t1);
+                        if mine && (a + ab * t - c).length_squared() <= keep2 {
+                            out.push(self.key([x, y, z]));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Index of the cell whose center is the first (`ceil`) or last (`floor`) at or past
+    /// `p`, clamped to the grid (no capsule reaches outside it).
+    fn center_index(&self, p: DVec3, round: fn(f64) -> f64) -> [i64; 3] {
+        let q = (p - self.origin) / self.h - DVec3::splat(0.5);
+        let f = |v: f64, n: i64| (round(v).max(0.0) as i64).min(n - 1);
+        [
+            f(q.x, self.dims[0]),
+            f(q.y, self.dims[1]),
+            f(q.z, self.dims[2]),
+        ]
+    }
+}
+/// The part of segment `[a, b]` inside the box `[lo, hi]` (slab clipping); `None` if none.
+fn clip(a: DVec3, b: DVec3, lo: DVec3, hi: DVec3) -> Option<(DVec3, DVec3)> {
+    let d = b - a;
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for k in 0..3 {
+        if d[k] == 0.0 {
+            if a[k] < lo[k] || a[k] > hi[k] {
+                return None;
+            }
+        } else {
+            let u = (lo[k] - a[k]) / d[k];
+            let v = (hi[k] - a[k]) / d[k];
+            t0 = t0.max(u.min(v));
+            t1 = t1.min(u.max(v));
+        }
+    }
+    (t0 <= t1).then(|| (a + d * t0, a + d * t1))
+}
+
+/// Candidate pairs from a spatial hash, then the exact test.
+///
+/// Why it finds every edge: let `G` be the longer of an edge (the one `similarity` calls
+/// long) and `S` the shorter, `dist <= B`. If an endpoint of `S` projects inside `G`,
+/// `dist` is the distance of an endpoint `q` of `S` to `G`'s infinite line, and `q`
+/// projects within `L_S <= L_G` of `G`'s ends (the other endpoint is inside), so `q` is
+/// within `B` of `G` extended by `L_G` at both ends (`G_ext`). Otherwise `dist` is the 3D
+/// distance from `S` to `G`, so `S` is again within `B` of `G_ext`. Two sets within `B`
+/// of each other both come within `B/2` of the midpoint of their closest points, so the
+/// cell of that midpoint is among the cells of `S`'s `B/2`-capsule and of `G_ext`'s. Each
+/// segment is hashed by its own capsule and queried with its extended one; a pair is
+/// tested from its longer member only, so every edge is found exactly once.
+fn edges_hashed(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64) -> Vec<Edge> {
+    let segs = &lines.segments;
+    let n = segs.len();
+    let half = 0.5 * bound;
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    let mut total_len = 0.0;
+    for s in segs {
+        lo = lo.min(s.p1).min(s.p2);
+        hi = hi.max(s.p1).max(s.p2);
+        total_len += s.length();
+    }
+    if !(lo.is_finite() && hi.is_finite() && total_len.is_finite() && total_len > 0.0) {
+        // Invalid segments are dropped at load; should one get here, no grid is needed.
+        return edges_all_pairs(lines, r_c, true, min_w, min_cos);
+    }
+    // Cells near the bound, but no finer than a quarter of the mean length, which keeps
+    // the samples per segment bounded.
+    let h = bound.max(total_len / n as f64 / 4.0);
+    let margin = DVec3::splat(half + 2.0 * h);
+    let (lo, hi) = (lo - margin, hi + margin);
+    let grid = CellGrid::new(lo, hi, h);
+
+    // Plain capsules, as a counting-sorted table: cell c holds members[start[c]..start[c+1]].
+    let cells_of: Vec<Vec<u32>> = (0..n)
+        .into_par_iter()
+        .map_init(Vec::new, |cells, i| {
+            grid.cells(segs[i].p1, segs[i].p2, half, cells);
+            cells.clone()
+        })
+        .collect();
+    let mut start = vec![0u32; grid.n_cells() + 1];
+    for cells in &cells_of {
+        for &c in cells {
+            start[c as usize + 1] += 1;
+        }
+    }
+    for c in 0..grid.n_cells() {
+        start[c + 1] += start[c];
+    }
+    let mut fill = start.clone();
+    let mut members = vec![0u32; start[grid.n_cells()] as usize];
+    for (i, cells) in cells_of.iter().enumerate() {
+        for &c in cells {
+            members[fill[c as usize] as usize] = i as u32;
+            fill[c as usize] += 1;
+        }
+    }
+    drop(cells_of);
+    drop(fill);
+
+    let lengths: Vec<f64> = segs.iter().map(|s| s.length()).collect();
+    // Chunks of segments share one scratch mark array (n entries) for deduplication.
+    let chunk = (n / (8 * rayon::current_num_threads())).clamp(256, 1 << 14);
+    (0..n.div_ceil(chunk))
+        .into_par_iter()
+        .flat_map_iter(|c| {
+            let mut seen = vec![u32::MAX; n];
+            let (mut cells, mut cands) = (Vec::new(), Vec::new());
+            let mut out = Vec::new();
+            for g in c * chunk..((c + 1) * chunk).min(n) {
+                let s = &segs[g];
+                let ext = s.dir() * lengths[g];
+                let Some((a, b)) = clip(s.p1 - ext, s.p2 + ext, lo, hi) else {
+                    continue;
+                };
+                grid.cells(a, b, half, &mut cells);
+                cands.clear();
+                for &cell in &cells {
+                    let range = start[cell as usize] as usize..start[cell as usize + 1] as usize;
+                    for &o in &members[range] {
+                        if seen[o as usize] != g as u32 {
+                            seen[o as usize] = g as u32;
+                            cands.push(o as usize);
+                        }
+                    }
+                }
+                for &o in &cands {
+                    if o == g || lines.group(o) == lines.group(g) {
+                        continue;
+                    }
+                    let (i, j) = (g.min(o), g.max(o));
+                    // `similarity(i, j)` calls `i` long on equal lengths; only the long one's
+                    // extended capsule is sure to reach the other.
+                    let long = if lengths[i] >= lengths[j] { i } else { j };
+                    if long != g {
+                        continue;
+                    }
+                    let w = similarity(&segs[i], &segs[j], r_c, true, min_cos);
+                    if w >= min_w {
+                        out.push(Edge { i, j, w });
+                    }
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+/// Union-find by size with a threshold per root: edges (ascending) join two roots when
+/// `w` is within both thresholds; the new root's threshold becomes `w + c / size`.
+/// Returns the root of every segment.
+fn union_find(n: usize, edges: &[Edge], c: f64) -> Vec<usize> {
+    let mut parent: Vec<usize> = (0..n).collect();
+    let mut size = vec![1usize; n];
+    let mut thr = vec![c; n];
+    fn find(parent: &mut [usize], mut x: usize) -> usize {
+        while parent[x] != x {
+            parent[x] = parent[parent[x]];
+            x = parent[x];
+        }
+        x
+    }
+    for e in edges {
+        let ra = find(&mut parent, e.i);
+        let rb = find(&mut parent, e.j);
+        if ra == rb || e.w > thr[ra] || e.w > thr[rb] {
+            continue;
+        }
+        let (big, small) = if size[ra] >= size[rb] {
+            (ra, rb)
+        } else {
+            (rb, ra)
+        };
+        parent[small] = big;
+        size[big] += size[small];
+        thr[big] = e.w + c / size[big] as f64;
+    }
+    (0..n).map(|i| find(&mut parent, i)).collect()
+}
+
+/// Members in greedy-matching order: pairs by descending weight (ties in `(i, j)` order),
+/// a pair placed when neither member is yet; the rest in index order. `members` is
+/// ascending; `edges` are the edges inside the cluster.
+fn greedy_order(members: &[usize], edges: &[Edge]) -> Vec<usize> {
+    let mut e = edges.to_vec();
+    e.sort_by(|a, b| b.w.total_cmp(&a.w).then((a.i, a.j).cmp(&(b.i, b.j))));
+    let mut is_placed = vec![false; members.len()];
+    let mut order = Vec::with_capacity(members.len());
+    for ed in &e {
+        let (Ok(a), Ok(b)) = (members.binary_search(&ed.i), members.binary_search(&ed.j)) else {
+            continue;
+        };
+        if !is_placed[a] && !is_placed[b] {
+            is_placed[a] = true;
+            is_placed[b] = true;
+            order.push(ed.i);
+            order.push(ed.j);
+        }
+    }
+    for (k, &m) in members.iter().enumerate() {
+        if !is_placed[k] {
+            order.push(m);
+        }
+    }
+    order
+}
+
+/// Clusters of step 7: every segment in exactly one cluster, clusters ordered by their
+/// smallest member, members in greedy-matching order. Pairs only join segments of
+/// different input lines.
+pub fn cluster(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<usize>> {
+    let n = lines.len();
+    let edges = edges(lines, r_c, p, fixes);
+    let root = union_find(n, &edges, p.cluster_c);
+    let mut id_of_root = vec![usize::MAX; n];
+    let mut members: Vec<Vec<usize>> = Vec::new();
+    let mut cluster_of = vec![0usize; n];
+    for i in 0..n {
+        let r = root[i];
+        if id_of_root[r] == usize::MAX {
+            id_of_root[r] = members.len();
+            members.push(Vec::new());
+        }
+        cluster_of[i] = id_of_root[r];
+        members[id_of_root[r]].push(i);
+    }
+    let mut inner: Vec<Vec<Edge>> = vec![Vec::new(); members.len()];
+    for e in &edges {
+        if cluster_of[e.i] == cluster_of[e.j] {
+            inner[cluster_of[e.i]].push(*e);
+        }
+    }
+    members
+        .par_iter()
+        .zip(inner.par_iter())
+        .map(|(m, e)| greedy_order(m, e))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn seg(a: [f64; 3], b: [f64; 3]) -> Segment {
+        Segment::from_arrays(a, b)
+    }
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() <= 1e-12 * b.abs().max(1.0)
+    }
+
+    /// Deterministic LCG so the tests need no RNG crate.
+    struct Lcg(u64);
+    impl Lcg {
+        fn f(&mut self) -> f64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((self.0 >> 11) as f64) / ((1u64 << 53) as f64)
+        }
+        fn v(&mut self) -> DVec3 {
+            DVec3::new(self.f(), self.f(), self.f())
+        }
+    }
+
+    #[test]
+    fn similarity_of_an_overlapping_pair_uses_the_lateral_offset() {
+        // The shorter projects inside the longer, 0.03 = r_c away: dist_w = 1/3, and
+        // len_w = tanh((2/1)^2 x 1).
+        let a = seg([0.0, 0.0, 0.0], [2.0, 0.0, 0.0]);
+        let b = seg([0.5, 0.03, 0.0], [1.5, 0.03, 0.0]);
+        let want = 4f64.tanh() / 3.0;
+        for fix in [false, true] {
+            assert!(close(similarity(&a, &b, 0.03, fix, 0.5), want));
+            assert!(close(similarity(&b, &a, 0.03, fix, 0.5), want));
+        }
+        // The nearer endpoint counts, even when it projects outside the longer.
+        let c = seg([1.5, 0.06, 0.0], [2.5, 0.0, 0.0]);
+        let cos = 1.0 / (1.0f64 + 0.06 * 0.06).sqrt();
+        let ratio2 = 4.0 / (1.0 + 0.06 * 0.06);
+        assert!(close(
+            similarity(&a, &c, 0.03, true, 0.5),
+            (ratio2 * cos).tanh()
+        ));
+    }
+
+    #[test]
+    fn similarity_of_a_gap_differs_between_the_two_distances() {
+        // No overlap: the shorter starts 0.02 past the end of the longer, 0.03 to the side.
+        let a = seg([0.0, 0.0, 0.0], [2.0, 0.0, 0.0]);
+        let b = seg([2.02, 0.03, 0.0], [3.02, 0.03, 0.0]);
+        let len_w = 4f64.tanh();
+        // reference: only the 0.02 along the axis counts.
+        let x: f64 = 0.02 / 0.03;
+        let reference = len_w / (1.0 + 2.0 * x * x);
+        assert!(close(similarity(&a, &b, 0.03, false, 0.5), reference));
+        // fix: the 3D distance sqrt(0.02^2 + 0.03^2).
+        let x2 = (0.02f64 * 0.02 + 0.03 * 0.03) / (0.03 * 0.03);
+        let fixed = len_w / (1.0 + 2.0 * x2);
+        assert!(close(similarity(&a, &b, 0.03, true, 0.5), fixed));
+        // A far-away segment at the end of the longer's axis: reference calls it a
+        // perfect neighbour, the fix does not.
+        let far = seg([2.0, 5.0, 0.0], [3.0, 5.0, 0.0]);
+        assert!(close(similarity(&a, &far, 0.03, false, 0.5), len_w));
+        assert!(similarity(&a, &far, 0.03, true, 0.5) < 1e-4);
+    }
+
+    #[test]
+    fn similarity_is_zero_at_or_below_the_angle_gate() {
+        // |cos| = 0.6 exactly (a 3-4-5 direction); the pair overlaps with dist 0, and the
+        // lengths are 20 and 5.
+        let a = seg([0.0, 0.0, 0.0], [20.0, 0.0, 0.0]);
+        let s = seg([1.0, 0.0, 0.0], [4.0, 4.0, 0.0]);
+        assert!(close(
+            similarity(&a, &s, 0.03, true, 0.5),
+            (16.0f64 * 0.6).tanh()
+        ));
+        assert_eq!(similarity(&a, &s, 0.03, true, 0.6), 0.0);
+        assert_eq!(similarity(&a, &s, 0.03, false, 0.6), 0.0);
+        // Reversed direction: the absolute cosine counts.
+        let r = seg([4.0, 4.0, 0.0], [1.0, 0.0, 0.0]);
+        assert!(close(
+            similarity(&a, &r, 0.03, true, 0.5),
+            (16.0f64 * 0.6).tanh()
+        ));
+        // Perpendicular: zero whatever the distance.
+        let q = seg([1.0, 0.0, 0.0], [1.0, 1.0, 0.0]);
+        assert_eq!(similarity(&a, &q, 0.03, true, 0.5), 0.0);
+    }
+
+    #[test]
+    fn distance_bound_matches_the_default_weight() {
+        let b = distance_bound(0.03, 0.4).unwrap();
+        assert!((b - 0.03 * 0.75f64.sqrt()).abs() < 1e-10);
+        // At the bound the distance weight is exactly the minimum weight.
+        let x = 0.75f64.sqrt();
+        assert!(close(1.0 / (1.0 + 2.0 * x * x), 0.4));
+        assert_eq!(distance_bound(0.03, 0.0), None);
+    }
+
+    fn e(i: usize, j: usize, w: f64) -> Edge {
+        Edge { i, j, w }
+    }
+
+    #[test]
+    fn union_find_thresholds_tighten_as_clusters_grow() {
+        // c = 1.5: sizes 2, 3, 4, 5 give thr = w + 0.75, + 0.5, + 0.375, + 0.3.
+        let edges = [
+            e(0, 1, 0.40),
+            e(1, 2, 0.41), // size 3, thr 0.91
+            e(2, 3, 0.42), // size 4, thr 0.795
+            e(3, 4, 0.43), // size 5, thr 0.73
+            e(4, 5, 0.75), // 0.75 > 0.73: refused
+            e(5, 6, 0.80), // new pair, thr 1.55
+            e(0, 6, 0.85), // 0.85 > 0.73: refused
+            e(6, 7, 0.90), // 0.90 <= 1.55 and <= 1.5: joins, size 3
+        ];
+        let root = union_find(9, &edges, 1.5);
+        for k in 1..5 {
+            assert_eq!(root[k], root[0]);
+        }
+        assert_ne!(root[5], root[0]);
+        assert_eq!(root[6], root[5]);
+        assert_eq!(root[7], root[5]);
+        assert_ne!(root[8], root[0]);
+        assert_ne!(root[8], root[5]);
+        // c = 0.45: the chain still joins (thr 0.625, 0.56, 0.5325, 0.52 each time above
+        // the next w), but every edge above 0.45 now meets a singleton's threshold c.
+        let root = union_find(9, &edges, 0.45);
+        assert_eq!(root[4], root[0]);
+        assert_eq!(root[3], root[0]);
+        assert_eq!(root[5..], [5, 6, 7, 8]);
+    }
+
+    #[test]
+    fn greedy_order_places_the_strongest_pairs_first() {
+        let members = [0, 1, 2, 3, 4, 5];
+        let edges = [
+            e(0, 3, 0.9),
+            e(1, 3, 0.8),
+            e(1, 2, 0.7),
+            e(2, 4, 0.95),
+            e(0, 5, 0.7), // ties with (1,2): (0,5) comes first in (i, j) order
+        ];
+        assert_eq!(greedy_order(&members, &edges), vec![2, 4, 0, 3, 1, 5]);
+        let tie = [e(1, 2, 0.5), e(0, 3, 0.5)];
+        assert_eq!(greedy_order(&[0, 1, 2, 3], &tie), vec![0, 3, 1, 2]);
+    }
+
+    #[test]
+    fn duplicates_of_different_lines_cluster_but_not_of_the_same_line() {
+        let s = |y: f64, x0: f64, x1: f64| seg([x0, y, 0.0], [x1, y, 0.0]);
+        let lines = LineSet {
+            segments: vec![
+                s(0.0, 0.0, 1.0),  // 0
+                s(5.0, 0.0, 1.0),  // 1, alone
+                s(0.01, 0.1, 0.9), // 2, duplicate of 0
+                s(0.0, 0.2, 0.8),  // 3, duplicate of 0, same line as 0
+                s(5.0, 0.2, 0.7),  // 4, same line as 1
+            ],
+            groups: Some(vec![0, 1, 2, 0, 1]),
+        };
+        let p = Params::default();
+        let c = cluster(&lines, 0.03, &p, &p.fixes());
+        // 3 joins 0 and 2 through its edge with 2; 4 never meets 1. Inside, (2, 3) is the
+        // strongest pair (the larger length ratio), so it leads the greedy order.
+        assert_eq!(c, vec![vec![2, 3, 0], vec![1], vec![4]]);
+        // reference: 1 lies 5 away beside 0, with equal lengths and no endpoint strictly
+        // inside, so only the (zero) axial gap counts and 1 joins the cluster.
+        let p = Params::reference();
+        let c = cluster(&lines, 0.03, &p, &p.fixes());
+        assert_eq!(c, vec![vec![2, 3, 0, 1], vec![4]]);
+    }
+
+    /// Scenes with short and long segments, near-duplicates and equal lengths.
+    fn random_lines(n: usize, seed: u64, grouped: bool) -> LineSet {
+        let mut r = Lcg(seed);
+        let mut segments = Vec::with_capacity(n);
+        while segments.len() < n {
+            let k = segments.len();
+            let s = match k % 5 {
+                // near-duplicate of an earlier one
+                0 | 1 if k > 0 => {
+                    let o: Segment = segments[(r.f() * k as f64) as usize];
+                    let j = (r.v() - 0.5) * 0.05;
+                    let t = (r.v() - 0.5) * 0.05;
+                    Segment::new(o.p1 + j, o.p2 + t)
+                }
+                // long
+                2 => {
+                    let a = r.v();
+                    Segment::new(a, a + (r.v() - 0.5) * 1.5)
+                }
+                // same length as the previous one, shifted along itself
+                3 => {
+                    let o = segments[k - 1];
+                    let d = o.p2 - o.p1;
+                    Segment::new(o.p1 + d * 1.01, o.p2 + d * 1.01)
+                }
+                _ => {
+                    let a = r.v();
+                    Segment::new(a, a + (r.v() - 0.5) * 0.1)
+                }
+            };
+            if s.is_valid() {
+                segments.push(s);
+            }
+        }
+        let groups = grouped.then(|| (0..n).map(|i| (i / 3) as u32).collect());
+        LineSet { segments, groups }
+    }
+
+    #[test]
+    fn the_spatial_index_finds_exactly_the_all_pairs_edges() {
+        for (seed, n, r_c, w_min) in [
+            (1u64, 600usize, 0.03, 0.4),
+            (2, 800, 0.05, 0.4),
+            (3, 500, 0.02, 0.2),
+            (4, 400, 0.1, 0.7),
+        ] {
+            for grouped in [false, true] {
+                let lines = random_lines(n, seed, grouped);
+                let b = distance_bound(r_c, w_min).unwrap();
+                let mut hashed = edges_hashed(&lines, r_c, b, w_min, 0.5);
+                let mut all = edges_all_pairs(&lines, r_c, true, w_min, 0.5);
+                let order = |a: &Edge, b: &Edge| (a.i, a.j).cmp(&(b.i, b.j));
+                hashed.sort_by(order);
+                all.sort_by(order);
+                assert!(all.len() > n / 4, "scene too sparse: {} edges", all.len());
+                assert_eq!(hashed, all, "seed {seed} grouped {grouped}");
+            }
+        }
+    }
+
+    /// The segments of a Line3D++ `.obj` (`v` records, `l a b` records).
+    fn read_obj(path: &str) -> LineSet {
+        let text = std::fs::read_to_string(path).unwrap();
+        let mut v = Vec::new();
+        let mut segments = Vec::new();
+        for line in text.lines() {
+            let mut f = line.split_whitespace();
+            match f.next() {
+                Some("v") => {
+                    let c: Vec<f64> = f.map(|x| x.parse().unwrap()).collect();
+                    v.push(DVec3::new(c[0], c[1], c[2]));
+                }
+                Some("l") => {
+                    let k: Vec<usize> = f.map(|x| x.parse().unwrap()).collect();
+                    segments.push(Segment::new(v[k[0] - 1], v[k[1] - 1]));
+                }
+                _ => {}
+            }
+        }
+        LineSet::new(segments)
+    }
+
+    #[test]
+    fn the_index_finds_exactly_the_all_pairs_edges_on_real_segments() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/data/line3dpp/line3dpp_optimized.obj"
+        );
+        let lines = read_obj(path);
+        assert_eq!(lines.len(), 2503);
+        // The paper's radii for synthetic and real scenes, and a coarse one.
+        for r_c in [0.03, 0.05, 0.2] {
+            let b = distance_bound(r_c, 0.4).unwrap();
+            let mut hashed = edges_hashed(&lines, r_c, b, 0.4, 0.5);
+            hashed.sort_by_key(|e| (e.i, e.j));
+            let all = edges_all_pairs(&lines, r_c, true, 0.4, 0.5);
+            assert!(all.len() > 100, "{} edges at r_c {r_c}", all.len());
+            assert_eq!(hashed, all, "r_c {r_c}");
+        }
+    }
+
+    #[test]
+    fn the_index_finds_overlapping_pairs_far_from_each_other() {
+        // Only one endpoint of the shorter projects inside the longer, and the endpoint that
+        // is on the longer's line lies past the longer's end, 2.3 away from it in 3D: an
+        // edge for the step 7 formula, which a plain capsule test would miss.
+        let lines = LineSet::new(vec![
+            seg([0.0, 0.0, 0.0], [10.0, 0.0, 0.0]),
+            seg([9.0, 5.0, 0.0], [13.0, 0.0, 0.0]),
+        ]);
+        let all = edges_all_pairs(&lines, 0.03, true, 0.4, 0.5);
+        assert_eq!(all.len(), 1);
+        let b = distance_bound(0.03, 0.4).unwrap();
+        assert_eq!(edges_hashed(&lines, 0.03, b, 0.4, 0.5), all);
+    }
+
+    #[test]
+    fn clusters_do_not_depend_on_the_thread_count() {
+        let lines = random_lines(1500, 7, true);
+        let run = |threads: usize, p: &Params| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| cluster(&lines, 0.03, p, &p.fixes()))
+        };
+        for p in [Params::default(), Params::reference()] {
+            let one = run(1, &p);
+            assert!(one.len() < lines.len(), "nothing clustered");
+            let mut all: Vec<usize> = one.iter().flatten().copied().collect();
+            all.sort_unstable();
+            assert_eq!(all, (0..lines.len()).collect::<Vec<_>>());
+            assert_eq!(one, run(3, &p));
+            assert_eq!(one, run(2, &p));
+        }
+    }
+
+    /// Timing at 10^5 segments: 20,000 edges of a 5-unit scene, each seen 5 times with
+    /// noise, as a line reconstruction returns them. Run alone:
+    /// `cargo test --lib cluster_1e5 -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn cluster_1e5_segments_timing() {
+        let mut r = Lcg(11);
+        let mut segments = Vec::with_capacity(100_000);
+        for _ in 0..20_000 {
+            let a = r.v() * 5.0;
+            let b = a + (r.v() - 0.5) * 0.2;
+            for _ in 0..5 {
+                let s = Segment::new(a + (r.v() - 0.5) * 0.03, b + (r.v() - 0.5) * 0.03);
+                segments.push(s);
+            }
+        }
+        let lines = LineSet::new(segments);
+        let p = Params::default();
+        let t = std::time::Instant::now();
+        let c = cluster(&lines, 0.03, &p, &p.fixes());
+        let s = t.elapsed().as_secs_f64();
+        let edges = edges(&lines, 0.03, &p, &p.fixes()).len();
+        eprintln!(
+            "10^5 segments: {edges} edges, {} clusters in {s:.3} s",
+            c.len()
+        );
+        assert!(c.len() < 60_000);
+    }
+}
