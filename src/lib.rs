@@ -9,3 +9,4 @@ pub mod io;
 pub mod mem;
 pub mod refine;
 pub mod synth;
+pub mod pipeline;

@@ -207,3 +207,16 @@ impl Error {
         }
     }
 }
+
+impl Error {
+    /// True when the fault is in the user's input (a file that cannot be opened or read,
+    /// or whose content is wrong) rather than in writing our outputs.
+    pub fn is_input_error(&self) -> bool {
+        match self {
+            Error::Io { action, .. } => {
+                matches!(*action, "open" | "read" | "read metadata of")
+            }
+            _ => true,
+        }
+    }
+}

@@ -73,7 +73,7 @@ pub fn crop(
             .map(|&j| {
                 let s = &searches[j];
                 let seg = &segments[s.seg];
-                let h = p.crop_probe_half * seg.length();
+                let h = p.crop_probe_half() * seg.length();
                 let m = 0.5 * (s.a + s.b);
                 Query::with_plane(seg.sub(m - h, m + h), r, seg.point_at(m))
             })
@@ -91,7 +91,7 @@ pub fn crop(
             let m = 0.5 * (s.a + s.b);
             // +1 moves the end outward (away from the midpoint), -1 inward, 0 stays.
             let step: i32 = if fixes.crop_density {
-                let dens = super::density(st.count, 2.0 * p.crop_probe_half * seg.length());
+                let dens = super::density(st.count, 2.0 * p.crop_probe_half() * seg.length());
                 if dens >= p.crop_ratio * mid_density[s.seg] {
                     1
                 } else {

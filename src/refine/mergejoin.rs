@@ -32,7 +32,7 @@ struct Item {
     stats: Option<CylStats>,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 enum Phase {
     Merge,
     Join,
@@ -67,6 +67,13 @@ enum Cand {
         q_chord: Option<usize>,
         q_joined: usize,
     },
+    /// Decided in favour in an earlier round; needs no query.
+    Known {
+        i: usize,
+        j: usize,
+        item: Item,
+        phase: Phase,
+    },
 }
 
 #[derive(Default)]
@@ -86,6 +93,20 @@ struct Machine {
     next: (usize, usize),
     budget: usize,
     first_budget: usize,
+    /// Identity of each item's current content: a merge or join gives the result a new one.
+    uids: Vec<u64>,
+    next_uid: u64,
+    /// Pairs (by content) already decided against. A decision reads only the two items,
+    /// so after a restart these pairs need no new query: a round re-asks only about pairs
+    /// that involve the item the last success changed.
+    failed: std::collections::HashSet<(u64, u64, Phase)>,
+    /// Pairs (by content) decided in favour in a round where an earlier pair won.
+    won: std::collections::HashMap<(u64, u64, Phase), Item>,
+    /// After a success at `(i, j)` in `phase`: every pair before `(i, j)` in scan order
+    /// failed and only item `i` changed, so in rows `a < i` the pair `(a, i)` is the only
+    /// one that can decide differently. The restart skips the rest of those rows, which
+    /// keeps a cluster of `k` segments at `O(k)` work per restart instead of `O(k^2)`.
+    hot: Option<(Phase, usize)>,
 }
 
 /// The parameters every decision reads.
@@ -100,7 +121,7 @@ struct Ctx<'a> {
 impl Machine {
     fn new(items: Vec<Item>, mode: Mode, budget: usize) -> Self {
         Machine {
-            items,
+            items: items.clone(),
             phase: match mode {
                 Mode::Cluster => Phase::Merge,
                 Mode::Collinear => Phase::Join,
@@ -108,6 +129,11 @@ impl Machine {
             next: (0, 1),
             budget,
             first_budget: budget,
+            uids: (0..items.len() as u64).collect(),
+            next_uid: items.len() as u64,
+            failed: Default::default(),
+            won: Default::default(),
+            hot: None,
         }
     }
 
@@ -132,13 +158,37 @@ impl Machine {
                 }
                 return l;
             }
+            if let Some((hp, h)) = self.hot {
+                if hp == phase && i < h {
+                    if j < h {
+                        j = h;
+                    } else if j > h {
+                        j = m;
+                        continue;
+                    }
+                }
+            }
             if l.cands.len() >= self.budget {
                 l.resume = Some((phase, i, j));
                 return l;
             }
             let (a, b) = (&self.items[i].seg, &self.items[j].seg);
-            let merge = phase == Phase::Merge && overlaps(a, b);
-            let join = phase == Phase::Join && (cx.mode == Mode::Collinear || !overlaps(a, b));
+            let known = |ph| self.failed.contains(&(self.uids[i], self.uids[j], ph));
+            let key = (self.uids[i], self.uids[j], phase);
+            if let Some(item) = self.won.get(&key) {
+                l.cands.push(Cand::Known {
+                    i,
+                    j,
+                    item: *item,
+                    phase,
+                });
+                j += 1;
+                continue;
+            }
+            let merge = phase == Phase::Merge && !known(Phase::Merge) && overlaps(a, b);
+            let join = phase == Phase::Join
+                && !known(Phase::Join)
+                && (cx.mode == Mode::Collinear || !overlaps(a, b));
             let merge = if merge { merge_check(a, b, cx.p) } else { None };
             let join = if join {
                 join_check(a, b, cx.p, cx.fixes)
@@ -189,8 +239,10 @@ impl Machine {
         for &(k, q) in &l.inputs {
             self.items[k].stats = Some(res[q]);
         }
+        let mut first = None;
         for c in &l.cands {
             let (i, j, item, phase) = match *c {
+                Cand::Known { i, j, item, phase } => (i, j, Some(item), phase),
                 Cand::Merge {
                     i,
                     j,
@@ -224,14 +276,30 @@ impl Machine {
                     (i, j, item, Phase::Join)
                 }
             };
-            if let Some(item) = item {
-                self.items[i] = item;
-                self.items.remove(j);
-                self.phase = phase;
-                self.next = (0, 1);
-                self.budget = self.first_budget;
-                return;
+            let key = (self.uids[i], self.uids[j], phase);
+            match item {
+                None => {
+                    self.failed.insert(key);
+                }
+                Some(it) => {
+                    self.won.insert(key, it);
+                    if first.is_none() {
+                        first = Some((i, j, it, phase));
+                    }
+                }
             }
+        }
+        if let Some((i, j, item, phase)) = first {
+            self.items[i] = item;
+            self.items.remove(j);
+            self.uids[i] = self.next_uid;
+            self.next_uid += 1;
+            self.uids.remove(j);
+            self.phase = phase;
+            self.next = (0, 1);
+            self.hot = Some((phase, i));
+            self.budget = self.first_budget;
+            return;
         }
         match l.resume {
             None => self.phase = Phase::Done,
@@ -377,7 +445,12 @@ fn decide_join(
     let rho2 = density(s2.count, b.seg.length());
     let expected = 0.5 * (rho1 + rho2) * chord_len;
     let need = if cx.fixes.join_gap {
-        (cx.p.join_gap_density * expected).max(1.0)
+        // Touching pieces have no gap that could be empty: nothing to ask of it.
+        if chord_len <= crate::geom::MIN_LENGTH {
+            0.0
+        } else {
+            (cx.p.join_gap_density * expected).max(1.0)
+        }
     } else {
         expected.floor()
     };

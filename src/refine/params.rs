@@ -197,9 +197,13 @@ pub struct Params {
     /// Crop: an end (or probe) is sparse below this x the middle density.
     #[arg(long, default_value_t = 0.5, value_parser = fraction)]
     pub crop_ratio: f64,
-    /// Crop: half length of a binary-search probe window, as a fraction of L.
-    #[arg(long, default_value_t = 0.1, value_parser = positive)]
-    pub crop_probe_half: f64,
+    /// Crop: half length of a binary-search probe window, as a fraction of L. Default:
+    /// 0.1 with the authors' side-balance test (their `m ± 0.1 L`), 0.03 with the density
+    /// test, whose window centred on the true end holds half the middle density whatever
+    /// its size; a short window keeps the Gaussians of edges meeting at a corner from
+    /// holding the end out past the corner.
+    #[arg(long, value_parser = positive)]
+    pub crop_probe_half: Option<f64>,
     /// Crop: most probes of the binary search.
     #[arg(long, default_value_t = 10)]
     pub crop_max_probes: u32,
@@ -259,7 +263,7 @@ impl Default for Params {
             crop_end_frac: 0.02,
             crop_mid_frac: 0.6,
             crop_ratio: 0.5,
-            crop_probe_half: 0.1,
+            crop_probe_half: None,
             crop_max_probes: 10,
             crop_min_interval: 1e-4,
             fix_cluster_distance: None,
@@ -291,6 +295,12 @@ impl Params {
             profile: Profile::Reference,
             ..Params::default()
         }
+    }
+
+    /// The crop probe half window in effect (see `crop_probe_half`).
+    pub fn crop_probe_half(&self) -> f64 {
+        self.crop_probe_half
+            .unwrap_or(if self.fixes().crop_density { 0.03 } else { 0.1 })
     }
 
     pub fn fixes(&self) -> Fixes {

@@ -1,0 +1,192 @@
+use super::input_error;
+use anyhow::Result;
+use clap::Args;
+use linegs_gpu::engine::select::{make_engine, Backend};
+use linegs_gpu::mem;
+use linegs_gpu::pipeline::{self, Stage};
+use linegs_gpu::refine::Params;
+use linegs_gpu::synth;
+use serde::Serialize;
+use std::time::Instant;
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Gaussian counts of the synthetic scenes.
+    #[arg(long, value_delimiter = ',', default_value = "100000,1000000")]
+    pub gaussians: Vec<usize>,
+    /// Segment counts of the synthetic scenes.
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000")]
+    pub segments: Vec<usize>,
+    /// Engines to time, in one run so that their ratio is fair on a noisy machine.
+    #[arg(long, value_delimiter = ',', default_value = "cpu,gpu")]
+    pub backend: Vec<BenchBackend>,
+    /// Refinement profile.
+    #[arg(long, value_enum, default_value_t = linegs_gpu::refine::Profile::Default)]
+    pub profile: linegs_gpu::refine::Profile,
+    /// Repetitions per case; the fastest total is kept.
+    #[arg(long, default_value_t = 1)]
+    pub repeat: usize,
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BenchBackend {
+    Cpu,
+    Gpu,
+}
+
+#[derive(Serialize)]
+struct Case {
+    gaussians: usize,
+    segments: usize,
+    synth_seconds: f64,
+    runs: Vec<RunTiming>,
+    /// GPU total / CPU total, when both ran.
+    gpu_over_cpu: Option<f64>,
+}
+
+#[derive(Serialize)]
+struct RunTiming {
+    backend: String,
+    adapter: String,
+    n_box: usize,
+    segments_out: usize,
+    stages: Vec<Stage>,
+    total_seconds: f64,
+    peak_rss_mb: Option<f64>,
+}
+
+pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
+    if a.gaussians.is_empty() || a.segments.is_empty() || a.repeat == 0 {
+        return Err(input_error("bench needs at least one size and --repeat >= 1"));
+    }
+    let params = Params {
+        profile: a.profile,
+        ..Params::default()
+    };
+    let mut cases = Vec::new();
+    for &n in &a.gaussians {
+        for &m in &a.segments {
+            let t = Instant::now();
+            let scene = synth::scaled_scene(n, m, a.seed);
+            let synth_seconds = t.elapsed().as_secs_f64();
+            let mut runs = Vec::new();
+            for &b in &a.backend {
+                let mut best: Option<RunTiming> = None;
+                for _ in 0..a.repeat {
+                    mem::reset_peak_rss();
+                    let t0 = Instant::now();
+                    let prep = pipeline::prepare(&scene.gaussians, &scene.lines.segments, &params)?;
+                    let mut stages = vec![Stage {
+                        name: "index".into(),
+                        segments: scene.lines.len(),
+                        seconds: prep.seconds,
+                    }];
+                    let t = Instant::now();
+                    let backend = match b {
+                        BenchBackend::Cpu => Backend::Cpu,
+                        BenchBackend::Gpu => Backend::Gpu,
+                    };
+                    let (eng, _) = make_engine(backend, prep.grid.clone())?;
+                    stages.push(Stage {
+                        name: "engine_upload".into(),
+                        segments: scene.lines.len(),
+                        seconds: t.elapsed().as_secs_f64(),
+                    });
+                    let out = pipeline::run(eng.as_ref(), &scene.lines, prep.radius, &params, |_| {})?;
+                    stages.extend(out.stages.iter().cloned());
+                    let total = t0.elapsed().as_secs_f64();
+                    let run = RunTiming {
+                        backend: out.backend.clone(),
+                        adapter: out.adapter.clone(),
+                        n_box: out.n_box,
+                        segments_out: out.lines.len(),
+                        stages,
+                        total_seconds: total,
+                        peak_rss_mb: mem::peak_rss_bytes().map(|b| b as f64 / 1048576.0),
+                    };
+                    if best.as_ref().is_none_or(|x| run.total_seconds < x.total_seconds) {
+                        best = Some(run);
+                    }
+                }
+                runs.push(best.expect("repeat >= 1"));
+            }
+            let tot = |name: &str| runs.iter().find(|r| r.backend == name).map(|r| r.total_seconds);
+            let gpu_over_cpu = match (tot("gpu"), tot("cpu")) {
+                (Some(g), Some(c)) if c > 0.0 => Some(g / c),
+                _ => None,
+            };
+            let case = Case {
+                gaussians: n,
+                segments: m,
+                synth_seconds,
+                runs,
+                gpu_over_cpu,
+            };
+            if !a.json {
+                print_case(&case);
+            }
+            cases.push(case);
+        }
+    }
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "tool": "linegs-gpu",
+                "command": "bench",
+                "threads": rayon::current_num_threads(),
+                "profile": a.profile,
+                "cases": cases,
+            }))?
+        );
+    }
+    Ok(())
+}
+
+fn print_case(c: &Case) {
+    println!(
+        "\n{} Gaussians x {} segments (synthetic scene built in {:.2} s, not timed below)",
+        c.gaussians, c.segments, c.synth_seconds
+    );
+    print!("{:<18}", "stage (s)");
+    for r in &c.runs {
+        print!("{:>12}", r.backend);
+    }
+    println!();
+    if let Some(first) = c.runs.first() {
+        for (i, s) in first.stages.iter().enumerate() {
+            print!("{:<18}", s.name);
+            for r in &c.runs {
+                print!("{:>12.3}", r.stages.get(i).map_or(f64::NAN, |x| x.seconds));
+            }
+            println!();
+        }
+    }
+    print!("{:<18}", "total");
+    for r in &c.runs {
+        print!("{:>12.3}", r.total_seconds);
+    }
+    println!();
+    print!("{:<18}", "peak RSS (MB)");
+    for r in &c.runs {
+        print!("{:>12.0}", r.peak_rss_mb.unwrap_or(f64::NAN));
+    }
+    println!();
+    print!("{:<18}", "segments out");
+    for r in &c.runs {
+        print!("{:>12}", r.segments_out);
+    }
+    println!();
+    for r in &c.runs {
+        println!("  {}: {} (N_box {})", r.backend, r.adapter, r.n_box);
+    }
+    if let Some(x) = c.gpu_over_cpu {
+        println!("gpu / cpu total time: {x:.2}");
+    }
+}

@@ -1,0 +1,246 @@
+//! Subcommands. Each parses its arguments, calls the library, and prints.
+
+pub mod bench;
+pub mod demo;
+pub mod eval;
+pub mod info;
+pub mod refine;
+pub mod render;
+pub mod synth;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use linegs_gpu::engine::select::{make_engine, Backend};
+use linegs_gpu::engine::Engine;
+use linegs_gpu::eval::Metrics;
+use linegs_gpu::geom::LineSet;
+use linegs_gpu::index::Grid;
+use linegs_gpu::io::{self, GaussianCloud, LineFile, PlyOptions};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Marks an error as the user's input being wrong (exit code 2).
+#[derive(Debug)]
+pub struct InputError(pub String);
+
+impl std::fmt::Display for InputError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for InputError {}
+
+pub fn input_error(msg: impl Into<String>) -> anyhow::Error {
+    anyhow::Error::new(InputError(msg.into()))
+}
+
+/// 2 for bad input (unreadable or malformed files, impossible options), 1 otherwise.
+pub fn exit_code(e: &anyhow::Error) -> u8 {
+    for cause in e.chain() {
+        if cause.is::<InputError>() {
+            return 2;
+        }
+        if let Some(ioe) = cause.downcast_ref::<io::Error>() {
+            return if ioe.is_input_error() { 2 } else { 1 };
+        }
+        if let Some(linegs_gpu::pipeline::RunError::Input(_)) = cause.downcast_ref() {
+            return 2;
+        }
+    }
+    1
+}
+
+/// The Gaussians and lines every command reads.
+#[derive(Args, Debug, Clone)]
+pub struct InputArgs {
+    /// The trained 3DGS model (`point_cloud.ply`; only the centers are used).
+    #[arg(short, long, value_name = "PLY")]
+    pub gaussians: PathBuf,
+    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, ELSR `.obj`, plain
+    /// text (6 numbers a row) or our `.ply` with edges.
+    #[arg(short, long, value_name = "FILE")]
+    pub lines: PathBuf,
+    /// Keep only Gaussians with sigmoid(opacity) >= this (3DGS stores the logit).
+    #[arg(long, value_name = "ALPHA")]
+    pub min_opacity: Option<f64>,
+    /// Make Gaussians with NaN or infinite centers an error instead of a warning.
+    #[arg(long)]
+    pub strict: bool,
+    /// Which engine answers the cylinder queries: `auto` (a GPU adapter when there is
+    /// one, lavapipe included, else the CPU), `gpu` or `cpu`.
+    #[arg(long, value_enum, default_value_t = Backend::Auto)]
+    pub backend: Backend,
+}
+
+pub struct Loaded {
+    pub cloud: GaussianCloud,
+    pub lines: LineFile,
+}
+
+pub fn load(a: &InputArgs) -> Result<Loaded> {
+    if let Some(o) = a.min_opacity {
+        if !(0.0..=1.0).contains(&o) {
+            return Err(input_error(format!(
+                "--min-opacity {o}: expected an opacity in [0, 1]"
+            )));
+        }
+    }
+    let cloud = io::read_gaussians(
+        &a.gaussians,
+        &PlyOptions {
+            min_opacity: a.min_opacity,
+            strict: a.strict,
+        },
+    )?;
+    let lines = io::read_lines(&a.lines)?;
+    for w in cloud.warnings.iter().chain(&lines.warnings) {
+        eprintln!("warning: {w}");
+    }
+    Ok(Loaded { cloud, lines })
+}
+
+/// Builds the engine for `grid` and says which one answered.
+pub fn engine(backend: Backend, grid: Arc<Grid>, verbose: bool) -> Result<Box<dyn Engine>> {
+    let (engine, warnings) = make_engine(backend, grid).context("starting the query engine")?;
+    for w in warnings {
+        eprintln!("warning: {w}");
+    }
+    if verbose {
+        eprintln!("engine: {} ({})", engine.backend(), engine.adapter());
+    }
+    Ok(engine)
+}
+
+#[derive(Serialize)]
+pub struct InputReport {
+    pub gaussians: String,
+    pub lines: String,
+    pub lines_format: String,
+    pub gaussians_read: usize,
+    pub gaussians_nonfinite_skipped: usize,
+    pub gaussians_below_opacity: usize,
+    pub segments_read: usize,
+    pub segments_invalid_dropped: usize,
+    pub input_lines: Option<usize>,
+    pub n_box: usize,
+}
+
+pub fn input_report(a: &InputArgs, l: &Loaded, n_box: usize) -> InputReport {
+    InputReport {
+        gaussians: a.gaussians.display().to_string(),
+        lines: a.lines.display().to_string(),
+        lines_format: l.lines.format.name().to_string(),
+        gaussians_read: l.cloud.centers.len(),
+        gaussians_nonfinite_skipped: l.cloud.skipped_nonfinite,
+        gaussians_below_opacity: l.cloud.dropped_low_opacity,
+        segments_read: l.lines.lines.len(),
+        segments_invalid_dropped: l.lines.dropped_invalid,
+        input_lines: groups_count(&l.lines.lines),
+        n_box,
+    }
+}
+
+pub fn groups_count(lines: &LineSet) -> Option<usize> {
+    lines.groups.as_ref().map(|g| {
+        let mut v = g.clone();
+        v.sort_unstable();
+        v.dedup();
+        v.len()
+    })
+}
+
+fn fmt_opt(v: Option<f64>, prec: usize) -> String {
+    match v {
+        Some(x) => format!("{x:.prec$}"),
+        None => "-".to_string(),
+    }
+}
+
+/// The metrics as a small aligned table, one column per labelled set.
+pub fn metrics_table(cols: &[(&str, &Metrics)]) -> String {
+    let mut out = String::new();
+    out.push_str(&format!("{:<16}", "metric"));
+    for (name, _) in cols {
+        out.push_str(&format!("{name:>14}"));
+    }
+    out.push('\n');
+    let rows: [(&str, Box<dyn Fn(&Metrics) -> String>); 7] = [
+        ("r_e", Box::new(|m: &Metrics| format!("{}", m.radius))),
+        ("E_rms (cm)", Box::new(|m: &Metrics| fmt_opt(m.e_rms_cm, 4))),
+        ("R_covered (%)", Box::new(|m: &Metrics| fmt_opt(m.coverage_pct, 3))),
+        ("R_L", Box::new(|m: &Metrics| fmt_opt(m.r_l, 4))),
+        ("score", Box::new(|m: &Metrics| fmt_opt(m.score, 4))),
+        ("segments", Box::new(|m: &Metrics| m.segments.to_string())),
+        ("skipped", Box::new(|m: &Metrics| m.skipped.to_string())),
+    ];
+    for (label, f) in rows.iter() {
+        out.push_str(&format!("{label:<16}"));
+        for (_, m) in cols {
+            out.push_str(&format!("{:>14}", f(m)));
+        }
+        out.push('\n');
+    }
+    for (name, m) in cols {
+        if let Some(msg) = &m.message {
+            out.push_str(&format!("note ({name}): {msg}\n"));
+        }
+    }
+    out
+}
+
+/// Writes `text` to `path` atomically (temp file in the same folder, then rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let mut f = tempfile::NamedTempFile::new_in(dir)
+        .with_context(|| format!("{}: cannot create a file in {}", path.display(), dir.display()))?;
+    f.write_all(bytes)
+        .with_context(|| format!("{}: write failed", path.display()))?;
+    f.persist(path)
+        .with_context(|| format!("{}: cannot move the finished file into place", path.display()))?;
+    Ok(())
+}
+
+/// Parses `0.02,0.05,0.1`.
+pub fn parse_radii(s: &str) -> std::result::Result<Vec<f64>, String> {
+    let v: std::result::Result<Vec<f64>, String> = s
+        .split(',')
+        .map(|x| {
+            let x = x.trim();
+            match x.parse::<f64>() {
+                Ok(r) if r.is_finite() && r > 0.0 => Ok(r),
+                _ => Err(format!("`{x}` is not a positive radius")),
+            }
+        })
+        .collect();
+    let v = v?;
+    if v.is_empty() {
+        return Err("no radius given".into());
+    }
+    Ok(v)
+}
+
+/// The segment formats we write, by extension.
+pub const LINE_OUTPUTS: [&str; 5] = ["obj", "stl", "ply", "txt", "npy"];
+
+/// Fails early (before any work) when `path` has no segment format we can write.
+pub fn check_line_output(path: &Path) -> Result<()> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .unwrap_or_default();
+    if LINE_OUTPUTS.contains(&ext.as_str()) {
+        Ok(())
+    } else {
+        Err(input_error(format!(
+            "{}: unknown output format `.{ext}`; use one of .obj .stl .ply .txt .npy",
+            path.display()
+        )))
+    }
+}

@@ -1,0 +1,150 @@
+use super::{check_line_output, input_error};
+use anyhow::Result;
+use clap::{Args, Subcommand};
+use linegs_gpu::io;
+use linegs_gpu::synth;
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct SynthArgs {
+    #[command(subcommand)]
+    pub what: SynthKind,
+}
+
+/// Everything made here is synthetic: centers placed by a rule, not trained.
+#[derive(Subcommand, Debug)]
+pub enum SynthKind {
+    /// The paper's toy scene (box edges) with every defect planted: Gaussians, input
+    /// lines and the ground-truth edges.
+    Toy {
+        /// Gaussians to write (a standard 62-property 3DGS PLY).
+        #[arg(short, long, value_name = "PLY")]
+        output: PathBuf,
+        /// The noisy input segments (format from the extension).
+        #[arg(long, value_name = "FILE")]
+        lines_out: PathBuf,
+        /// The ground-truth edges.
+        #[arg(long, value_name = "FILE")]
+        gt_out: Option<PathBuf>,
+        /// Number of Gaussians.
+        #[arg(short = 'n', long, default_value_t = 20_000)]
+        gaussians: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// Gaussians on the surface of a triangle mesh (.obj), concentrated near its sharp
+    /// edges (dihedral angle over 30°) as trained 3DGS models are.
+    Mesh {
+        /// The mesh (`v` and `f` records).
+        #[arg(long, value_name = "OBJ")]
+        mesh: PathBuf,
+        #[arg(short, long, value_name = "PLY")]
+        output: PathBuf,
+        #[arg(short = 'n', long, default_value_t = 100_000)]
+        gaussians: usize,
+        /// Also write the detected sharp edges.
+        #[arg(long, value_name = "FILE")]
+        edges_out: Option<PathBuf>,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// Gaussians along given segments with noise, plus a background (for line files that
+    /// come without a 3DGS model).
+    Around {
+        #[arg(short, long, value_name = "FILE")]
+        lines: PathBuf,
+        #[arg(short, long, value_name = "PLY")]
+        output: PathBuf,
+        #[arg(short = 'n', long, default_value_t = 100_000)]
+        gaussians: usize,
+        /// Standard deviation of the noise around the segments (scene units).
+        #[arg(long, default_value_t = 0.004)]
+        sigma: f64,
+        /// Fraction of the centers spread uniformly in the lines' bounding box.
+        #[arg(long, default_value_t = 0.1)]
+        background: f64,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+}
+
+pub fn run(a: SynthArgs) -> Result<()> {
+    match a.what {
+        SynthKind::Toy {
+            output,
+            lines_out,
+            gt_out,
+            gaussians,
+            seed,
+        } => {
+            check_line_output(&lines_out)?;
+            if let Some(g) = &gt_out {
+                check_line_output(g)?;
+            }
+            let scene = synth::toy_scene(&synth::ToyParams {
+                seed,
+                n_gaussians: gaussians,
+                ..Default::default()
+            });
+            io::write_gaussians_3dgs(&output, &scene.gaussians, None)?;
+            io::write_lines(&lines_out, &scene.lines.segments)?;
+            if let Some(g) = &gt_out {
+                io::write_lines(g, &scene.gt)?;
+            }
+            println!(
+                "synthetic toy scene: {} Gaussians -> {}, {} input segments -> {}",
+                scene.gaussians.len(),
+                output.display(),
+                scene.lines.len(),
+                lines_out.display()
+            );
+        }
+        SynthKind::Mesh {
+            mesh,
+            output,
+            gaussians,
+            edges_out,
+            seed,
+        } => {
+            if let Some(e) = &edges_out {
+                check_line_output(e)?;
+            }
+            let m = synth::mesh::read_obj_mesh(&mesh).map_err(|e| input_error(e.to_string()))?;
+            let pts = synth::mesh::gaussians_from_mesh(
+                &m,
+                gaussians,
+                seed,
+                &synth::mesh::MeshGaussianOptions::default(),
+            );
+            io::write_gaussians_3dgs(&output, &pts, None)?;
+            if let Some(e) = &edges_out {
+                let edges = synth::mesh::sharp_edges(&m.welded(1e-9), 30.0);
+                io::write_lines(e, &edges)?;
+            }
+            println!("synthetic: {} Gaussians from {} -> {}", pts.len(), mesh.display(), output.display());
+        }
+        SynthKind::Around {
+            lines,
+            output,
+            gaussians,
+            sigma,
+            background,
+            seed,
+        } => {
+            if !(0.0..=1.0).contains(&background) || !(sigma >= 0.0) {
+                return Err(input_error("--background must be in [0, 1] and --sigma >= 0"));
+            }
+            let l = io::read_lines(&lines)?;
+            let pts = synth::gaussians_around_segments(&l.lines.segments, gaussians, sigma, background, seed);
+            io::write_gaussians_3dgs(&output, &pts, None)?;
+            println!(
+                "synthetic: {} Gaussians around {} segments of {} -> {}",
+                pts.len(),
+                l.lines.len(),
+                lines.display(),
+                output.display()
+            );
+        }
+    }
+    Ok(())
+}

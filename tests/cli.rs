@@ -1,0 +1,211 @@
+//! The command line as a user runs it: real files, bad inputs, exit codes, no partial
+//! output.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
+}
+
+fn data(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(p)
+}
+
+fn run(args: &[&str]) -> Output {
+    bin()
+        .args(args)
+        .env("CI", std::env::var("CI").unwrap_or_default())
+        .output()
+        .unwrap()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// A small synthetic scene on disk (toy Gaussians + lines), made by the CLI itself.
+fn toy(dir: &Path) -> (PathBuf, PathBuf) {
+    let g = dir.join("g.ply");
+    let l = dir.join("l.obj");
+    let o = run(&[
+        "synth",
+        "toy",
+        "-o",
+        g.to_str().unwrap(),
+        "--lines-out",
+        l.to_str().unwrap(),
+        "-n",
+        "8000",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    (g, l)
+}
+
+#[test]
+fn info_describes_a_real_3dgs_model_and_line_files() {
+    let o = run(&["info", data("gaussians/tile_lod2.ply").to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("6831"), "{}", stdout(&o));
+    for f in ["line3dpp_optimized.txt", "line3dpp_optimized.obj", "line3dpp_optimized.stl"] {
+        let o = run(&["info", data(&format!("line3dpp/{f}")).to_str().unwrap()]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(stdout(&o).contains("2503"), "{f}: {}", stdout(&o));
+    }
+}
+
+#[test]
+fn eval_runs_on_the_shipped_real_files() {
+    let g = data("gaussians/tile_lod2.ply");
+    for f in ["line3dpp_optimized.txt", "line3dpp_optimized.obj", "line3dpp_optimized.stl"] {
+        let o = run(&[
+            "eval",
+            "--gaussians",
+            g.to_str().unwrap(),
+            "--lines",
+            data(&format!("line3dpp/{f}")).to_str().unwrap(),
+            "--backend",
+            "cpu",
+            "--json",
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        for k in ["e_rms_cm", "coverage_pct", "r_l", "score", "segments", "skipped"] {
+            assert!(v.get(k).is_some(), "missing {k}");
+        }
+        assert_eq!(v["input"]["segments_read"], 2503);
+        assert!(!String::from_utf8_lossy(&o.stdout).contains("NaN"));
+    }
+}
+
+#[test]
+fn refine_writes_output_and_a_report_with_every_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let out = dir.path().join("refined.ply");
+    let rep = dir.path().join("report.json");
+    let o = run(&[
+        "refine",
+        "--gaussians",
+        g.to_str().unwrap(),
+        "--lines",
+        l.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--report",
+        rep.to_str().unwrap(),
+        "--backend",
+        "cpu",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&rep).unwrap()).unwrap();
+    for k in ["backend", "adapter", "profile", "params", "input", "stages", "before", "after"] {
+        assert!(v.get(k).is_some(), "missing {k}");
+    }
+    for k in ["e_rms_cm", "coverage_pct", "r_l", "score", "segments", "skipped"] {
+        assert!(v["after"].get(k).is_some(), "after.{k}");
+    }
+    assert_eq!(v["backend"], "cpu");
+    let stages: Vec<&str> = v["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    for s in ["translate", "outliers", "cluster", "merge_join", "crop"] {
+        assert!(stages.contains(&s), "{stages:?}");
+    }
+    // the output reads back with the reported count
+    let info = run(&["info", out.to_str().unwrap()]);
+    assert!(info.status.success(), "{}", stderr(&info));
+    let n = v["after"]["segments"].as_u64().unwrap() + v["after"]["skipped"].as_u64().unwrap();
+    assert!(stdout(&info).contains(&n.to_string()));
+}
+
+fn assert_input_error(o: &Output, needle: &str) {
+    assert_eq!(o.status.code(), Some(2), "stderr: {}", stderr(o));
+    let e = stderr(o);
+    assert!(e.contains(needle), "`{needle}` not in: {e}");
+    assert!(!e.contains("panicked"), "{e}");
+}
+
+#[test]
+fn bad_inputs_exit_2_naming_the_file_and_write_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let out = dir.path().join("out.obj");
+    let refine = |g: &Path, l: &Path, out: &Path| {
+        run(&[
+            "refine",
+            "--gaussians",
+            g.to_str().unwrap(),
+            "--lines",
+            l.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--backend",
+            "cpu",
+        ])
+    };
+    // truncated PLY
+    let bytes = std::fs::read(&g).unwrap();
+    let trunc = dir.path().join("trunc.ply");
+    std::fs::write(&trunc, &bytes[..bytes.len() / 2]).unwrap();
+    assert_input_error(&refine(&trunc, &l, &out), "trunc.ply");
+    // NaN in a line file
+    let bad = dir.path().join("nan.txt");
+    std::fs::write(&bad, "0 0 0 1 1 1\n0 0 nan 1 1 1\n").unwrap();
+    assert_input_error(&refine(&g, &bad, &out), "nan.txt");
+    // empty file, unknown format, missing file
+    let empty = dir.path().join("empty.obj");
+    std::fs::write(&empty, "").unwrap();
+    assert_input_error(&refine(&g, &empty, &out), "empty.obj");
+    let weird = dir.path().join("weird.xyz");
+    std::fs::write(&weird, "hello world\n").unwrap();
+    assert_input_error(&refine(&g, &weird, &out), "weird.xyz");
+    assert_input_error(&refine(&dir.path().join("missing.ply"), &l, &out), "missing.ply");
+    // unknown output format: refused before any work
+    assert_input_error(&refine(&g, &l, &dir.path().join("out.dwg")), "out.dwg");
+    assert!(!out.exists(), "no partial output");
+    // bad option values are usage errors (exit 2 from clap)
+    let o = run(&["refine", "--gaussians", "g", "--lines", "l", "-o", "o.obj", "--radius", "-3"]);
+    assert_eq!(o.status.code(), Some(2));
+    // nothing but the inputs we made is left in the folder
+    let mut names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["empty.obj", "g.ply", "l.obj", "nan.txt", "trunc.ply", "weird.xyz"]);
+}
+
+#[test]
+fn demo_writes_every_promised_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let o = run(&["demo", "--out", out.to_str().unwrap(), "--backend", "cpu", "-n", "8000"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in [
+        "gaussians.ply",
+        "input.obj",
+        "ground_truth.obj",
+        "refined.obj",
+        "before_after.ply",
+        "before_after.png",
+        "sweep.png",
+        "sweep.svg",
+        "viewer.html",
+        "report.json",
+    ] {
+        let p = out.join(f);
+        assert!(p.exists() && std::fs::metadata(&p).unwrap().len() > 0, "{f}");
+        assert!(stdout(&o).contains(f), "demo does not list {f}");
+    }
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert!(v["after"]["score"].as_f64().unwrap() > v["before"]["score"].as_f64().unwrap());
+}
