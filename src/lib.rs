@@ -8,4 +8,5 @@ pub mod index;
 pub mod io;
 pub mod mem;
 pub mod refine;
+pub mod render;
 pub mod synth;
