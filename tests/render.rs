@@ -221,3 +221,56 @@ fn a_million_points_and_ten_thousand_segments_render_quickly() {
     // Generous: the test profile is not a release build and the machine is shared.
     assert!(secs < 5.0, "took {secs} s");
 }
+
+#[test]
+fn sweep_plot_png_and_svg_show_before_and_after() {
+    use linegs_gpu::render::{sweep_plot_png, sweep_plot_svg, SweepSeries};
+    let radii = [0.02, 0.05, 0.1, 0.2];
+    let e0 = [Some(1.9), Some(2.4), Some(3.3), Some(4.6)];
+    let c0 = [Some(12.0), Some(24.0), Some(38.0), Some(52.0)];
+    let l0 = [Some(3.1), Some(2.9), Some(2.7), Some(2.6)];
+    let s0 = [Some(0.9), Some(1.3), Some(1.6), Some(1.9)];
+    let e1 = [None, Some(0.8), Some(1.2), Some(1.9)];
+    let c1 = [None, Some(31.0), Some(45.0), Some(58.0)];
+    let l1 = [None, Some(3.4), Some(3.2), Some(3.0)];
+    let s1 = [None, Some(2.9), Some(3.1), Some(3.3)];
+    let series = [
+        SweepSeries {
+            label: "before (input)",
+            radii: &radii,
+            e_rms_cm: &e0,
+            coverage_pct: &c0,
+            r_l: &l0,
+            score: &s0,
+        },
+        SweepSeries {
+            label: "after (refined)",
+            radii: &radii,
+            e_rms_cm: &e1,
+            coverage_pct: &c1,
+            r_l: &l1,
+            score: &s1,
+        },
+    ];
+    let img = sweep_plot_png(&series, "radius sweep, toy scene", 1200, 800);
+    keep(&img, "sweep.png");
+    assert_eq!((img.width, img.height), (1200, 800));
+    for c in [INPUT, REFINED] {
+        let n = img
+            .rgb
+            .chunks(3)
+            .filter(|p| close([p[0], p[1], p[2]], c, 0))
+            .count();
+        assert!(n > 500, "{c:?}: {n} pixels");
+    }
+    let svg = sweep_plot_svg(&series, "radius sweep, toy scene");
+    if let Some(dir) = std::env::var_os("LINEGS_RENDER_OUT") {
+        std::fs::write(PathBuf::from(dir).join("sweep.svg"), &svg).unwrap();
+    }
+    assert!(svg.starts_with("<?xml") && svg.trim_end().ends_with("</svg>"));
+    assert!(
+        svg.contains("before (input)")
+            && svg.contains("after (refined)")
+            && svg.contains("evaluation radius")
+    );
+}

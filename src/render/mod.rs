@@ -5,6 +5,7 @@
 //! GPU adapter; 10^6 points and 10^4 segments at 1600x900 take a fraction of a second.
 
 pub mod font;
+pub mod plot;
 pub mod raster;
 
 use glam::DVec3;
@@ -12,6 +13,7 @@ use rayon::prelude::*;
 
 use crate::geom::Segment;
 
+pub use plot::{sweep_plot_png, sweep_plot_svg, SweepSeries};
 pub use raster::{view_project, Image, View};
 
 /// One set of segments drawn in one colour.

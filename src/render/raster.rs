@@ -97,8 +97,23 @@ impl Image {
             Some(d) if !d.as_os_str().is_empty() => d,
             _ => Path::new("."),
         };
-        let mut tmp = tempfile::NamedTempFile::new_in(dir)
-            .map_err(|e| io::Error::new(e.kind(), format!("{}: {e}", dir.display())))?;
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".linegs-").suffix(".tmp");
+        // Temporary files are private (0600); a picture gets the usual umask-filtered mode.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            builder.permissions(std::fs::Permissions::from_mode(0o666));
+        }
+        let mut tmp = builder.tempfile_in(dir).map_err(|e| {
+            io::Error::new(
+                e.kind(),
+                format!(
+                    "{}: cannot create a temporary file beside it: {e}",
+                    path.display()
+                ),
+            )
+        })?;
         tmp.write_all(&bytes)?;
         tmp.as_file().sync_all()?;
         tmp.persist(path).map_err(|e| {
@@ -626,6 +641,15 @@ mod tests {
         assert_eq!(&buf[..info.buffer_size()], &img.rgb[..]);
         // Only the picture is left in the folder: the temporary file was renamed.
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            // The mode of any new file (umask applied), not the 0600 of a temporary file.
+            let plain = dir.path().join("plain");
+            std::fs::write(&plain, b"x").unwrap();
+            let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+            assert_eq!(mode(&path), mode(&plain));
+        }
         assert!(img.write_png(&dir.path().join("missing/a.png")).is_err());
     }
 }
