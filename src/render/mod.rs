@@ -7,6 +7,7 @@
 pub mod font;
 pub mod plot;
 pub mod raster;
+pub mod viewer;
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -15,6 +16,7 @@ use crate::geom::Segment;
 
 pub use plot::{sweep_plot_png, sweep_plot_svg, SweepSeries};
 pub use raster::{view_project, Image, View};
+pub use viewer::viewer_html;
 
 /// One set of segments drawn in one colour.
 #[derive(Clone, Copy, Debug)]
