@@ -8,5 +8,6 @@ pub mod index;
 pub mod io;
 pub mod mem;
 pub mod refine;
+pub mod render;
 pub mod synth;
 pub mod pipeline;
