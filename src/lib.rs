@@ -7,7 +7,7 @@ pub mod geom;
 pub mod index;
 pub mod io;
 pub mod mem;
+pub mod pipeline;
 pub mod refine;
 pub mod render;
 pub mod synth;
-pub mod pipeline;

@@ -50,17 +50,18 @@ pub fn auto_radius(points: &[[f32; 3]]) -> Option<f64> {
         return None;
     }
     let n = points.len() as f64;
-    let c = points
-        .iter()
-        .fold(glam::DVec3::ZERO, |a, p| a + p64(*p))
-        / n;
+    let c = points.iter().fold(glam::DVec3::ZERO, |a, p| a + p64(*p)) / n;
     let mut d: Vec<f64> = points.iter().map(|p| (p64(*p) - c).length()).collect();
     d.sort_by(f64::total_cmp);
     let pos = 0.95 * (d.len() - 1) as f64;
     let lo = pos.floor() as usize;
     let hi = pos.ceil() as usize;
     let p95 = d[lo] + (d[hi] - d[lo]) * (pos - lo as f64);
-    let kept = d.iter().copied().filter(|&x| x < p95).fold(f64::NAN, f64::max);
+    let kept = d
+        .iter()
+        .copied()
+        .filter(|&x| x < p95)
+        .fold(f64::NAN, f64::max);
     let r = 0.02 * if kept.is_nan() { p95 } else { kept };
     (r > 0.0).then_some(r)
 }
@@ -85,7 +86,11 @@ pub struct Prepared {
     pub seconds: f64,
 }
 
-pub fn prepare(centers: &[[f32; 3]], segments: &[Segment], params: &Params) -> Result<Prepared, RunError> {
+pub fn prepare(
+    centers: &[[f32; 3]],
+    segments: &[Segment],
+    params: &Params,
+) -> Result<Prepared, RunError> {
     let t = Instant::now();
     let ws = WorkingSet::new(centers, segments);
     let radius = resolve_radius(params, &ws)?;

@@ -9,7 +9,9 @@ fn bin() -> Command {
 }
 
 fn data(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(p)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(p)
 }
 
 fn run(args: &[&str]) -> Output {
@@ -51,7 +53,11 @@ fn info_describes_a_real_3dgs_model_and_line_files() {
     let o = run(&["info", data("gaussians/tile_lod2.ply").to_str().unwrap()]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stdout(&o).contains("6831"), "{}", stdout(&o));
-    for f in ["line3dpp_optimized.txt", "line3dpp_optimized.obj", "line3dpp_optimized.stl"] {
+    for f in [
+        "line3dpp_optimized.txt",
+        "line3dpp_optimized.obj",
+        "line3dpp_optimized.stl",
+    ] {
         let o = run(&["info", data(&format!("line3dpp/{f}")).to_str().unwrap()]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(stdout(&o).contains("2503"), "{f}: {}", stdout(&o));
@@ -61,7 +67,11 @@ fn info_describes_a_real_3dgs_model_and_line_files() {
 #[test]
 fn eval_runs_on_the_shipped_real_files() {
     let g = data("gaussians/tile_lod2.ply");
-    for f in ["line3dpp_optimized.txt", "line3dpp_optimized.obj", "line3dpp_optimized.stl"] {
+    for f in [
+        "line3dpp_optimized.txt",
+        "line3dpp_optimized.obj",
+        "line3dpp_optimized.stl",
+    ] {
         let o = run(&[
             "eval",
             "--gaussians",
@@ -74,7 +84,14 @@ fn eval_runs_on_the_shipped_real_files() {
         ]);
         assert!(o.status.success(), "{}", stderr(&o));
         let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        for k in ["e_rms_cm", "coverage_pct", "r_l", "score", "segments", "skipped"] {
+        for k in [
+            "e_rms_cm",
+            "coverage_pct",
+            "r_l",
+            "score",
+            "segments",
+            "skipped",
+        ] {
             assert!(v.get(k).is_some(), "missing {k}");
         }
         assert_eq!(v["input"]["segments_read"], 2503);
@@ -103,10 +120,19 @@ fn refine_writes_output_and_a_report_with_every_key() {
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&rep).unwrap()).unwrap();
-    for k in ["backend", "adapter", "profile", "params", "input", "stages", "before", "after"] {
+    for k in [
+        "backend", "adapter", "profile", "params", "input", "stages", "before", "after",
+    ] {
         assert!(v.get(k).is_some(), "missing {k}");
     }
-    for k in ["e_rms_cm", "coverage_pct", "r_l", "score", "segments", "skipped"] {
+    for k in [
+        "e_rms_cm",
+        "coverage_pct",
+        "r_l",
+        "score",
+        "segments",
+        "skipped",
+    ] {
         assert!(v["after"].get(k).is_some(), "after.{k}");
     }
     assert_eq!(v["backend"], "cpu");
@@ -167,12 +193,25 @@ fn bad_inputs_exit_2_naming_the_file_and_write_nothing() {
     let weird = dir.path().join("weird.xyz");
     std::fs::write(&weird, "hello world\n").unwrap();
     assert_input_error(&refine(&g, &weird, &out), "weird.xyz");
-    assert_input_error(&refine(&dir.path().join("missing.ply"), &l, &out), "missing.ply");
+    assert_input_error(
+        &refine(&dir.path().join("missing.ply"), &l, &out),
+        "missing.ply",
+    );
     // unknown output format: refused before any work
     assert_input_error(&refine(&g, &l, &dir.path().join("out.dwg")), "out.dwg");
     assert!(!out.exists(), "no partial output");
     // bad option values are usage errors (exit 2 from clap)
-    let o = run(&["refine", "--gaussians", "g", "--lines", "l", "-o", "o.obj", "--radius", "-3"]);
+    let o = run(&[
+        "refine",
+        "--gaussians",
+        "g",
+        "--lines",
+        "l",
+        "-o",
+        "o.obj",
+        "--radius",
+        "-3",
+    ]);
     assert_eq!(o.status.code(), Some(2));
     // nothing but the inputs we made is left in the folder
     let mut names: Vec<String> = std::fs::read_dir(dir.path())
@@ -180,14 +219,32 @@ fn bad_inputs_exit_2_naming_the_file_and_write_nothing() {
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .collect();
     names.sort();
-    assert_eq!(names, ["empty.obj", "g.ply", "l.obj", "nan.txt", "trunc.ply", "weird.xyz"]);
+    assert_eq!(
+        names,
+        [
+            "empty.obj",
+            "g.ply",
+            "l.obj",
+            "nan.txt",
+            "trunc.ply",
+            "weird.xyz"
+        ]
+    );
 }
 
 #[test]
 fn demo_writes_every_promised_file() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("demo");
-    let o = run(&["demo", "--out", out.to_str().unwrap(), "--backend", "cpu", "-n", "8000"]);
+    let o = run(&[
+        "demo",
+        "--out",
+        out.to_str().unwrap(),
+        "--backend",
+        "cpu",
+        "-n",
+        "8000",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     for f in [
         "gaussians.ply",
@@ -202,7 +259,10 @@ fn demo_writes_every_promised_file() {
         "report.json",
     ] {
         let p = out.join(f);
-        assert!(p.exists() && std::fs::metadata(&p).unwrap().len() > 0, "{f}");
+        assert!(
+            p.exists() && std::fs::metadata(&p).unwrap().len() > 0,
+            "{f}"
+        );
         assert!(stdout(&o).contains(f), "demo does not list {f}");
     }
     let v: serde_json::Value =

@@ -23,7 +23,10 @@ fn refine_cpu(points: &[[f32; 3]], lines: &LineSet, params: &Params) -> RunOutpu
 fn assert_sane(out: &RunOutput, input: usize) {
     assert!(!out.lines.is_empty() && out.lines.len() <= input);
     for s in &out.lines.segments {
-        assert!(s.p1.is_finite() && s.p2.is_finite() && s.length() > 0.0, "{s:?}");
+        assert!(
+            s.p1.is_finite() && s.p2.is_finite() && s.length() > 0.0,
+            "{s:?}"
+        );
     }
     for m in [&out.before, &out.after] {
         for v in [m.e_rms_cm, m.coverage_pct, m.r_l, m.score] {
@@ -53,17 +56,29 @@ fn the_toy_scene_is_cleaned_and_default_beats_reference() {
     assert!(d.lines.len() * 2 < n_in, "{} of {n_in}", d.lines.len());
     // the paper score improves
     assert!(d.after.score.unwrap() > d.before.score.unwrap());
-    // closer to the ground-truth edges than the input, and more compact and complete than
-    // the reference profile (which over-crops: its precision stays close, see README)
+    // closer to the ground-truth edges than the input and than the reference profile,
+    // with less total length (reference keeps more duplicates)
     let m_in = gt::gt_metrics(&scene.lines.segments, &scene.gt, gt::STEP, &gt::THRESHOLDS);
     let m_d = gt::gt_metrics(&d.lines.segments, &scene.gt, gt::STEP, &gt::THRESHOLDS);
     let m_r = gt::gt_metrics(&r.lines.segments, &scene.gt, gt::STEP, &gt::THRESHOLDS);
-    assert!(m_d.accuracy.unwrap() < 0.2 * m_in.accuracy.unwrap(), "{m_d:?}");
+    assert!(
+        m_d.accuracy.unwrap() < 0.2 * m_in.accuracy.unwrap(),
+        "{m_d:?}"
+    );
     assert!(m_d.completeness.unwrap() < m_in.completeness.unwrap());
-    assert!(m_d.scores[1].recall > m_r.scores[1].recall, "{m_d:?} {m_r:?}");
-    assert!(m_d.completeness.unwrap() < 1.02 * m_r.completeness.unwrap());
-    assert!(m_d.accuracy.unwrap() < 1.15 * m_r.accuracy.unwrap(), "{m_d:?} {m_r:?}");
-    assert!(m_d.scores[2].f_score > 0.99 && m_d.scores[1].f_score > 0.97, "{m_d:?}");
+    assert!(
+        m_d.scores[1].recall > m_r.scores[1].recall,
+        "{m_d:?} {m_r:?}"
+    );
+    assert!(
+        m_d.accuracy.unwrap() < m_r.accuracy.unwrap(),
+        "{m_d:?} {m_r:?}"
+    );
+    assert!(m_d.predicted_samples < m_r.predicted_samples);
+    assert!(
+        m_d.scores[2].f_score > 0.99 && m_d.scores[1].f_score > 0.97,
+        "{m_d:?}"
+    );
     assert!(d.lines.len() <= r.lines.len());
     assert!(d.after.score.unwrap() > r.after.score.unwrap());
     // the planted outliers are gone
@@ -103,7 +118,9 @@ fn output_is_identical_across_runs_and_thread_counts() {
 }
 
 fn data(p: &str) -> std::path::PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(p)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(p)
 }
 
 #[test]
@@ -117,7 +134,10 @@ fn real_line3dpp_output_refines_with_its_line_groups() {
     // (The reference profile is left out here: with the lateral offset ignored its
     // clusters on this real scene hold hundreds of segments and take a minute; the toy
     // scene covers it.)
-    for (lines, profile) in [(&txt.lines, Params::default()), (&obj.lines, Params::default())] {
+    for (lines, profile) in [
+        (&txt.lines, Params::default()),
+        (&obj.lines, Params::default()),
+    ] {
         let out = refine_cpu(&pts, lines, &profile);
         assert_sane(&out, lines.len());
         // a real reconstruction keeps most of its structure
@@ -148,6 +168,12 @@ fn nef_lines_refine_against_gaussians_sampled_from_the_abc_mesh() {
     let m_in = gt::gt_metrics(&nef.lines.segments, g, gt::STEP, &gt::THRESHOLDS);
     let m = gt::gt_metrics(&out.lines.segments, g, gt::STEP, &gt::THRESHOLDS);
     assert!(m.completeness.unwrap() < 0.03, "{m:?}");
-    assert!(m.completeness.unwrap() < 1.5 * m_in.completeness.unwrap(), "{m:?} {m_in:?}");
-    assert!(m.accuracy.unwrap() < 1.2 * m_in.accuracy.unwrap(), "{m:?} {m_in:?}");
+    assert!(
+        m.completeness.unwrap() < 1.5 * m_in.completeness.unwrap(),
+        "{m:?} {m_in:?}"
+    );
+    assert!(
+        m.accuracy.unwrap() < 1.2 * m_in.accuracy.unwrap(),
+        "{m:?} {m_in:?}"
+    );
 }

@@ -63,7 +63,9 @@ struct RunTiming {
 
 pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
     if a.gaussians.is_empty() || a.segments.is_empty() || a.repeat == 0 {
-        return Err(input_error("bench needs at least one size and --repeat >= 1"));
+        return Err(input_error(
+            "bench needs at least one size and --repeat >= 1",
+        ));
     }
     let params = Params {
         profile: a.profile,
@@ -98,7 +100,8 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
                         segments: scene.lines.len(),
                         seconds: t.elapsed().as_secs_f64(),
                     });
-                    let out = pipeline::run(eng.as_ref(), &scene.lines, prep.radius, &params, |_| {})?;
+                    let out =
+                        pipeline::run(eng.as_ref(), &scene.lines, prep.radius, &params, |_| {})?;
                     stages.extend(out.stages.iter().cloned());
                     let total = t0.elapsed().as_secs_f64();
                     let run = RunTiming {
@@ -110,13 +113,20 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
                         total_seconds: total,
                         peak_rss_mb: mem::peak_rss_bytes().map(|b| b as f64 / 1048576.0),
                     };
-                    if best.as_ref().is_none_or(|x| run.total_seconds < x.total_seconds) {
+                    if best
+                        .as_ref()
+                        .is_none_or(|x| run.total_seconds < x.total_seconds)
+                    {
                         best = Some(run);
                     }
                 }
                 runs.push(best.expect("repeat >= 1"));
             }
-            let tot = |name: &str| runs.iter().find(|r| r.backend == name).map(|r| r.total_seconds);
+            let tot = |name: &str| {
+                runs.iter()
+                    .find(|r| r.backend == name)
+                    .map(|r| r.total_seconds)
+            };
             let gpu_over_cpu = match (tot("gpu"), tot("cpu")) {
                 (Some(g), Some(c)) if c > 0.0 => Some(g / c),
                 _ => None,

@@ -57,7 +57,10 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         out.adapter,
         t0.elapsed().as_secs_f64()
     );
-    print!("{}", metrics_table(&[("before", &out.before), ("after", &out.after)]));
+    print!(
+        "{}",
+        metrics_table(&[("before", &out.before), ("after", &out.after)])
+    );
     let gt_before = gt::gt_metrics(&scene.lines.segments, &scene.gt, gt::STEP, &gt::THRESHOLDS);
     let gt_after = gt::gt_metrics(&out.lines.segments, &scene.gt, gt::STEP, &gt::THRESHOLDS);
     let f = |m: &gt::GtMetrics| m.scores.get(1).map_or(0.0, |s| s.f_score);
@@ -84,23 +87,39 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     io::write_lines(&file("refined.obj"), &out.lines.segments)?;
     io::write_lines_ply_layers(
         &file("before_after.ply"),
-        &[(&scene.lines.segments[..], BEFORE), (&out.lines.segments[..], AFTER)],
+        &[
+            (&scene.lines.segments[..], BEFORE),
+            (&out.lines.segments[..], AFTER),
+        ],
     )?;
     let radii = [0.02, 0.05, 0.1, 0.2];
     let rl = params.fixes().r_l;
-    let sw_b = eval::sweep(eng.as_ref(), &scene.lines.segments, &params.eval, rl, &radii)?;
+    let sw_b = eval::sweep(
+        eng.as_ref(),
+        &scene.lines.segments,
+        &params.eval,
+        rl,
+        &radii,
+    )?;
     let sw_a = eval::sweep(eng.as_ref(), &out.lines.segments, &params.eval, rl, &radii)?;
     let (cb, ca) = (SeriesCols::new(&sw_b), SeriesCols::new(&sw_a));
     let series = [cb.series("before", &radii), ca.series("after", &radii)];
     let title = "synthetic toy scene: metrics against the evaluation radius";
     render::sweep_plot_png(&series, title, 1400, 900).write_png(&file("sweep.png"))?;
-    write_atomic(&file("sweep.svg"), render::sweep_plot_svg(&series, title).as_bytes())?;
+    write_atomic(
+        &file("sweep.svg"),
+        render::sweep_plot_svg(&series, title).as_bytes(),
+    )?;
     let mline = |m: &eval::Metrics| {
         vec![
             format!("{} segments", m.segments + m.skipped),
             format!("E_rms {:.3} cm", m.e_rms_cm.unwrap_or(f64::NAN)),
             format!("R_covered {:.2} %", m.coverage_pct.unwrap_or(f64::NAN)),
-            format!("R_L {:.3}  score {:.3}", m.r_l.unwrap_or(f64::NAN), m.score.unwrap_or(f64::NAN)),
+            format!(
+                "R_L {:.3}  score {:.3}",
+                m.r_l.unwrap_or(f64::NAN),
+                m.score.unwrap_or(f64::NAN)
+            ),
         ]
     };
     let panels = [
@@ -123,7 +142,8 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
             metrics: mline(&out.after),
         },
     ];
-    render::render_comparison(&scene.gaussians, &panels, 1600, 900).write_png(&file("before_after.png"))?;
+    render::render_comparison(&scene.gaussians, &panels, 1600, 900)
+        .write_png(&file("before_after.png"))?;
     let layers = [
         Layer {
             name: "input segments",
@@ -141,7 +161,12 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
             color: [40, 170, 60],
         },
     ];
-    let html = render::viewer_html(&scene.gaussians, &layers, "linegs-gpu demo (synthetic)", 200_000);
+    let html = render::viewer_html(
+        &scene.gaussians,
+        &layers,
+        "linegs-gpu demo (synthetic)",
+        200_000,
+    );
     write_atomic(&file("viewer.html"), html.as_bytes())?;
     let report = json!({
         "tool": "linegs-gpu",
@@ -166,7 +191,10 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         "ground_truth": { "before": gt_before, "after": gt_after },
         "sweep": { "radii": radii, "before": sw_b, "after": sw_a },
     });
-    write_atomic(&file("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomic(
+        &file("report.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
     println!("wrote to {}:", d.display());
     for f in &files {
         println!("  {}", f.display());

@@ -1,4 +1,6 @@
-use super::{engine, input_error, input_report, load, metrics_table, parse_radii, write_atomic, InputArgs};
+use super::{
+    engine, input_error, input_report, load, metrics_table, parse_radii, write_atomic, InputArgs,
+};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::{self, gt, Metrics};
@@ -79,7 +81,10 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
         }
     }
     let loaded = load(&a.input)?;
-    let mut sets = vec![(a.input.lines.display().to_string(), loaded.lines.lines.clone())];
+    let mut sets = vec![(
+        a.input.lines.display().to_string(),
+        loaded.lines.lines.clone(),
+    )];
     if let Some(c) = &a.compare {
         let f = io::read_lines(c)?;
         for w in &f.warnings {
@@ -119,13 +124,19 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
         } else {
             vec!["lines".into()]
         };
-        let cols: Vec<SeriesCols> = results.iter().map(|r| SeriesCols::new(&r.metrics)).collect();
+        let cols: Vec<SeriesCols> = results
+            .iter()
+            .map(|r| SeriesCols::new(&r.metrics))
+            .collect();
         let series: Vec<render::SweepSeries> = cols
             .iter()
             .zip(&labels)
             .map(|(c, l)| c.series(l, &radii))
             .collect();
-        let title = format!("metrics against the evaluation radius ({} Gaussians)", ws.len());
+        let title = format!(
+            "metrics against the evaluation radius ({} Gaussians)",
+            ws.len()
+        );
         if p.extension().and_then(|e| e.to_str()) == Some("svg") {
             write_atomic(p, render::sweep_plot_svg(&series, &title).as_bytes())?;
         } else {

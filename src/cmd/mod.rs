@@ -105,7 +105,13 @@ pub fn load(a: &InputArgs) -> Result<Loaded> {
 pub fn engine(backend: Backend, grid: Arc<Grid>, verbose: bool) -> Result<Box<dyn Engine>> {
     let (engine, warnings) = make_engine(backend, grid).context("starting the query engine")?;
     for w in warnings {
-        eprintln!("warning: {w}");
+        // `auto` says which adapter it picked; only a fallback is a warning.
+        let kind = if w.contains("using the GPU adapter") {
+            "note"
+        } else {
+            "warning"
+        };
+        eprintln!("{kind}: {w}");
     }
     if verbose {
         eprintln!("engine: {} ({})", engine.backend(), engine.adapter());
@@ -169,7 +175,10 @@ pub fn metrics_table(cols: &[(&str, &Metrics)]) -> String {
     let rows: [(&str, Box<dyn Fn(&Metrics) -> String>); 7] = [
         ("r_e", Box::new(|m: &Metrics| format!("{}", m.radius))),
         ("E_rms (cm)", Box::new(|m: &Metrics| fmt_opt(m.e_rms_cm, 4))),
-        ("R_covered (%)", Box::new(|m: &Metrics| fmt_opt(m.coverage_pct, 3))),
+        (
+            "R_covered (%)",
+            Box::new(|m: &Metrics| fmt_opt(m.coverage_pct, 3)),
+        ),
         ("R_L", Box::new(|m: &Metrics| fmt_opt(m.r_l, 4))),
         ("score", Box::new(|m: &Metrics| fmt_opt(m.score, 4))),
         ("segments", Box::new(|m: &Metrics| m.segments.to_string())),
@@ -197,12 +206,21 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
-    let mut f = tempfile::NamedTempFile::new_in(dir)
-        .with_context(|| format!("{}: cannot create a file in {}", path.display(), dir.display()))?;
+    let mut f = tempfile::NamedTempFile::new_in(dir).with_context(|| {
+        format!(
+            "{}: cannot create a file in {}",
+            path.display(),
+            dir.display()
+        )
+    })?;
     f.write_all(bytes)
         .with_context(|| format!("{}: write failed", path.display()))?;
-    f.persist(path)
-        .with_context(|| format!("{}: cannot move the finished file into place", path.display()))?;
+    f.persist(path).with_context(|| {
+        format!(
+            "{}: cannot move the finished file into place",
+            path.display()
+        )
+    })?;
     Ok(())
 }
 

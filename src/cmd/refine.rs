@@ -53,7 +53,11 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     // Check the output format before any work, so a typo costs nothing.
     super::check_line_output(&a.output)?;
     let loaded = load(&a.input)?;
-    let prep = pipeline::prepare(&loaded.cloud.centers, &loaded.lines.lines.segments, &a.params)?;
+    let prep = pipeline::prepare(
+        &loaded.cloud.centers,
+        &loaded.lines.lines.segments,
+        &a.params,
+    )?;
     let eng = engine(a.input.backend, prep.grid.clone(), verbose)?;
     let bar = ProgressBar::new_spinner();
     bar.set_style(ProgressStyle::with_template("{spinner} {elapsed} {msg}").unwrap());
@@ -64,12 +68,21 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         segments: loaded.lines.lines.len(),
         seconds: t0.elapsed().as_secs_f64(),
     }];
-    let out = pipeline::run(eng.as_ref(), &loaded.lines.lines, prep.radius, &a.params, |s| {
-        bar.set_message(format!("{} done: {} segments", s.name, s.segments));
-        if verbose {
-            bar.println(format!("{:<18} {:>8} segments {:>9.3} s", s.name, s.segments, s.seconds));
-        }
-    })?;
+    let out = pipeline::run(
+        eng.as_ref(),
+        &loaded.lines.lines,
+        prep.radius,
+        &a.params,
+        |s| {
+            bar.set_message(format!("{} done: {} segments", s.name, s.segments));
+            if verbose {
+                bar.println(format!(
+                    "{:<18} {:>8} segments {:>9.3} s",
+                    s.name, s.segments, s.seconds
+                ));
+            }
+        },
+    )?;
     bar.finish_and_clear();
     let t = Instant::now();
     io::write_lines(&a.output, &out.lines.segments)?;
@@ -99,7 +112,10 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         out.backend,
         out.adapter
     );
-    print!("{}", metrics_table(&[("before", &out.before), ("after", &out.after)]));
+    print!(
+        "{}",
+        metrics_table(&[("before", &out.before), ("after", &out.after)])
+    );
     println!("wrote {} in {total:.2} s", a.output.display());
     if let Some(rp) = &a.report {
         let mut warnings = loaded.cloud.warnings.clone();

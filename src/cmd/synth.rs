@@ -121,7 +121,12 @@ pub fn run(a: SynthArgs) -> Result<()> {
                 let edges = synth::mesh::sharp_edges(&m.welded(1e-9), 30.0);
                 io::write_lines(e, &edges)?;
             }
-            println!("synthetic: {} Gaussians from {} -> {}", pts.len(), mesh.display(), output.display());
+            println!(
+                "synthetic: {} Gaussians from {} -> {}",
+                pts.len(),
+                mesh.display(),
+                output.display()
+            );
         }
         SynthKind::Around {
             lines,
@@ -132,10 +137,18 @@ pub fn run(a: SynthArgs) -> Result<()> {
             seed,
         } => {
             if !(0.0..=1.0).contains(&background) || !(sigma >= 0.0) {
-                return Err(input_error("--background must be in [0, 1] and --sigma >= 0"));
+                return Err(input_error(
+                    "--background must be in [0, 1] and --sigma >= 0",
+                ));
             }
             let l = io::read_lines(&lines)?;
-            let pts = synth::gaussians_around_segments(&l.lines.segments, gaussians, sigma, background, seed);
+            let pts = synth::gaussians_around_segments(
+                &l.lines.segments,
+                gaussians,
+                sigma,
+                background,
+                seed,
+            );
             io::write_gaussians_3dgs(&output, &pts, None)?;
             println!(
                 "synthetic: {} Gaussians around {} segments of {} -> {}",
