@@ -735,33 +735,4 @@ mod tests {
             assert_eq!(one, run(2, &p));
         }
     }
-
-    /// Timing at 10^5 segments: 20,000 edges of a 5-unit scene, each seen 5 times with
-    /// noise, as a line reconstruction returns them. Run alone:
-    /// `cargo test --lib cluster_1e5 -- --ignored --nocapture`.
-    #[test]
-    #[ignore]
-    fn cluster_1e5_segments_timing() {
-        let mut r = Lcg(11);
-        let mut segments = Vec::with_capacity(100_000);
-        for _ in 0..20_000 {
-            let a = r.v() * 5.0;
-            let b = a + (r.v() - 0.5) * 0.2;
-            for _ in 0..5 {
-                let s = Segment::new(a + (r.v() - 0.5) * 0.03, b + (r.v() - 0.5) * 0.03);
-                segments.push(s);
-            }
-        }
-        let lines = LineSet::new(segments);
-        let p = Params::default();
-        let t = std::time::Instant::now();
-        let c = cluster(&lines, 0.03, &p, &p.fixes());
-        let s = t.elapsed().as_secs_f64();
-        let edges = edges(&lines, 0.03, &p, &p.fixes()).len();
-        eprintln!(
-            "10^5 segments: {edges} edges, {} clusters in {s:.3} s",
-            c.len()
-        );
-        assert!(c.len() < 60_000);
-    }
 }
