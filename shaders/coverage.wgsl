@@ -1,15 +1,16 @@
 // Coverage: sets the bit of every sorted point that lies in some query's cylinder.
 //
-// Same work items and membership test as stats.wgsl. Bits are set with integer
+// Same work items, groups and membership test as stats.wgsl (one workgroup per group of
+// items sharing a chunk, the loop uniform across it). Bits are set with integer
 // `atomicOr` into a u32 mask over all sorted points, so the order of the writes does not
 // matter. Loop bound: `min(count, CHUNK)` iterations per invocation (lavapipe stops an
 // invocation silently after 65,535).
 
 const CHUNK: u32 = 256u;
-const WORKGROUP: u32 = 64u;
+const ROW: u32 = 4096u;
 
 struct Params {
-    n_items: u32,
+    n_groups: u32,
     // Sorted index of the first point of the bound part of the point buffer.
     part_base: u32,
     mode: u32,
@@ -27,30 +28,46 @@ struct Item {
     count_query: u32,
 }
 
-@group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
-@group(0) @binding(2) var<storage, read> items: array<Item>;
-@group(0) @binding(3) var<storage, read_write> mask: array<atomic<u32>>;
+struct Group {
+    start: u32,
+    count: u32,
+    first: u32,
+    len: u32,
+}
 
-@compute @workgroup_size(64)
+@group(0) @binding(0) var<uniform> params: Params;
+// The sorted points of one part, relative to their cells' origins, as the bits of f32
+// x, y, z (and an unused w), ROW texels per texture row.
+@group(0) @binding(1) var points: texture_2d<u32>;
+@group(0) @binding(2) var<storage, read> items: array<Item>;
+@group(0) @binding(3) var<storage, read> groups: array<Group>;
+@group(0) @binding(4) var<storage, read_write> mask: array<atomic<u32>>;
+
+// Points are read through a texture, not a storage buffer: lavapipe loads storage buffers
+// inside loops one lane and one component at a time, but fetches texels with SIMD gathers.
+fn point(i: u32) -> vec3<f32> {
+    let texel = textureLoad(points, vec2<u32>(i % ROW, i / ROW), 0);
+    return bitcast<vec4<f32>>(texel).xyz;
+}
+
+@compute @workgroup_size(8)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let idx = (wg.y * n_wg.x + wg.x) * WORKGROUP + lane;
-    if idx >= params.n_items {
-        return;
-    }
-    let it = items[idx];
-    let n = min(it.count_query & 511u, CHUNK);
+    let gi = wg.y * n_wg.x + wg.x;
+    let g = groups[min(gi, params.n_groups - 1u)];
+    let live = gi < params.n_groups && lane < g.len;
+    let it = items[g.first + min(lane, g.len - 1u)];
+    let n = min(g.count, CHUNK);
     for (var i = 0u; i < n; i++) {
-        let w = points[it.start + i].xyz - it.o;
+        let w = point(g.start + i) - it.o;
         let u = dot(w, it.d);
         let v = w - u * it.d;
-        if u >= it.lo && u <= it.hi && dot(v, v) <= it.r2 {
-            let g = params.part_base + it.start + i;
-            atomicOr(&mask[g >> 5u], 1u << (g & 31u));
+        if live && u >= it.lo && u <= it.hi && dot(v, v) <= it.r2 {
+            let p = params.part_base + g.start + i;
+            atomicOr(&mask[p >> 5u], 1u << (p & 31u));
         }
     }
 }

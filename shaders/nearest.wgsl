@@ -7,15 +7,16 @@
 //   each item writes the count and sums of its members in bins below the cut, and a
 //   bitmask of its members in the cut bin; the host resolves those exactly in f64.
 // Both passes run this one function, so a point lands in the same bin in both.
+// Work items and groups as in stats.wgsl (the loop is uniform across the workgroup).
 // Loop bound: `min(count, CHUNK)` iterations per invocation (lavapipe stops an invocation
 // silently after 65,535).
 
 const CHUNK: u32 = 256u;
-const WORKGROUP: u32 = 64u;
+const ROW: u32 = 4096u;
 const NBINS: u32 = 64u;
 
 struct Params {
-    n_items: u32,
+    n_groups: u32,
     part_base: u32,
     mode: u32,
     pad: u32,
@@ -32,22 +33,32 @@ struct Item {
     count_query: u32,
 }
 
+struct Group {
+    start: u32,
+    count: u32,
+    first: u32,
+    len: u32,
+}
+
 struct Below {
     count: u32,
     sum_d2: f32,
     off_x: f32,
     off_y: f32,
     off_z: f32,
-    // Bit i: point start + i is a member in the cut bin.
+    // Bit i: point start + i of the chunk is a member in the cut bin.
     in_cut: array<u32, 8>,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
+// The sorted points of one part, relative to their cells' origins, as the bits of f32
+// x, y, z (and an unused w), ROW texels per texture row.
+@group(0) @binding(1) var points: texture_2d<u32>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
-@group(0) @binding(3) var<storage, read_write> hist: array<atomic<u32>>;
-@group(0) @binding(4) var<storage, read> cut: array<u32>;
-@group(0) @binding(5) var<storage, read_write> below: array<Below>;
+@group(0) @binding(3) var<storage, read> groups: array<Group>;
+@group(0) @binding(4) var<storage, read_write> hist: array<atomic<u32>>;
+@group(0) @binding(5) var<storage, read> cut: array<u32>;
+@group(0) @binding(6) var<storage, read_write> below: array<Below>;
 
 fn bin_of(d2: f32, r2: f32) -> u32 {
     // r = 0 leaves only points on the axis: all in the top bin.
@@ -56,22 +67,29 @@ fn bin_of(d2: f32, r2: f32) -> u32 {
     return NBINS - 1u - u32(min(floor(octaves * 4.0), f32(NBINS - 1u)));
 }
 
-@compute @workgroup_size(64)
+// Points are read through a texture, not a storage buffer: lavapipe loads storage buffers
+// inside loops one lane and one component at a time, but fetches texels with SIMD gathers.
+fn point(i: u32) -> vec3<f32> {
+    let texel = textureLoad(points, vec2<u32>(i % ROW, i / ROW), 0);
+    return bitcast<vec4<f32>>(texel).xyz;
+}
+
+@compute @workgroup_size(8)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let idx = (wg.y * n_wg.x + wg.x) * WORKGROUP + lane;
-    if idx >= params.n_items {
-        return;
-    }
+    let gi = wg.y * n_wg.x + wg.x;
+    let g = groups[min(gi, params.n_groups - 1u)];
+    let live = gi < params.n_groups && lane < g.len;
+    let idx = g.first + min(lane, g.len - 1u);
     let it = items[idx];
-    let n = min(it.count_query & 511u, CHUNK);
+    let n = min(g.count, CHUNK);
     let q = it.count_query >> 9u;
     let histogram = params.mode == 0u;
     var c = NBINS;
-    if !histogram {
+    if !histogram && live {
         c = cut[q];
     }
     var count = 0u;
@@ -79,24 +97,25 @@ fn main(
     var off = vec3<f32>(0.0);
     var in_cut = array<u32, 8>(0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u);
     for (var i = 0u; i < n; i++) {
-        let w = points[it.start + i].xyz - it.o;
+        let w = point(g.start + i) - it.o;
         let u = dot(w, it.d);
         let v = w - u * it.d;
         let d2 = dot(v, v);
-        if u >= it.lo && u <= it.hi && d2 <= it.r2 {
-            let b = bin_of(d2, it.r2);
-            if histogram {
+        let inside = live && u >= it.lo && u <= it.hi && d2 <= it.r2;
+        let b = bin_of(d2, it.r2);
+        if histogram {
+            if inside {
                 atomicAdd(&hist[q * NBINS + b], 1u);
-            } else if b < c {
-                count += 1u;
-                sum_d2 += d2;
-                off += v;
-            } else if b == c {
-                in_cut[i >> 5u] |= 1u << (i & 31u);
             }
+        } else {
+            let low = inside && b < c;
+            count += select(0u, 1u, low);
+            sum_d2 += select(0.0, d2, low);
+            off += select(vec3<f32>(0.0), v, low);
+            in_cut[i >> 5u] |= select(0u, 1u << (i & 31u), inside && b == c);
         }
     }
-    if !histogram {
+    if !histogram && live {
         below[idx] = Below(count, sum_d2, off.x, off.y, off.z, in_cut);
     }
 }

@@ -4,8 +4,6 @@
 use super::device::{encode, head, Context, Params};
 use super::{Job, Scratch};
 
-const WORKGROUP: u64 = 64;
-
 pub struct Coverage {
     pipeline: wgpu::ComputePipeline,
 }
@@ -27,33 +25,31 @@ impl Coverage {
         mask_bytes: u64,
     ) {
         let params = Params {
-            n_items: job.items.len() as u32,
+            n_groups: job.groups.len() as u32,
             part_base: job.part.base as u32,
             ..Default::default()
         };
         let item_bytes = std::mem::size_of_val(job.items) as u64;
+        let group_bytes = std::mem::size_of_val(job.groups) as u64;
         ctx.queue
             .write_buffer(&s.params, 0, bytemuck::bytes_of(&params));
         let items_buf = s.items.get(ctx, item_bytes);
         ctx.queue
             .write_buffer(items_buf, 0, bytemuck::cast_slice(job.items));
+        let groups_buf = s.groups.get(ctx, group_bytes);
+        ctx.queue
+            .write_buffer(groups_buf, 0, bytemuck::cast_slice(job.groups));
         let group = ctx.bind(
             &self.pipeline,
             &[
                 s.params.as_entire_binding(),
-                job.part.buffer.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&job.part.view),
                 head(items_buf, item_bytes),
+                head(groups_buf, group_bytes),
                 head(mask, mask_bytes),
             ],
         );
-        let encoder = encode(
-            ctx,
-            &self.pipeline,
-            &group,
-            job.items.len(),
-            WORKGROUP,
-            job.max_x,
-        );
+        let encoder = encode(ctx, &self.pipeline, &group, job.groups.len(), job.max_x);
         ctx.queue.submit([encoder.finish()]);
     }
 }

@@ -49,7 +49,8 @@ pub fn pick_adapter() -> Result<wgpu::Adapter, EngineError> {
 
 impl Context {
     /// Opens a device on `adapter` with the limits the engine needs raised to what the
-    /// adapter offers: large storage bindings and buffers, 6 storage buffers per stage.
+    /// adapter offers: large storage bindings, buffers and textures, up to 8 storage buffers
+    /// per stage.
     pub fn new(adapter: &wgpu::Adapter) -> Result<Context, EngineError> {
         let offered = adapter.limits();
         let mut limits = wgpu::Limits::downlevel_defaults();
@@ -58,6 +59,7 @@ impl Context {
         limits.max_storage_buffers_per_shader_stage =
             offered.max_storage_buffers_per_shader_stage.min(8);
         limits.max_compute_workgroups_per_dimension = offered.max_compute_workgroups_per_dimension;
+        limits.max_texture_dimension_2d = offered.max_texture_dimension_2d;
         if limits.max_storage_buffers_per_shader_stage < 4 {
             return Err(EngineError::Gpu(format!(
                 "adapter {} offers {} storage buffers per shader stage, the kernels need 4",
@@ -281,20 +283,20 @@ pub fn head(buf: &wgpu::Buffer, size: u64) -> wgpu::BindingResource<'_> {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct Params {
-    pub n_items: u32,
+    /// Groups (workgroups) in the dispatch.
+    pub n_groups: u32,
     /// Sorted index of the first point of the bound part.
     pub part_base: u32,
     pub mode: u32,
     pub pad: u32,
 }
 
-/// Records one dispatch of `pipeline` over `n_items` invocations of `workgroup` threads.
+/// Records one dispatch of `pipeline` with `n_groups` workgroups.
 pub fn encode(
     ctx: &Context,
     pipeline: &wgpu::ComputePipeline,
     group: &wgpu::BindGroup,
-    n_items: usize,
-    workgroup: u64,
+    n_groups: usize,
     max_x: u32,
 ) -> wgpu::CommandEncoder {
     let mut encoder = ctx
@@ -304,7 +306,7 @@ pub fn encode(
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, group, &[]);
-        let (x, y) = tiles(n_items as u64, workgroup, max_x);
+        let (x, y) = tiles(n_groups as u64, 1, max_x);
         pass.dispatch_workgroups(x, y, 1);
     }
     encoder

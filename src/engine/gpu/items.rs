@@ -1,7 +1,12 @@
-//! Work items: the host cuts a batch into (query, at most CHUNK points of one grid cell)
-//! pieces that every kernel shares. The geometry that needs f64 (the reference point on the
-//! axis, the cap and side-plane offsets) is done here, once per item, so the kernels only
-//! subtract numbers of the size of a cell.
+//! Work items: the host cuts a batch into (query, chunk) pieces, a chunk being at most
+//! CHUNK consecutive sorted points of one grid cell. The geometry that needs f64 (the
+//! reference point on the axis, the cap and side-plane offsets) is done here, once per
+//! item, so the kernels only subtract numbers of the size of a cell.
+//!
+//! Items are then grouped by chunk, at most GROUP items (queries) per group: one workgroup
+//! per group, one invocation per item, every invocation walking the same points. The point
+//! loads are then uniform across the workgroup, which lets lavapipe (llvmpipe) turn them
+//! into one scalar load instead of one per lane; that was the kernels' main cost.
 
 use super::super::Query;
 use crate::geom::Segment;
@@ -15,6 +20,40 @@ pub const CHUNK: usize = 256;
 const COUNT_BITS: u32 = 9;
 /// Most queries per sub-batch that `count_query` can address.
 pub const MAX_QUERY_SLOTS: usize = 1 << (32 - COUNT_BITS);
+/// Items per group: the kernels' workgroup size, llvmpipe's SIMD width on AVX2 (8 x f32),
+/// so that one group fills one SIMD pass.
+pub const GROUP: usize = 8;
+
+/// One workgroup's share, laid out as `struct Group` in the shaders (16 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct Group {
+    /// First point of the chunk, relative to the part of the point buffer it lies in.
+    pub start: u32,
+    /// Points in the chunk (at most CHUNK).
+    pub count: u32,
+    /// First item of the group, relative to the dispatch.
+    pub first: u32,
+    /// Items in the group (at most GROUP).
+    pub len: u32,
+}
+
+/// A batch's work, ready for the device: items sorted by chunk and their groups, cut into
+/// dispatches that each read one part of the point buffer.
+#[derive(Debug, Default)]
+pub struct Work {
+    pub items: Vec<Item>,
+    pub groups: Vec<Group>,
+    pub dispatches: Vec<Dispatch>,
+}
+
+/// `groups[groups]` (whose items are `items[items]`) over part `part`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Dispatch {
+    pub part: usize,
+    pub groups: std::ops::Range<usize>,
+    pub items: std::ops::Range<usize>,
+}
 
 /// One work item, laid out as `struct Item` in the shaders (48 bytes).
 #[repr(C)]
@@ -30,13 +69,13 @@ pub struct Item {
     /// `(plane - o)·d`: the point is on the positive side iff `u > mid`.
     pub mid: f32,
     pub r2: f32,
-    /// First sorted point: global while building, relative to its part once grouped.
+    /// First sorted point of the chunk (global). Host-side only: the kernels take the
+    /// chunk from the item's group.
     pub start: u32,
     pub count_query: u32,
 }
 
 impl Item {
-    #[cfg(test)]
     pub fn count(&self) -> usize {
         (self.count_query & ((1 << COUNT_BITS) - 1)) as usize
     }
@@ -119,26 +158,64 @@ fn push_query(grid: &Grid, q: &Query, slot: usize, part_len: usize, out: &mut Ve
     });
 }
 
-/// Items grouped by the part of the point buffer they read, `start` made part-relative;
-/// the order inside each group is the build order, so reductions stay repeatable.
-pub fn by_part(items: Vec<Item>, part_len: usize, n_parts: usize) -> Vec<(usize, Vec<Item>)> {
+/// Sorts `items` by (chunk, query), groups them and cuts the groups into dispatches of at
+/// most `max_items` items that never cross a part. The order is a function of the items
+/// alone, so reductions in this order repeat exactly.
+pub fn group(items: Vec<Item>, part_len: usize, max_items: usize) -> Work {
     if items.is_empty() {
-        return Vec::new();
+        return Work::default();
     }
-    if n_parts <= 1 {
-        return vec![(0, items)];
-    }
-    let mut groups: Vec<Vec<Item>> = vec![Vec::new(); n_parts];
-    for mut it in items {
-        let p = it.start as usize / part_len;
-        it.start -= (p * part_len) as u32;
-        groups[p].push(it);
-    }
-    groups
-        .into_iter()
+    // Each (chunk, query) pair occurs once, so the keys are distinct and the order total.
+    let mut keys: Vec<u64> = items
+        .par_iter()
         .enumerate()
-        .filter(|(_, g)| !g.is_empty())
-        .collect()
+        .map(|(i, it)| ((it.start as u64) << 32) | i as u64)
+        .collect();
+    keys.par_sort_unstable();
+    let sorted: Vec<Item> = keys
+        .par_iter()
+        .map(|k| items[(k & 0xffff_ffff) as usize])
+        .collect();
+    drop(items);
+    let mut work = Work {
+        items: Vec::new(),
+        groups: Vec::with_capacity(sorted.len() / 2 + 1),
+        dispatches: Vec::new(),
+    };
+    let mut d = Dispatch {
+        part: sorted[0].start as usize / part_len,
+        groups: 0..0,
+        items: 0..0,
+    };
+    let mut a = 0;
+    while a < sorted.len() {
+        let start = sorted[a].start;
+        let mut b = a + 1;
+        while b < sorted.len() && b - a < GROUP && sorted[b].start == start {
+            b += 1;
+        }
+        let part = start as usize / part_len;
+        if part != d.part || b - d.items.start > max_items {
+            let next = Dispatch {
+                part,
+                groups: work.groups.len()..work.groups.len(),
+                items: a..a,
+            };
+            work.dispatches.push(std::mem::replace(&mut d, next));
+        }
+        work.groups.push(Group {
+            start: start - (part * part_len) as u32,
+            count: sorted[a].count() as u32,
+            first: (a - d.items.start) as u32,
+            len: (b - a) as u32,
+        });
+        d.groups.end = work.groups.len();
+        d.items.end = b;
+        a = b;
+    }
+    work.dispatches.push(d);
+    work.items = sorted;
+    work
 }
 
 #[cfg(test)]
@@ -188,18 +265,30 @@ mod tests {
                 assert_eq!(seen[i], 2, "member {i} covered {} times", seen[i]);
             }
         }
-        let groups = by_part(items.clone(), 700, g.len().div_ceil(700));
-        let n: usize = groups.iter().map(|(_, g)| g.len()).sum();
-        assert_eq!(n, items.len());
-        for (p, g) in &groups {
-            for it in g {
-                assert!(it.start as usize + it.count() <= 700);
-                assert!(items.contains(&Item {
-                    start: it.start + (p * 700) as u32,
-                    ..*it
-                }));
+        let work = group(items.clone(), 700, 5);
+        assert_eq!(work.items.len(), items.len());
+        let mut pairs = std::collections::HashSet::new();
+        for d in &work.dispatches {
+            assert!(d.items.len() <= 5);
+            for gr in &work.groups[d.groups.clone()] {
+                assert!(gr.len as usize <= GROUP && gr.len > 0);
+                assert!(gr.start as usize + gr.count as usize <= 700);
+                for it in &work.items[d.items.clone()][gr.first as usize..][..gr.len as usize] {
+                    // Every item of a group reads the group's chunk, in the group's part.
+                    assert_eq!(it.start as usize, d.part * 700 + gr.start as usize);
+                    assert_eq!(it.count(), gr.count as usize);
+                    assert!(pairs.insert((it.start, it.query())));
+                }
             }
         }
+        assert_eq!(pairs.len(), items.len());
+        // Dispatches tile the groups and items in order.
+        let mut next = (0, 0);
+        for d in &work.dispatches {
+            assert_eq!((d.groups.start, d.items.start), next);
+            next = (d.groups.end, d.items.end);
+        }
+        assert_eq!(next, (work.groups.len(), work.items.len()));
     }
 
     #[test]

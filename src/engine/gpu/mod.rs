@@ -28,7 +28,7 @@ use crate::geom::p64;
 use crate::index::Grid;
 use device::{Context, Reusable};
 use glam::DVec3;
-use items::Item;
+use items::{Dispatch, Group, Item, Work};
 use nearest::Plan;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -60,16 +60,22 @@ impl Default for GpuOptions {
     }
 }
 
-/// One piece of the sorted points on the device: points `base..base + len`.
+/// Texels per row of a point texture (`ROW` in the shaders).
+const ROW: usize = 4096;
+
+/// One piece of the sorted points on the device, from sorted index `base` on, as an
+/// `Rgba32Uint` texture of `ROW`-texel rows holding the bits of f32 x, y, z.
 pub(crate) struct Part {
-    buffer: wgpu::Buffer,
+    view: wgpu::TextureView,
     base: usize,
 }
 
-/// One dispatch: items that all read `part`, tiled at `max_x` workgroups.
+/// One dispatch: `groups` (one workgroup each) of `items`, all reading `part`, tiled at
+/// `max_x` workgroups.
 pub(crate) struct Job<'a> {
     part: &'a Part,
     items: &'a [Item],
+    groups: &'a [Group],
     max_x: u32,
 }
 
@@ -77,6 +83,7 @@ pub(crate) struct Job<'a> {
 pub(crate) struct Scratch {
     params: wgpu::Buffer,
     items: Reusable,
+    groups: Reusable,
     out: Reusable,
     staging: Reusable,
     /// Histogram (nearest) or bitmask (coverage).
@@ -126,7 +133,9 @@ impl GpuEngine {
             .min(ctx.limits.max_storage_buffer_binding_size)
             .min(ctx.limits.max_buffer_size);
         let point_bytes = std::mem::size_of::<[f32; 4]>() as u64;
-        let part_len = (binding / point_bytes).max(1) as usize;
+        let part_len = ((binding / point_bytes) as usize)
+            .min(ROW * ctx.limits.max_texture_dimension_2d as usize)
+            .max(1);
         let slot_bytes = std::mem::size_of::<Item>().max(std::mem::size_of::<nearest::Below>());
         let max_items = opts.max_items.min(binding as usize / slot_bytes).max(1);
         let kernels = ctx.scoped("compiling the kernels", || Kernels {
@@ -144,6 +153,7 @@ impl GpuEngine {
                     wgpu::BufferUsages::UNIFORM,
                 ),
                 items: Reusable::new("items", wgpu::BufferUsages::STORAGE),
+                groups: Reusable::new("groups", wgpu::BufferUsages::STORAGE),
                 out: Reusable::new("out", storage),
                 staging: Reusable::new("staging", read),
                 aux: Reusable::new("aux", storage),
@@ -191,16 +201,41 @@ impl GpuEngine {
             rel.chunks(part_len)
                 .enumerate()
                 .map(|(i, chunk)| {
-                    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                    let rows = chunk.len().div_ceil(ROW);
+                    let size = wgpu::Extent3d {
+                        width: ROW as u32,
+                        height: rows as u32,
+                        depth_or_array_layers: 1,
+                    };
+                    let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
                         label: Some("points"),
-                        size: std::mem::size_of_val(chunk) as u64,
-                        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-                        mapped_at_creation: false,
+                        size,
+                        mip_level_count: 1,
+                        sample_count: 1,
+                        dimension: wgpu::TextureDimension::D2,
+                        format: wgpu::TextureFormat::Rgba32Uint,
+                        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                        view_formats: &[],
                     });
-                    ctx.queue
-                        .write_buffer(&buffer, 0, bytemuck::cast_slice(chunk));
+                    let mut texels = chunk.to_vec();
+                    texels.resize(rows * ROW, [0.0; 4]);
+                    ctx.queue.write_texture(
+                        wgpu::TexelCopyTextureInfo {
+                            texture: &texture,
+                            mip_level: 0,
+                            origin: wgpu::Origin3d::ZERO,
+                            aspect: wgpu::TextureAspect::All,
+                        },
+                        bytemuck::cast_slice(&texels),
+                        wgpu::TexelCopyBufferLayout {
+                            offset: 0,
+                            bytes_per_row: Some((ROW * 16) as u32),
+                            rows_per_image: Some(rows as u32),
+                        },
+                        size,
+                    );
                     Part {
-                        buffer,
+                        view: texture.create_view(&wgpu::TextureViewDescriptor::default()),
                         base: i * part_len,
                     }
                 })
@@ -238,18 +273,19 @@ impl GpuEngine {
             .map(move |a| a..(a + self.max_queries).min(n))
     }
 
-    fn job<'a>(&'a self, part: usize, items: &'a [Item]) -> Job<'a> {
+    fn job<'a>(&'a self, work: &'a Work, d: &Dispatch) -> Job<'a> {
         Job {
-            part: &self.parts[part],
-            items,
+            part: &self.parts[d.part],
+            items: &work.items[d.items.clone()],
+            groups: &work.groups[d.groups.clone()],
             max_x: self.max_x,
         }
     }
 
-    /// Work items of a sub-batch, grouped by part, each group cut into dispatches.
-    fn dispatches(&self, queries: &[Query]) -> Vec<(usize, Vec<Item>)> {
+    /// The work items of a sub-batch, grouped and cut into dispatches.
+    fn work(&self, queries: &[Query]) -> Work {
         let all = items::build(&self.grid, queries, self.part_len);
-        items::by_part(all, self.part_len, self.parts.len())
+        items::group(all, self.part_len, self.max_items)
     }
 }
 
@@ -271,22 +307,20 @@ impl Engine for GpuEngine {
         let mut out = vec![CylStats::default(); queries.len()];
         let mut s = self.lock();
         for range in self.sub_batches(queries.len()) {
-            let groups = self.dispatches(&queries[range.clone()]);
+            let work = self.work(&queries[range.clone()]);
             let acc = &mut out[range];
-            for (part, items) in &groups {
-                for chunk in items.chunks(self.max_items) {
-                    let partials = self.ctx.scoped("stats kernel", || {
-                        self.kernels
-                            .stats
-                            .run(&self.ctx, &mut s, &self.job(*part, chunk))
-                    })??;
-                    for (it, p) in chunk.iter().zip(&partials) {
-                        let a = &mut acc[it.query()];
-                        a.count += p.count as u64;
-                        a.side_pos += p.side_pos as u64;
-                        a.sum_d2 += p.sum_d2 as f64;
-                        a.sum_offset += p64(p.off);
-                    }
+            for d in &work.dispatches {
+                let partials = self.ctx.scoped("stats kernel", || {
+                    self.kernels
+                        .stats
+                        .run(&self.ctx, &mut s, &self.job(&work, d))
+                })??;
+                for (it, p) in work.items[d.items.clone()].iter().zip(&partials) {
+                    let a = &mut acc[it.query()];
+                    a.count += p.count as u64;
+                    a.side_pos += p.side_pos as u64;
+                    a.sum_d2 += p.sum_d2 as f64;
+                    a.sum_offset += p64(p.off);
                 }
             }
         }
@@ -314,7 +348,7 @@ impl Engine for GpuEngine {
         let mut s = self.lock();
         for range in self.sub_batches(queries.len()) {
             let qs = &queries[range.clone()];
-            let groups = self.dispatches(qs);
+            let work = self.work(qs);
             let hist_bytes = (qs.len() * nearest::NBINS * 4) as u64;
             let cut_bytes = (qs.len() * 4) as u64;
             // Pass 0: per-query histograms of the members' distances.
@@ -326,15 +360,13 @@ impl Engine for GpuEngine {
                     .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
                 clear.clear_buffer(&hist, 0, Some(hist_bytes));
                 self.ctx.queue.submit([clear.finish()]);
-                for (part, items) in &groups {
-                    for chunk in items.chunks(self.max_items) {
-                        self.kernels.nearest.histogram(
-                            &self.ctx,
-                            &mut s,
-                            &self.job(*part, chunk),
-                            hist_bytes,
-                        );
-                    }
+                for d in &work.dispatches {
+                    self.kernels.nearest.histogram(
+                        &self.ctx,
+                        &mut s,
+                        &self.job(&work, d),
+                        hist_bytes,
+                    );
                 }
                 let staging = s.aux_staging.get(&self.ctx, hist_bytes).clone();
                 let encoder = self
@@ -361,32 +393,29 @@ impl Engine for GpuEngine {
                 self.ctx
                     .queue
                     .write_buffer(cut, 0, bytemuck::cast_slice(&cuts));
-                for (part, items) in &groups {
-                    let base = self.parts[*part].base;
-                    for chunk in items.chunks(self.max_items) {
-                        let res = self.kernels.nearest.below(
-                            &self.ctx,
-                            &mut s,
-                            &self.job(*part, chunk),
-                            hist_bytes,
-                            cut_bytes,
-                        )?;
-                        for (it, b) in chunk.iter().zip(&res) {
-                            let q = it.query();
-                            if plans[q].k == 0 {
-                                continue;
-                            }
-                            below[q] += b.count as u64;
-                            acc[q].sum_d2 += b.sum_d2 as f64;
-                            acc[q].sum_offset += p64(b.off);
-                            for (w, &bits) in b.in_cut.iter().enumerate() {
-                                let mut bits = bits;
-                                while bits != 0 {
-                                    let j = bits.trailing_zeros() as usize + 32 * w;
-                                    bits &= bits - 1;
-                                    let i = base + it.start as usize + j;
-                                    flagged.push((q as u32, i as u32));
-                                }
+                for d in &work.dispatches {
+                    let res = self.kernels.nearest.below(
+                        &self.ctx,
+                        &mut s,
+                        &self.job(&work, d),
+                        hist_bytes,
+                        cut_bytes,
+                    )?;
+                    for (it, b) in work.items[d.items.clone()].iter().zip(&res) {
+                        let q = it.query();
+                        if plans[q].k == 0 {
+                            continue;
+                        }
+                        below[q] += b.count as u64;
+                        acc[q].sum_d2 += b.sum_d2 as f64;
+                        acc[q].sum_offset += p64(b.off);
+                        // `it.start` is the chunk's global first point.
+                        for (w, &bits) in b.in_cut.iter().enumerate() {
+                            let mut bits = bits;
+                            while bits != 0 {
+                                let j = bits.trailing_zeros() as usize + 32 * w;
+                                bits &= bits - 1;
+                                flagged.push((q as u32, it.start + j as u32));
                             }
                         }
                     }
@@ -452,16 +481,15 @@ impl Engine for GpuEngine {
             clear.clear_buffer(&mask, 0, Some(mask_bytes));
             self.ctx.queue.submit([clear.finish()]);
             for range in self.sub_batches(queries.len()) {
-                for (part, items) in &self.dispatches(&queries[range]) {
-                    for chunk in items.chunks(self.max_items) {
-                        self.kernels.coverage.run(
-                            &self.ctx,
-                            &mut s,
-                            &self.job(*part, chunk),
-                            &mask,
-                            mask_bytes,
-                        );
-                    }
+                let work = self.work(&queries[range]);
+                for d in &work.dispatches {
+                    self.kernels.coverage.run(
+                        &self.ctx,
+                        &mut s,
+                        &self.job(&work, d),
+                        &mask,
+                        mask_bytes,
+                    );
                 }
             }
             let staging = s.aux_staging.get(&self.ctx, mask_bytes).clone();

@@ -12,7 +12,6 @@ use crate::index::Grid;
 use bytemuck::{Pod, Zeroable};
 use glam::DVec3;
 
-const WORKGROUP: u64 = 64;
 /// Histogram bins per query (`NBINS` in the shader).
 pub const NBINS: usize = 64;
 /// `cut` value that puts every member below the cut.
@@ -73,12 +72,13 @@ impl Nearest {
         mode: u32,
     ) -> wgpu::CommandEncoder {
         let params = Params {
-            n_items: job.items.len() as u32,
+            n_groups: job.groups.len() as u32,
             part_base: job.part.base as u32,
             mode,
             pad: 0,
         };
         let item_bytes = std::mem::size_of_val(job.items) as u64;
+        let group_bytes = std::mem::size_of_val(job.groups) as u64;
         // Mode 0 writes no `Below`: one slot keeps the binding valid.
         let out_bytes = if mode == 0 { 1 } else { job.items.len() } * std::mem::size_of::<Below>();
         ctx.queue
@@ -86,27 +86,24 @@ impl Nearest {
         let items_buf = s.items.get(ctx, item_bytes);
         ctx.queue
             .write_buffer(items_buf, 0, bytemuck::cast_slice(job.items));
+        s.groups.get(ctx, group_bytes);
+        ctx.queue
+            .write_buffer(s.groups.current(), 0, bytemuck::cast_slice(job.groups));
         s.out.get(ctx, out_bytes as u64);
         s.cut.get(ctx, cut_bytes);
         let group = ctx.bind(
             &self.pipeline,
             &[
                 s.params.as_entire_binding(),
-                job.part.buffer.as_entire_binding(),
-                head(items_buf, item_bytes),
+                wgpu::BindingResource::TextureView(&job.part.view),
+                head(s.items.current(), item_bytes),
+                head(s.groups.current(), group_bytes),
                 head(s.aux.current(), hist_bytes),
                 head(s.cut.current(), cut_bytes),
                 head(s.out.current(), out_bytes as u64),
             ],
         );
-        let encoder = encode(
-            ctx,
-            &self.pipeline,
-            &group,
-            job.items.len(),
-            WORKGROUP,
-            job.max_x,
-        );
+        let encoder = encode(ctx, &self.pipeline, &group, job.groups.len(), job.max_x);
         if mode == 0 {
             ctx.queue.submit([encoder.finish()]);
             return ctx

@@ -6,8 +6,6 @@ use super::{Job, Scratch};
 use crate::engine::EngineError;
 use bytemuck::{Pod, Zeroable};
 
-const WORKGROUP: u64 = 64;
-
 /// `struct Partial` of the shader.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
@@ -37,35 +35,33 @@ impl Stats {
         job: &Job<'_>,
     ) -> Result<Vec<Partial>, EngineError> {
         let params = Params {
-            n_items: job.items.len() as u32,
+            n_groups: job.groups.len() as u32,
             part_base: job.part.base as u32,
             ..Default::default()
         };
         let item_bytes = std::mem::size_of_val(job.items) as u64;
+        let group_bytes = std::mem::size_of_val(job.groups) as u64;
         let out_bytes = (job.items.len() * std::mem::size_of::<Partial>()) as u64;
         ctx.queue
             .write_buffer(&s.params, 0, bytemuck::bytes_of(&params));
         let items_buf = s.items.get(ctx, item_bytes);
         ctx.queue
             .write_buffer(items_buf, 0, bytemuck::cast_slice(job.items));
+        let groups_buf = s.groups.get(ctx, group_bytes);
+        ctx.queue
+            .write_buffer(groups_buf, 0, bytemuck::cast_slice(job.groups));
         let out = s.out.get(ctx, out_bytes);
         let group = ctx.bind(
             &self.pipeline,
             &[
                 s.params.as_entire_binding(),
-                job.part.buffer.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&job.part.view),
                 head(items_buf, item_bytes),
+                head(groups_buf, group_bytes),
                 head(out, out_bytes),
             ],
         );
-        let encoder = encode(
-            ctx,
-            &self.pipeline,
-            &group,
-            job.items.len(),
-            WORKGROUP,
-            job.max_x,
-        );
+        let encoder = encode(ctx, &self.pipeline, &group, job.groups.len(), job.max_x);
         let bytes = ctx.read_back(encoder, out, s.staging.get(ctx, out_bytes), out_bytes)?;
         Ok(bytemuck::pod_collect_to_vec(&bytes))
     }
