@@ -7,19 +7,24 @@
 //   each item writes the count and sums of its members in bins below the cut, and a
 //   bitmask of its members in the cut bin; the host resolves those exactly in f64.
 // Both passes run this one function, so a point lands in the same bin in both.
-// Work items and groups as in stats.wgsl (the loop is uniform across the workgroup).
+// Work items and groups as in stats.wgsl.
 // Loop bound: `min(count, CHUNK)` iterations per invocation (lavapipe stops an invocation
 // silently after 65,535).
 
 const CHUNK: u32 = 256u;
 const ROW: u32 = 4096u;
+// Items per group and groups per workgroup: a group's invocations are consecutive, so on
+// lavapipe they form one 8-wide SIMD pass with one trip count and nearby texel reads.
+const GROUP: u32 = 8u;
+const GROUPS_PER_WORKGROUP: u32 = 8u;
 const NBINS: u32 = 64u;
 
 struct Params {
+    // Groups of this dispatch: groups[group_base..group_base + n_groups].
     n_groups: u32,
     part_base: u32,
     mode: u32,
-    pad: u32,
+    group_base: u32,
 }
 
 struct Item {
@@ -55,10 +60,12 @@ struct Below {
 // x, y, z (and an unused w), ROW texels per texture row.
 @group(0) @binding(1) var points: texture_2d<u32>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
-@group(0) @binding(3) var<storage, read> groups: array<Group>;
-@group(0) @binding(4) var<storage, read_write> hist: array<atomic<u32>>;
-@group(0) @binding(5) var<storage, read> cut: array<u32>;
-@group(0) @binding(6) var<storage, read_write> below: array<Below>;
+// Items listed by chunk; each group is a run of this list.
+@group(0) @binding(3) var<storage, read> order: array<u32>;
+@group(0) @binding(4) var<storage, read> groups: array<Group>;
+@group(0) @binding(5) var<storage, read_write> hist: array<atomic<u32>>;
+@group(0) @binding(6) var<storage, read> cut: array<u32>;
+@group(0) @binding(7) var<storage, read_write> below: array<Below>;
 
 fn bin_of(d2: f32, r2: f32) -> u32 {
     // r = 0 leaves only points on the axis: all in the top bin.
@@ -74,16 +81,17 @@ fn point(i: u32) -> vec3<f32> {
     return bitcast<vec4<f32>>(texel).xyz;
 }
 
-@compute @workgroup_size(8)
+@compute @workgroup_size(64)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let gi = wg.y * n_wg.x + wg.x;
-    let g = groups[min(gi, params.n_groups - 1u)];
-    let live = gi < params.n_groups && lane < g.len;
-    let idx = g.first + min(lane, g.len - 1u);
+    let gi = (wg.y * n_wg.x + wg.x) * GROUPS_PER_WORKGROUP + lane / GROUP;
+    let g = groups[params.group_base + min(gi, params.n_groups - 1u)];
+    let live = gi < params.n_groups && lane % GROUP < g.len;
+    // Results go to the item's own slot, in build order.
+    let idx = order[g.first + min(lane % GROUP, g.len - 1u)];
     let it = items[idx];
     let n = min(g.count, CHUNK);
     let q = it.count_query >> 9u;

@@ -4,8 +4,9 @@
 // one grid cell. Points are stored relative to their cell's origin and the item carries
 // the query's reference point `o` relative to the same origin, so every difference below
 // is between numbers no larger than a few cells: f32 keeps the SPEC 2 tolerance.
-// One workgroup per group of items sharing a chunk: the chunk and the loop over it are
-// uniform across the workgroup, so each point is loaded once for all lanes.
+// Items sharing a chunk form a group of consecutive invocations (8 groups per
+// workgroup), so that the lanes of one SIMD pass run the same number of iterations over
+// the same points.
 // Each invocation writes its own slot; the host reduces the slots per query in a fixed
 // order (no float atomics, results repeat bit for bit).
 // Loop bound: `min(count, CHUNK)` iterations per invocation, far below the 65,535 total
@@ -13,12 +14,17 @@
 
 const CHUNK: u32 = 256u;
 const ROW: u32 = 4096u;
+// Items per group and groups per workgroup: a group's invocations are consecutive, so on
+// lavapipe they form one 8-wide SIMD pass with one trip count and nearby texel reads.
+const GROUP: u32 = 8u;
+const GROUPS_PER_WORKGROUP: u32 = 8u;
 
 struct Params {
+    // Groups of this dispatch: groups[group_base..group_base + n_groups].
     n_groups: u32,
     part_base: u32,
     mode: u32,
-    pad: u32,
+    group_base: u32,
 }
 
 struct Item {
@@ -41,7 +47,7 @@ struct Group {
     // Chunk: first point (relative to the bound part) and point count.
     start: u32,
     count: u32,
-    // Items of the group: first (relative to this dispatch) and count (<= workgroup size).
+    // Items of the group: order[first..first + len] (at most GROUP).
     first: u32,
     len: u32,
 }
@@ -60,8 +66,10 @@ struct Partial {
 // x, y, z (and an unused w), ROW texels per texture row.
 @group(0) @binding(1) var points: texture_2d<u32>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
-@group(0) @binding(3) var<storage, read> groups: array<Group>;
-@group(0) @binding(4) var<storage, read_write> partials: array<Partial>;
+// Items listed by chunk; each group is a run of this list.
+@group(0) @binding(3) var<storage, read> order: array<u32>;
+@group(0) @binding(4) var<storage, read> groups: array<Group>;
+@group(0) @binding(5) var<storage, read_write> partials: array<Partial>;
 
 // Points are read through a texture, not a storage buffer: lavapipe loads storage buffers
 // inside loops one lane and one component at a time, but fetches texels with SIMD gathers.
@@ -70,18 +78,19 @@ fn point(i: u32) -> vec3<f32> {
     return bitcast<vec4<f32>>(texel).xyz;
 }
 
-@compute @workgroup_size(8)
+@compute @workgroup_size(64)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    // Dispatches wider than 65,535 workgroups are tiled in 2D. No early return before the
-    // loop: it must stay uniform for the loads to be uniform.
-    let gi = wg.y * n_wg.x + wg.x;
-    let g = groups[min(gi, params.n_groups - 1u)];
-    let live = gi < params.n_groups && lane < g.len;
-    let idx = g.first + min(lane, g.len - 1u);
+    // Dispatches wider than 65,535 workgroups are tiled in 2D. Spare lanes clamp their
+    // indices and run along without writing.
+    let gi = (wg.y * n_wg.x + wg.x) * GROUPS_PER_WORKGROUP + lane / GROUP;
+    let g = groups[params.group_base + min(gi, params.n_groups - 1u)];
+    let live = gi < params.n_groups && lane % GROUP < g.len;
+    // Results go to the item's own slot, in build order.
+    let idx = order[g.first + min(lane % GROUP, g.len - 1u)];
     let it = items[idx];
     let n = min(g.count, CHUNK);
     var count = 0u;

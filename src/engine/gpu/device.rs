@@ -60,9 +60,9 @@ impl Context {
             offered.max_storage_buffers_per_shader_stage.min(8);
         limits.max_compute_workgroups_per_dimension = offered.max_compute_workgroups_per_dimension;
         limits.max_texture_dimension_2d = offered.max_texture_dimension_2d;
-        if limits.max_storage_buffers_per_shader_stage < 4 {
+        if limits.max_storage_buffers_per_shader_stage < 6 {
             return Err(EngineError::Gpu(format!(
-                "adapter {} offers {} storage buffers per shader stage, the kernels need 4",
+                "adapter {} offers {} storage buffers per shader stage, the kernels need 6",
                 adapter.get_info().name,
                 limits.max_storage_buffers_per_shader_stage
             )));
@@ -155,18 +155,20 @@ impl Context {
         buf
     }
 
-    /// Copies `size` bytes of `src` to the host. `staging` must be a MAP_READ buffer of at
-    /// least `size` bytes; the copy is submitted together with `encoder`'s work.
-    pub fn read_back(
+    /// Submits `encoder` with a copy of the first `size` bytes of `src` into `staging` (a
+    /// MAP_READ buffer of at least `size` bytes), waits, and hands the bytes to `f` where
+    /// they lie, without copying them out.
+    pub fn read_back<R>(
         &self,
         mut encoder: wgpu::CommandEncoder,
         src: &wgpu::Buffer,
         staging: &wgpu::Buffer,
         size: u64,
-    ) -> Result<Vec<u8>, EngineError> {
+        f: impl FnOnce(&[u8]) -> R,
+    ) -> Result<R, EngineError> {
         if size == 0 {
             self.queue.submit([encoder.finish()]);
-            return Ok(Vec::new());
+            return Ok(f(&[]));
         }
         encoder.copy_buffer_to_buffer(src, 0, staging, 0, size);
         self.queue.submit([encoder.finish()]);
@@ -181,14 +183,20 @@ impl Context {
         rx.recv()
             .map_err(|_| EngineError::Gpu("read-back never completed".into()))?
             .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
-        let bytes = {
+        let out = {
             let view = slice
                 .get_mapped_range()
                 .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
-            view.to_vec()
+            f(&view)
         };
         staging.unmap();
-        Ok(bytes)
+        Ok(out)
+    }
+
+    /// A fresh command encoder.
+    pub fn encoder(&self) -> wgpu::CommandEncoder {
+        self.device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default())
     }
 
     /// Compute pipeline with its layout derived from the shader.
@@ -263,11 +271,6 @@ impl Reusable {
         }
         self.buf.as_ref().expect("just created")
     }
-
-    /// The buffer of the last `get`.
-    pub fn current(&self) -> &wgpu::Buffer {
-        self.buf.as_ref().expect("Reusable::current before get")
-    }
 }
 
 /// Binds the first `size` bytes of `buf` (at least 4).
@@ -279,6 +282,9 @@ pub fn head(buf: &wgpu::Buffer, size: u64) -> wgpu::BindingResource<'_> {
     })
 }
 
+/// Item groups per workgroup (`GROUPS_PER_WORKGROUP` in the shaders; 64 invocations).
+const GROUPS_PER_WORKGROUP: u64 = 8;
+
 /// `struct Params` of the shaders: the uniform every kernel reads.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
@@ -288,10 +294,12 @@ pub struct Params {
     /// Sorted index of the first point of the bound part.
     pub part_base: u32,
     pub mode: u32,
-    pub pad: u32,
+    /// First group of the dispatch in the slice's group list.
+    pub group_base: u32,
 }
 
-/// Records one dispatch of `pipeline` with `n_groups` workgroups.
+/// Records one dispatch of `pipeline` over `n_groups` item groups, `GROUPS_PER_WORKGROUP`
+/// per workgroup.
 pub fn encode(
     ctx: &Context,
     pipeline: &wgpu::ComputePipeline,
@@ -306,10 +314,18 @@ pub fn encode(
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, group, &[]);
-        let (x, y) = tiles(n_groups as u64, 1, max_x);
+        let (x, y) = tiles(n_groups as u64, GROUPS_PER_WORKGROUP, max_x);
         pass.dispatch_workgroups(x, y, 1);
     }
     encoder
+}
+
+/// `bytes` as a slice of `T`, in place when aligned (mapped memory always is).
+pub fn pods<T: bytemuck::Pod>(bytes: &[u8]) -> std::borrow::Cow<'_, [T]> {
+    match bytemuck::try_cast_slice(bytes) {
+        Ok(s) => std::borrow::Cow::Borrowed(s),
+        Err(_) => std::borrow::Cow::Owned(bytemuck::pod_collect_to_vec(bytes)),
+    }
 }
 
 /// Test builds fill new buffers with garbage (also on request: `LINEGS_GPU_GARBAGE=1`).
@@ -377,8 +393,10 @@ mod tests {
         );
         let staging = ctx.buffer("staging", 256, wgpu::BufferUsages::MAP_READ);
         let enc = ctx.device.create_command_encoder(&Default::default());
-        let bytes = ctx.read_back(enc, &buf, &staging, 256).unwrap();
-        assert!(bytes.iter().all(|&b| b == 0xFF));
+        let all_ff = ctx
+            .read_back(enc, &buf, &staging, 256, |b| b.iter().all(|&x| x == 0xFF))
+            .unwrap();
+        assert!(all_ff);
     }
 
     #[test]

@@ -28,7 +28,7 @@ use crate::geom::p64;
 use crate::index::Grid;
 use device::{Context, Reusable};
 use glam::DVec3;
-use items::{Dispatch, Group, Item, Work};
+use items::{Item, Layout, Slice, Work};
 use nearest::Plan;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -70,12 +70,12 @@ pub(crate) struct Part {
     base: usize,
 }
 
-/// One dispatch: `groups` (one workgroup each) of `items`, all reading `part`, tiled at
-/// `max_x` workgroups.
+/// One slice of work for a kernel: its items, their order by chunk and groups, and the
+/// point store's parts its dispatches read; dispatches are tiled at `max_x` workgroups.
 pub(crate) struct Job<'a> {
-    part: &'a Part,
+    parts: &'a [Part],
     items: &'a [Item],
-    groups: &'a [Group],
+    slice: &'a Slice,
     max_x: u32,
 }
 
@@ -83,6 +83,7 @@ pub(crate) struct Job<'a> {
 pub(crate) struct Scratch {
     params: wgpu::Buffer,
     items: Reusable,
+    order: Reusable,
     groups: Reusable,
     out: Reusable,
     staging: Reusable,
@@ -90,6 +91,58 @@ pub(crate) struct Scratch {
     aux: Reusable,
     aux_staging: Reusable,
     cut: Reusable,
+}
+
+impl Scratch {
+    /// Uploads the slice of `job` and submits `pipeline` over it, one dispatch per part
+    /// of the point store. Bindings: params, points, items, order, groups, then `outputs`
+    /// (buffer, bytes bound).
+    fn submit(
+        &mut self,
+        ctx: &Context,
+        pipeline: &wgpu::ComputePipeline,
+        job: &Job<'_>,
+        mode: u32,
+        outputs: &[(&wgpu::Buffer, u64)],
+    ) {
+        let sl = job.slice;
+        let item_bytes = std::mem::size_of_val(job.items) as u64;
+        let order_bytes = std::mem::size_of_val(sl.order.as_slice()) as u64;
+        let group_bytes = std::mem::size_of_val(sl.groups.as_slice()) as u64;
+        let items = self.items.get(ctx, item_bytes).clone();
+        let order = self.order.get(ctx, order_bytes).clone();
+        let groups = self.groups.get(ctx, group_bytes).clone();
+        ctx.queue
+            .write_buffer(&items, 0, bytemuck::cast_slice(job.items));
+        ctx.queue
+            .write_buffer(&order, 0, bytemuck::cast_slice(&sl.order));
+        ctx.queue
+            .write_buffer(&groups, 0, bytemuck::cast_slice(&sl.groups));
+        for d in &sl.dispatches {
+            let part = &job.parts[d.part];
+            let params = device::Params {
+                n_groups: d.groups.len() as u32,
+                part_base: part.base as u32,
+                mode,
+                group_base: d.groups.start as u32,
+            };
+            // Written before this dispatch's submit, after the previous one's: each
+            // dispatch sees its own parameters.
+            ctx.queue
+                .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+            let mut res = vec![
+                self.params.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&part.view),
+                device::head(&items, item_bytes),
+                device::head(&order, order_bytes),
+                device::head(&groups, group_bytes),
+            ];
+            res.extend(outputs.iter().map(|&(b, n)| device::head(b, n)));
+            let bind = ctx.bind(pipeline, &res);
+            let encoder = device::encode(ctx, pipeline, &bind, d.groups.len(), job.max_x);
+            ctx.queue.submit([encoder.finish()]);
+        }
+    }
 }
 
 struct Kernels {
@@ -103,8 +156,8 @@ pub struct GpuEngine {
     ctx: Context,
     kernels: Kernels,
     parts: Vec<Part>,
-    /// Points per part (the last may hold fewer).
-    part_len: usize,
+    /// Points per part (the last may hold fewer) and cells per block.
+    layout: Layout,
     max_items: usize,
     max_x: u32,
     max_queries: usize,
@@ -153,6 +206,7 @@ impl GpuEngine {
                     wgpu::BufferUsages::UNIFORM,
                 ),
                 items: Reusable::new("items", wgpu::BufferUsages::STORAGE),
+                order: Reusable::new("order", wgpu::BufferUsages::STORAGE),
                 groups: Reusable::new("groups", wgpu::BufferUsages::STORAGE),
                 out: Reusable::new("out", storage),
                 staging: Reusable::new("staging", read),
@@ -163,10 +217,10 @@ impl GpuEngine {
         })?;
         let engine = GpuEngine {
             parts: Vec::new(),
+            layout: Layout::for_grid(&grid, part_len),
             grid,
             ctx,
             kernels,
-            part_len,
             max_items,
             max_x: opts.max_workgroups_x.max(1),
             max_queries: opts.max_queries.clamp(1, items::MAX_QUERY_SLOTS),
@@ -179,9 +233,10 @@ impl GpuEngine {
         engine.upload()
     }
 
-    /// Sends the sorted centers to the device, relative to their cells' origins.
+    /// Sends the sorted centers to the device, relative to their blocks' origins.
     fn upload(mut self) -> Result<Self, EngineError> {
         let g = &*self.grid;
+        let layout = self.layout;
         let (dx, dy) = (g.dims[0], g.dims[1]);
         let rel: Vec<[f32; 4]> = g
             .points
@@ -190,13 +245,13 @@ impl GpuEngine {
                 let p = p64(*p);
                 // Same function the grid sorted with, so this is the point's own cell.
                 let c = g.cell_of(p);
-                let o = g.cell_origin(c % dx, (c / dx) % dy, c / (dx * dy));
+                let o = layout.block_origin(g, c % dx, (c / dx) % dy, c / (dx * dy));
                 let r = p - o;
                 [r.x as f32, r.y as f32, r.z as f32, 0.0]
             })
             .collect();
         let ctx = &self.ctx;
-        let part_len = self.part_len;
+        let part_len = self.layout.part_len;
         self.parts = ctx.scoped("uploading the Gaussians", || {
             rel.chunks(part_len)
                 .enumerate()
@@ -254,7 +309,7 @@ impl GpuEngine {
 
     /// How the point buffer is split: (parts, points per part).
     pub fn parts(&self) -> (usize, usize) {
-        (self.parts.len(), self.part_len)
+        (self.parts.len(), self.layout.part_len)
     }
 
     fn count_batch(&self, n: usize) {
@@ -273,19 +328,19 @@ impl GpuEngine {
             .map(move |a| a..(a + self.max_queries).min(n))
     }
 
-    fn job<'a>(&'a self, work: &'a Work, d: &Dispatch) -> Job<'a> {
+    fn job<'a>(&'a self, work: &'a Work, slice: &'a Slice) -> Job<'a> {
         Job {
-            part: &self.parts[d.part],
-            items: &work.items[d.items.clone()],
-            groups: &work.groups[d.groups.clone()],
+            parts: &self.parts,
+            items: &work.items[slice.items.clone()],
+            slice,
             max_x: self.max_x,
         }
     }
 
     /// The work items of a sub-batch, grouped and cut into dispatches.
     fn work(&self, queries: &[Query]) -> Work {
-        let all = items::build(&self.grid, queries, self.part_len);
-        items::group(all, self.part_len, self.max_items)
+        let all = items::build(&self.grid, queries, self.layout);
+        items::group(all, self.layout.part_len, self.max_items)
     }
 }
 
@@ -309,19 +364,20 @@ impl Engine for GpuEngine {
         for range in self.sub_batches(queries.len()) {
             let work = self.work(&queries[range.clone()]);
             let acc = &mut out[range];
-            for d in &work.dispatches {
-                let partials = self.ctx.scoped("stats kernel", || {
-                    self.kernels
-                        .stats
-                        .run(&self.ctx, &mut s, &self.job(&work, d))
+            for sl in &work.slices {
+                let items = &work.items[sl.items.clone()];
+                self.ctx.scoped("stats kernel", || {
+                    let job = self.job(&work, sl);
+                    self.kernels.stats.run(&self.ctx, &mut s, &job, |partials| {
+                        for (it, p) in items.iter().zip(partials) {
+                            let a = &mut acc[it.query()];
+                            a.count += p.count as u64;
+                            a.side_pos += p.side_pos as u64;
+                            a.sum_d2 += p.sum_d2 as f64;
+                            a.sum_offset += p64(p.off);
+                        }
+                    })
                 })??;
-                for (it, p) in work.items[d.items.clone()].iter().zip(&partials) {
-                    let a = &mut acc[it.query()];
-                    a.count += p.count as u64;
-                    a.side_pos += p.side_pos as u64;
-                    a.sum_d2 += p.sum_d2 as f64;
-                    a.sum_offset += p64(p.off);
-                }
             }
         }
         for a in &mut out {
@@ -354,28 +410,20 @@ impl Engine for GpuEngine {
             // Pass 0: per-query histograms of the members' distances.
             let hist: Vec<u32> = self.ctx.scoped("nearest kernel (histogram)", || {
                 let hist = s.aux.get(&self.ctx, hist_bytes).clone();
-                let mut clear = self
-                    .ctx
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
+                let mut clear = self.ctx.encoder();
                 clear.clear_buffer(&hist, 0, Some(hist_bytes));
                 self.ctx.queue.submit([clear.finish()]);
-                for d in &work.dispatches {
-                    self.kernels.nearest.histogram(
-                        &self.ctx,
-                        &mut s,
-                        &self.job(&work, d),
-                        hist_bytes,
-                    );
+                for sl in &work.slices {
+                    let job = self.job(&work, sl);
+                    self.kernels
+                        .nearest
+                        .histogram(&self.ctx, &mut s, &job, &hist, hist_bytes);
                 }
                 let staging = s.aux_staging.get(&self.ctx, hist_bytes).clone();
-                let encoder = self
-                    .ctx
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
                 self.ctx
-                    .read_back(encoder, &hist, &staging, hist_bytes)
-                    .map(|b| bytemuck::pod_collect_to_vec(&b))
+                    .read_back(self.ctx.encoder(), &hist, &staging, hist_bytes, |b| {
+                        bytemuck::pod_collect_to_vec(b)
+                    })
             })??;
             let ks = &k[range.clone()];
             let plans: Vec<Plan> = hist
@@ -389,36 +437,41 @@ impl Engine for GpuEngine {
             let mut below = vec![0u64; qs.len()];
             let mut flagged: Vec<(u32, u32)> = Vec::new();
             self.ctx.scoped("nearest kernel (sums)", || {
-                let cut = s.cut.get(&self.ctx, cut_bytes);
+                let hist = s.aux.get(&self.ctx, hist_bytes).clone();
+                let cut = s.cut.get(&self.ctx, cut_bytes).clone();
                 self.ctx
                     .queue
-                    .write_buffer(cut, 0, bytemuck::cast_slice(&cuts));
-                for d in &work.dispatches {
-                    let res = self.kernels.nearest.below(
+                    .write_buffer(&cut, 0, bytemuck::cast_slice(&cuts));
+                for sl in &work.slices {
+                    let items = &work.items[sl.items.clone()];
+                    let job = self.job(&work, sl);
+                    self.kernels.nearest.below(
                         &self.ctx,
                         &mut s,
-                        &self.job(&work, d),
-                        hist_bytes,
-                        cut_bytes,
-                    )?;
-                    for (it, b) in work.items[d.items.clone()].iter().zip(&res) {
-                        let q = it.query();
-                        if plans[q].k == 0 {
-                            continue;
-                        }
-                        below[q] += b.count as u64;
-                        acc[q].sum_d2 += b.sum_d2 as f64;
-                        acc[q].sum_offset += p64(b.off);
-                        // `it.start` is the chunk's global first point.
-                        for (w, &bits) in b.in_cut.iter().enumerate() {
-                            let mut bits = bits;
-                            while bits != 0 {
-                                let j = bits.trailing_zeros() as usize + 32 * w;
-                                bits &= bits - 1;
-                                flagged.push((q as u32, it.start + j as u32));
+                        &job,
+                        (&hist, hist_bytes),
+                        (&cut, cut_bytes),
+                        |res| {
+                            for (it, b) in items.iter().zip(res) {
+                                let q = it.query();
+                                if plans[q].k == 0 {
+                                    continue;
+                                }
+                                below[q] += b.count as u64;
+                                acc[q].sum_d2 += b.sum_d2 as f64;
+                                acc[q].sum_offset += p64(b.off);
+                                // Bit j: point `start + j` of the item's chunk.
+                                for (w, &bits) in b.in_cut.iter().enumerate() {
+                                    let mut bits = bits;
+                                    while bits != 0 {
+                                        let j = bits.trailing_zeros() + 32 * w as u32;
+                                        bits &= bits - 1;
+                                        flagged.push((q as u32, it.start + j));
+                                    }
+                                }
                             }
-                        }
-                    }
+                        },
+                    )?;
                 }
                 Ok::<(), EngineError>(())
             })??;
@@ -474,32 +527,23 @@ impl Engine for GpuEngine {
         let mut s = self.lock();
         let words: Vec<u32> = self.ctx.scoped("coverage kernel", || {
             let mask = s.aux.get(&self.ctx, mask_bytes).clone();
-            let mut clear = self
-                .ctx
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
+            let mut clear = self.ctx.encoder();
             clear.clear_buffer(&mask, 0, Some(mask_bytes));
             self.ctx.queue.submit([clear.finish()]);
             for range in self.sub_batches(queries.len()) {
                 let work = self.work(&queries[range]);
-                for d in &work.dispatches {
-                    self.kernels.coverage.run(
-                        &self.ctx,
-                        &mut s,
-                        &self.job(&work, d),
-                        &mask,
-                        mask_bytes,
-                    );
+                for sl in &work.slices {
+                    let job = self.job(&work, sl);
+                    self.kernels
+                        .coverage
+                        .run(&self.ctx, &mut s, &job, &mask, mask_bytes);
                 }
             }
             let staging = s.aux_staging.get(&self.ctx, mask_bytes).clone();
-            let encoder = self
-                .ctx
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
             self.ctx
-                .read_back(encoder, &mask, &staging, mask_bytes)
-                .map(|b| bytemuck::pod_collect_to_vec(&b))
+                .read_back(self.ctx.encoder(), &mask, &staging, mask_bytes, |b| {
+                    bytemuck::pod_collect_to_vec(b)
+                })
         })??;
         let mask = words
             .chunks(2)
