@@ -62,20 +62,51 @@ struct Partial {
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
-// The sorted points of one part, relative to their cells' origins, as the bits of f32
+// The sorted points of one part, relative to their blocks' origins, as the bits of f32
 // x, y, z (and an unused w), ROW texels per texture row.
 @group(0) @binding(1) var points: texture_2d<u32>;
-@group(0) @binding(2) var<storage, read> items: array<Item>;
+// Inputs are tables of u32 x 4 texels, ROW texels per texture row: items (3 texels
+// each, the bits of `Item`), the item order (4 indices per texel) and the groups.
+@group(0) @binding(2) var items: texture_2d<u32>;
 // Items listed by chunk; each group is a run of this list.
-@group(0) @binding(3) var<storage, read> order: array<u32>;
-@group(0) @binding(4) var<storage, read> groups: array<Group>;
+@group(0) @binding(3) var order: texture_2d<u32>;
+@group(0) @binding(4) var groups: texture_2d<u32>;
 @group(0) @binding(5) var<storage, read_write> partials: array<Partial>;
 
-// Points are read through a texture, not a storage buffer: lavapipe loads storage buffers
-// inside loops one lane and one component at a time, but fetches texels with SIMD gathers.
+// Every input is read through a texture, not a storage buffer: lavapipe loads storage
+// buffers one lane and one component at a time, each behind a branch, but fetches texels
+// with SIMD gathers.
+fn texel(t: texture_2d<u32>, i: u32) -> vec4<u32> {
+    return textureLoad(t, vec2<u32>(i % ROW, i / ROW), 0);
+}
+
 fn point(i: u32) -> vec3<f32> {
-    let texel = textureLoad(points, vec2<u32>(i % ROW, i / ROW), 0);
-    return bitcast<vec4<f32>>(texel).xyz;
+    return bitcast<vec3<f32>>(texel(points, i).xyz);
+}
+
+fn load_item(i: u32) -> Item {
+    let a = texel(items, 3u * i);
+    let b = texel(items, 3u * i + 1u);
+    let c = texel(items, 3u * i + 2u);
+    return Item(
+        bitcast<vec3<f32>>(a.xyz),
+        bitcast<f32>(a.w),
+        bitcast<vec3<f32>>(b.xyz),
+        bitcast<f32>(b.w),
+        bitcast<f32>(c.x),
+        bitcast<f32>(c.y),
+        c.z,
+        c.w,
+    );
+}
+
+fn load_group(i: u32) -> Group {
+    let t = texel(groups, i);
+    return Group(t.x, t.y, t.z, t.w);
+}
+
+fn load_order(i: u32) -> u32 {
+    return texel(order, i / 4u)[i % 4u];
 }
 
 @compute @workgroup_size(64)
@@ -87,11 +118,11 @@ fn main(
     // Dispatches wider than 65,535 workgroups are tiled in 2D. Spare lanes clamp their
     // indices and run along without writing.
     let gi = (wg.y * n_wg.x + wg.x) * GROUPS_PER_WORKGROUP + lane / GROUP;
-    let g = groups[params.group_base + min(gi, params.n_groups - 1u)];
+    let g = load_group(params.group_base + min(gi, params.n_groups - 1u));
     let live = gi < params.n_groups && lane % GROUP < g.len;
     // Results go to the item's own slot, in build order.
-    let idx = order[g.first + min(lane % GROUP, g.len - 1u)];
-    let it = items[idx];
+    let idx = load_order(g.first + min(lane % GROUP, g.len - 1u));
+    let it = load_item(idx);
     let n = min(g.count, CHUNK);
     var count = 0u;
     var side_pos = 0u;

@@ -273,6 +273,113 @@ impl Reusable {
     }
 }
 
+/// Texels per row of every table texture (`ROW` in the shaders).
+pub const ROW: usize = 4096;
+
+/// A table of `[u32; 4]` rows kept in an `Rgba32Uint` texture of `ROW`-texel rows: the
+/// kernels read their inputs with `textureLoad`, which lavapipe turns into SIMD gathers,
+/// where a storage-buffer load costs one branchy scalar load per lane and component.
+pub struct Table {
+    label: &'static str,
+    texture: Option<(wgpu::Texture, wgpu::TextureView)>,
+}
+
+impl Table {
+    pub fn new(label: &'static str) -> Self {
+        Table {
+            label,
+            texture: None,
+        }
+    }
+
+    /// Rows a table of `n` texels needs.
+    pub fn rows(n: usize) -> u32 {
+        n.div_ceil(ROW).max(1) as u32
+    }
+
+    /// A texture for `rows` rows, reused when large enough.
+    fn reserve(&mut self, ctx: &Context, rows: u32) -> &(wgpu::Texture, wgpu::TextureView) {
+        if self.texture.as_ref().is_none_or(|(t, _)| t.height() < rows) {
+            let grown = self.texture.as_ref().map_or(0, |(t, _)| t.height() * 3 / 2);
+            let height = rows
+                .max(grown)
+                .min(ctx.limits.max_texture_dimension_2d)
+                .max(rows);
+            self.texture = Some(table_texture(ctx, self.label, height));
+        }
+        self.texture.as_ref().expect("just created")
+    }
+
+    /// Uploads `texels` (row-major from texel 0) and returns the view to bind.
+    pub fn write(&mut self, ctx: &Context, texels: &[[u32; 4]]) -> wgpu::TextureView {
+        let (texture, view) = self.reserve(ctx, Table::rows(texels.len()));
+        write_texels(ctx, texture, texels);
+        view.clone()
+    }
+}
+
+/// An `Rgba32Uint` texture of `height` rows of `ROW` texels.
+pub fn table_texture(
+    ctx: &Context,
+    label: &str,
+    height: u32,
+) -> (wgpu::Texture, wgpu::TextureView) {
+    let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width: ROW as u32,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::Rgba32Uint,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+    (texture, view)
+}
+
+/// Writes `texels` from texel 0 of `texture`: the full rows in one copy, the last partial
+/// row in another (no padded copy of the data).
+pub fn write_texels(ctx: &Context, texture: &wgpu::Texture, texels: &[[u32; 4]]) {
+    let full = texels.len() / ROW;
+    let copy = |origin_y: u32, data: &[[u32; 4]], width: u32, height: u32| {
+        ctx.queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d {
+                    x: 0,
+                    y: origin_y,
+                    z: 0,
+                },
+                aspect: wgpu::TextureAspect::All,
+            },
+            bytemuck::cast_slice(data),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some((ROW * 16) as u32),
+                rows_per_image: Some(height),
+            },
+            wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+        );
+    };
+    if full > 0 {
+        copy(0, &texels[..full * ROW], ROW as u32, full as u32);
+    }
+    let rest = &texels[full * ROW..];
+    if !rest.is_empty() {
+        copy(full as u32, rest, rest.len() as u32, 1);
+    }
+}
+
 /// Binds the first `size` bytes of `buf` (at least 4).
 pub fn head(buf: &wgpu::Buffer, size: u64) -> wgpu::BindingResource<'_> {
     wgpu::BindingResource::Buffer(wgpu::BufferBinding {

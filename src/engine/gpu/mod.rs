@@ -26,7 +26,7 @@ pub use items::CHUNK;
 use super::{Counters, Coverage, CylStats, Engine, EngineError, NearestSum, Query, Want};
 use crate::geom::p64;
 use crate::index::Grid;
-use device::{Context, Reusable};
+use device::{Context, Reusable, Table};
 use glam::DVec3;
 use items::{Item, Layout, Slice, Work};
 use nearest::Plan;
@@ -60,11 +60,8 @@ impl Default for GpuOptions {
     }
 }
 
-/// Texels per row of a point texture (`ROW` in the shaders).
-const ROW: usize = 4096;
-
-/// One piece of the sorted points on the device, from sorted index `base` on, as an
-/// `Rgba32Uint` texture of `ROW`-texel rows holding the bits of f32 x, y, z.
+/// One piece of the sorted points on the device, from sorted index `base` on: a table
+/// texture (`device::Table`) of the bits of f32 x, y, z (and an unused w).
 pub(crate) struct Part {
     view: wgpu::TextureView,
     base: usize,
@@ -82,9 +79,9 @@ pub(crate) struct Job<'a> {
 /// Per-batch buffers, reused across batches.
 pub(crate) struct Scratch {
     params: wgpu::Buffer,
-    items: Reusable,
-    order: Reusable,
-    groups: Reusable,
+    items: Table,
+    order: Table,
+    groups: Table,
     out: Reusable,
     staging: Reusable,
     /// Histogram (nearest) or bitmask (coverage).
@@ -106,18 +103,12 @@ impl Scratch {
         outputs: &[(&wgpu::Buffer, u64)],
     ) {
         let sl = job.slice;
-        let item_bytes = std::mem::size_of_val(job.items) as u64;
-        let order_bytes = std::mem::size_of_val(sl.order.as_slice()) as u64;
-        let group_bytes = std::mem::size_of_val(sl.groups.as_slice()) as u64;
-        let items = self.items.get(ctx, item_bytes).clone();
-        let order = self.order.get(ctx, order_bytes).clone();
-        let groups = self.groups.get(ctx, group_bytes).clone();
-        ctx.queue
-            .write_buffer(&items, 0, bytemuck::cast_slice(job.items));
-        ctx.queue
-            .write_buffer(&order, 0, bytemuck::cast_slice(&sl.order));
-        ctx.queue
-            .write_buffer(&groups, 0, bytemuck::cast_slice(&sl.groups));
+        let items = self.items.write(ctx, bytemuck::cast_slice(job.items));
+        // Four order entries per texel.
+        let mut order: Vec<u32> = sl.order.clone();
+        order.resize(order.len().next_multiple_of(4), 0);
+        let order = self.order.write(ctx, bytemuck::cast_slice(&order));
+        let groups = self.groups.write(ctx, bytemuck::cast_slice(&sl.groups));
         for d in &sl.dispatches {
             let part = &job.parts[d.part];
             let params = device::Params {
@@ -133,9 +124,9 @@ impl Scratch {
             let mut res = vec![
                 self.params.as_entire_binding(),
                 wgpu::BindingResource::TextureView(&part.view),
-                device::head(&items, item_bytes),
-                device::head(&order, order_bytes),
-                device::head(&groups, group_bytes),
+                wgpu::BindingResource::TextureView(&items),
+                wgpu::BindingResource::TextureView(&order),
+                wgpu::BindingResource::TextureView(&groups),
             ];
             res.extend(outputs.iter().map(|&(b, n)| device::head(b, n)));
             let bind = ctx.bind(pipeline, &res);
@@ -187,10 +178,16 @@ impl GpuEngine {
             .min(ctx.limits.max_buffer_size);
         let point_bytes = std::mem::size_of::<[f32; 4]>() as u64;
         let part_len = ((binding / point_bytes) as usize)
-            .min(ROW * ctx.limits.max_texture_dimension_2d as usize)
+            .min(device::ROW * ctx.limits.max_texture_dimension_2d as usize)
             .max(1);
         let slot_bytes = std::mem::size_of::<Item>().max(std::mem::size_of::<nearest::Below>());
-        let max_items = opts.max_items.min(binding as usize / slot_bytes).max(1);
+        // Items take 3 texels of a table texture.
+        let table_texels = device::ROW * ctx.limits.max_texture_dimension_2d as usize;
+        let max_items = opts
+            .max_items
+            .min(binding as usize / slot_bytes)
+            .min(table_texels / 3)
+            .max(1);
         let kernels = ctx.scoped("compiling the kernels", || Kernels {
             stats: stats::Stats::new(&ctx),
             nearest: nearest::Nearest::new(&ctx),
@@ -205,9 +202,9 @@ impl GpuEngine {
                     std::mem::size_of::<device::Params>() as u64,
                     wgpu::BufferUsages::UNIFORM,
                 ),
-                items: Reusable::new("items", wgpu::BufferUsages::STORAGE),
-                order: Reusable::new("order", wgpu::BufferUsages::STORAGE),
-                groups: Reusable::new("groups", wgpu::BufferUsages::STORAGE),
+                items: Table::new("items"),
+                order: Table::new("order"),
+                groups: Table::new("groups"),
                 out: Reusable::new("out", storage),
                 staging: Reusable::new("staging", read),
                 aux: Reusable::new("aux", storage),
@@ -256,41 +253,11 @@ impl GpuEngine {
             rel.chunks(part_len)
                 .enumerate()
                 .map(|(i, chunk)| {
-                    let rows = chunk.len().div_ceil(ROW);
-                    let size = wgpu::Extent3d {
-                        width: ROW as u32,
-                        height: rows as u32,
-                        depth_or_array_layers: 1,
-                    };
-                    let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
-                        label: Some("points"),
-                        size,
-                        mip_level_count: 1,
-                        sample_count: 1,
-                        dimension: wgpu::TextureDimension::D2,
-                        format: wgpu::TextureFormat::Rgba32Uint,
-                        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-                        view_formats: &[],
-                    });
-                    let mut texels = chunk.to_vec();
-                    texels.resize(rows * ROW, [0.0; 4]);
-                    ctx.queue.write_texture(
-                        wgpu::TexelCopyTextureInfo {
-                            texture: &texture,
-                            mip_level: 0,
-                            origin: wgpu::Origin3d::ZERO,
-                            aspect: wgpu::TextureAspect::All,
-                        },
-                        bytemuck::cast_slice(&texels),
-                        wgpu::TexelCopyBufferLayout {
-                            offset: 0,
-                            bytes_per_row: Some((ROW * 16) as u32),
-                            rows_per_image: Some(rows as u32),
-                        },
-                        size,
-                    );
+                    let (texture, view) =
+                        device::table_texture(ctx, "points", device::Table::rows(chunk.len()));
+                    device::write_texels(ctx, &texture, bytemuck::cast_slice(chunk));
                     Part {
-                        view: texture.create_view(&wgpu::TextureViewDescriptor::default()),
+                        view,
                         base: i * part_len,
                     }
                 })
