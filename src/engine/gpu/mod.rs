@@ -1,18 +1,23 @@
 //! The GPU engine: wgpu + WGSL kernels answering the same batches as
 //! [`CpuEngine`](super::cpu::CpuEngine), within the tolerance of SPEC 2.
 //!
-//! The grid's sorted centers go to the device once, as f32 coordinates relative to their
-//! cell's origin (computed in f64). A batch becomes work items (`items.rs`): a query and at
-//! most [`CHUNK`] points of one cell, with the f64 geometry done on the host. Each kernel
+//! The grid's sorted centers go to the device once, as f32 coordinates relative to the
+//! origin of their block of a few cells (computed in f64). A batch becomes work items
+//! (`items.rs`): a query and a chunk of at most [`CHUNK`] points of one block row, with
+//! the f64 geometry done on the host; items sharing a chunk run side by side. Each kernel
 //! (`stats.rs`, `nearest.rs`, `coverage.rs`, one `shaders/*.wgsl` each) gives every item
 //! its own output slot or uses integer atomics; the host reduces the slots per query in
-//! item order, so results repeat exactly. What keeps the device within its limits:
+//! build order, so results repeat exactly. Kernel inputs are textures: on lavapipe a
+//! texel fetch is a SIMD gather, a storage-buffer load a scalar loop over the lanes.
+//!
+//! What keeps the device within its limits:
 //! - no invocation loops over more than `CHUNK` points (lavapipe stops an invocation after
 //!   65,535 iterations);
-//! - the point buffer is split into parts no larger than the storage binding limit, and no
-//!   item crosses a part;
-//! - a batch runs in sub-batches of at most `max_queries` queries, each in dispatches of at
-//!   most `max_items` items, tiled in 2D beyond `max_workgroups_x` workgroups;
+//! - the point store is split into parts no larger than the binding limit (and the
+//!   texture size limit), and no item crosses a part;
+//! - a batch runs in sub-batches of at most `max_queries` queries, each in slices of at
+//!   most `max_items` items, so every per-batch buffer stays under the binding limit;
+//!   dispatches are tiled in 2D beyond `max_workgroups_x` workgroups;
 //! - every wgpu call runs inside error scopes, so errors come back as `EngineError::Gpu`.
 
 mod coverage;
@@ -38,8 +43,8 @@ use std::sync::{Arc, Mutex};
 /// the splitting paths with small data.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct GpuOptions {
-    /// Largest storage buffer binding in bytes; `None`: the device's
-    /// `max_storage_buffer_binding_size`. Never above the device's limit.
+    /// Largest buffer binding and point-store part in bytes (16 per point); `None`: the
+    /// device's `max_storage_buffer_binding_size`. Never above the device's limit.
     pub max_binding_bytes: Option<u64>,
     /// Most work items per dispatch.
     pub max_items: usize,
@@ -220,7 +225,11 @@ impl GpuEngine {
             kernels,
             max_items,
             max_x: opts.max_workgroups_x.max(1),
-            max_queries: opts.max_queries.clamp(1, items::MAX_QUERY_SLOTS),
+            // The nearest histograms take 256 bytes per query of a sub-batch.
+            max_queries: opts
+                .max_queries
+                .min(binding as usize / (nearest::NBINS * 4))
+                .clamp(1, items::MAX_QUERY_SLOTS),
             scratch: Mutex::new(scratch),
             uploads: AtomicU64::new(0),
             batches: AtomicU64::new(0),
