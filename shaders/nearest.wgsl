@@ -7,18 +7,24 @@
 //   each item writes the count and sums of its members in bins below the cut, and a
 //   bitmask of its members in the cut bin; the host resolves those exactly in f64.
 // Both passes run this one function, so a point lands in the same bin in both.
+// Work items and groups as in stats.wgsl.
 // Loop bound: `min(count, CHUNK)` iterations per invocation (lavapipe stops an invocation
 // silently after 65,535).
 
 const CHUNK: u32 = 256u;
-const WORKGROUP: u32 = 64u;
+const ROW: u32 = 4096u;
+// Items per group and groups per workgroup: a group's invocations are consecutive, so on
+// lavapipe they form one 8-wide SIMD pass with one trip count and nearby texel reads.
+const GROUP: u32 = 8u;
+const GROUPS_PER_WORKGROUP: u32 = 8u;
 const NBINS: u32 = 64u;
 
 struct Params {
-    n_items: u32,
+    // Groups of this dispatch: groups[group_base..group_base + n_groups].
+    n_groups: u32,
     part_base: u32,
     mode: u32,
-    pad: u32,
+    group_base: u32,
 }
 
 struct Item {
@@ -32,22 +38,36 @@ struct Item {
     count_query: u32,
 }
 
+struct Group {
+    start: u32,
+    count: u32,
+    first: u32,
+    len: u32,
+}
+
 struct Below {
     count: u32,
     sum_d2: f32,
     off_x: f32,
     off_y: f32,
     off_z: f32,
-    // Bit i: point start + i is a member in the cut bin.
+    // Bit i: point start + i of the chunk is a member in the cut bin.
     in_cut: array<u32, 8>,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
-@group(0) @binding(2) var<storage, read> items: array<Item>;
-@group(0) @binding(3) var<storage, read_write> hist: array<atomic<u32>>;
-@group(0) @binding(4) var<storage, read> cut: array<u32>;
-@group(0) @binding(5) var<storage, read_write> below: array<Below>;
+// The sorted points of one part, relative to their blocks' origins, as the bits of f32
+// x, y, z (and an unused w), ROW texels per texture row.
+@group(0) @binding(1) var points: texture_2d<u32>;
+// Inputs are tables of u32 x 4 texels, ROW texels per texture row: items (3 texels
+// each, the bits of `Item`), the item order (4 indices per texel) and the groups.
+@group(0) @binding(2) var items: texture_2d<u32>;
+// Items listed by chunk; each group is a run of this list.
+@group(0) @binding(3) var order: texture_2d<u32>;
+@group(0) @binding(4) var groups: texture_2d<u32>;
+@group(0) @binding(5) var<storage, read_write> hist: array<atomic<u32>>;
+@group(0) @binding(6) var<storage, read> cut: array<u32>;
+@group(0) @binding(7) var<storage, read_write> below: array<Below>;
 
 fn bin_of(d2: f32, r2: f32) -> u32 {
     // r = 0 leaves only points on the axis: all in the top bin.
@@ -56,22 +76,59 @@ fn bin_of(d2: f32, r2: f32) -> u32 {
     return NBINS - 1u - u32(min(floor(octaves * 4.0), f32(NBINS - 1u)));
 }
 
+// Every input is read through a texture, not a storage buffer: lavapipe loads storage
+// buffers one lane and one component at a time, each behind a branch, but fetches texels
+// with SIMD gathers.
+fn texel(t: texture_2d<u32>, i: u32) -> vec4<u32> {
+    return textureLoad(t, vec2<u32>(i % ROW, i / ROW), 0);
+}
+
+fn point(i: u32) -> vec3<f32> {
+    return bitcast<vec3<f32>>(texel(points, i).xyz);
+}
+
+fn load_item(i: u32) -> Item {
+    let a = texel(items, 3u * i);
+    let b = texel(items, 3u * i + 1u);
+    let c = texel(items, 3u * i + 2u);
+    return Item(
+        bitcast<vec3<f32>>(a.xyz),
+        bitcast<f32>(a.w),
+        bitcast<vec3<f32>>(b.xyz),
+        bitcast<f32>(b.w),
+        bitcast<f32>(c.x),
+        bitcast<f32>(c.y),
+        c.z,
+        c.w,
+    );
+}
+
+fn load_group(i: u32) -> Group {
+    let t = texel(groups, i);
+    return Group(t.x, t.y, t.z, t.w);
+}
+
+fn load_order(i: u32) -> u32 {
+    return texel(order, i / 4u)[i % 4u];
+}
+
 @compute @workgroup_size(64)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let idx = (wg.y * n_wg.x + wg.x) * WORKGROUP + lane;
-    if idx >= params.n_items {
-        return;
-    }
-    let it = items[idx];
-    let n = min(it.count_query & 511u, CHUNK);
+    let gi = (wg.y * n_wg.x + wg.x) * GROUPS_PER_WORKGROUP + lane / GROUP;
+    let g = load_group(params.group_base + min(gi, params.n_groups - 1u));
+    let live = gi < params.n_groups && lane % GROUP < g.len;
+    // Results go to the item's own slot, in build order.
+    let idx = load_order(g.first + min(lane % GROUP, g.len - 1u));
+    let it = load_item(idx);
+    let n = min(g.count, CHUNK);
     let q = it.count_query >> 9u;
     let histogram = params.mode == 0u;
     var c = NBINS;
-    if !histogram {
+    if !histogram && live {
         c = cut[q];
     }
     var count = 0u;
@@ -79,24 +136,25 @@ fn main(
     var off = vec3<f32>(0.0);
     var in_cut = array<u32, 8>(0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u);
     for (var i = 0u; i < n; i++) {
-        let w = points[it.start + i].xyz - it.o;
+        let w = point(g.start + i) - it.o;
         let u = dot(w, it.d);
         let v = w - u * it.d;
         let d2 = dot(v, v);
-        if u >= it.lo && u <= it.hi && d2 <= it.r2 {
-            let b = bin_of(d2, it.r2);
-            if histogram {
+        let inside = live && u >= it.lo && u <= it.hi && d2 <= it.r2;
+        let b = bin_of(d2, it.r2);
+        if histogram {
+            if inside {
                 atomicAdd(&hist[q * NBINS + b], 1u);
-            } else if b < c {
-                count += 1u;
-                sum_d2 += d2;
-                off += v;
-            } else if b == c {
-                in_cut[i >> 5u] |= 1u << (i & 31u);
             }
+        } else {
+            let low = inside && b < c;
+            count += select(0u, 1u, low);
+            sum_d2 += select(0.0, d2, low);
+            off += select(vec3<f32>(0.0), v, low);
+            in_cut[i >> 5u] |= select(0u, 1u << (i & 31u), inside && b == c);
         }
     }
-    if !histogram {
+    if !histogram && live {
         below[idx] = Below(count, sum_d2, off.x, off.y, off.z, in_cut);
     }
 }

@@ -1,10 +1,8 @@
 //! Launcher of `shaders/coverage.wgsl`: ORs the members of every item into a u32 mask over
 //! the sorted points. The caller clears the mask once per batch and reads it back once.
 
-use super::device::{encode, head, Context, Params};
+use super::device::Context;
 use super::{Job, Scratch};
-
-const WORKGROUP: u64 = 64;
 
 pub struct Coverage {
     pipeline: wgpu::ComputePipeline,
@@ -17,7 +15,7 @@ impl Coverage {
         }
     }
 
-    /// Submits the kernel over `job` into `mask` (`mask_bytes` long).
+    /// Submits the kernel over the slice of `job`, into `mask` (`mask_bytes` long).
     pub fn run(
         &self,
         ctx: &Context,
@@ -26,34 +24,6 @@ impl Coverage {
         mask: &wgpu::Buffer,
         mask_bytes: u64,
     ) {
-        let params = Params {
-            n_items: job.items.len() as u32,
-            part_base: job.part.base as u32,
-            ..Default::default()
-        };
-        let item_bytes = std::mem::size_of_val(job.items) as u64;
-        ctx.queue
-            .write_buffer(&s.params, 0, bytemuck::bytes_of(&params));
-        let items_buf = s.items.get(ctx, item_bytes);
-        ctx.queue
-            .write_buffer(items_buf, 0, bytemuck::cast_slice(job.items));
-        let group = ctx.bind(
-            &self.pipeline,
-            &[
-                s.params.as_entire_binding(),
-                job.part.buffer.as_entire_binding(),
-                head(items_buf, item_bytes),
-                head(mask, mask_bytes),
-            ],
-        );
-        let encoder = encode(
-            ctx,
-            &self.pipeline,
-            &group,
-            job.items.len(),
-            WORKGROUP,
-            job.max_x,
-        );
-        ctx.queue.submit([encoder.finish()]);
+        s.submit(ctx, &self.pipeline, job, 0, &[(mask, mask_bytes)]);
     }
 }

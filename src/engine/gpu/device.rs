@@ -49,7 +49,8 @@ pub fn pick_adapter() -> Result<wgpu::Adapter, EngineError> {
 
 impl Context {
     /// Opens a device on `adapter` with the limits the engine needs raised to what the
-    /// adapter offers: large storage bindings and buffers, 6 storage buffers per stage.
+    /// adapter offers: large storage bindings, buffers and textures, up to 8 storage buffers
+    /// per stage.
     pub fn new(adapter: &wgpu::Adapter) -> Result<Context, EngineError> {
         let offered = adapter.limits();
         let mut limits = wgpu::Limits::downlevel_defaults();
@@ -58,9 +59,10 @@ impl Context {
         limits.max_storage_buffers_per_shader_stage =
             offered.max_storage_buffers_per_shader_stage.min(8);
         limits.max_compute_workgroups_per_dimension = offered.max_compute_workgroups_per_dimension;
-        if limits.max_storage_buffers_per_shader_stage < 4 {
+        limits.max_texture_dimension_2d = offered.max_texture_dimension_2d;
+        if limits.max_storage_buffers_per_shader_stage < 6 {
             return Err(EngineError::Gpu(format!(
-                "adapter {} offers {} storage buffers per shader stage, the kernels need 4",
+                "adapter {} offers {} storage buffers per shader stage, the kernels need 6",
                 adapter.get_info().name,
                 limits.max_storage_buffers_per_shader_stage
             )));
@@ -153,18 +155,20 @@ impl Context {
         buf
     }
 
-    /// Copies `size` bytes of `src` to the host. `staging` must be a MAP_READ buffer of at
-    /// least `size` bytes; the copy is submitted together with `encoder`'s work.
-    pub fn read_back(
+    /// Submits `encoder` with a copy of the first `size` bytes of `src` into `staging` (a
+    /// MAP_READ buffer of at least `size` bytes), waits, and hands the bytes to `f` where
+    /// they lie, without copying them out.
+    pub fn read_back<R>(
         &self,
         mut encoder: wgpu::CommandEncoder,
         src: &wgpu::Buffer,
         staging: &wgpu::Buffer,
         size: u64,
-    ) -> Result<Vec<u8>, EngineError> {
+        f: impl FnOnce(&[u8]) -> R,
+    ) -> Result<R, EngineError> {
         if size == 0 {
             self.queue.submit([encoder.finish()]);
-            return Ok(Vec::new());
+            return Ok(f(&[]));
         }
         encoder.copy_buffer_to_buffer(src, 0, staging, 0, size);
         self.queue.submit([encoder.finish()]);
@@ -179,14 +183,20 @@ impl Context {
         rx.recv()
             .map_err(|_| EngineError::Gpu("read-back never completed".into()))?
             .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
-        let bytes = {
+        let out = {
             let view = slice
                 .get_mapped_range()
                 .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
-            view.to_vec()
+            f(&view)
         };
         staging.unmap();
-        Ok(bytes)
+        Ok(out)
+    }
+
+    /// A fresh command encoder.
+    pub fn encoder(&self) -> wgpu::CommandEncoder {
+        self.device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default())
     }
 
     /// Compute pipeline with its layout derived from the shader.
@@ -261,10 +271,112 @@ impl Reusable {
         }
         self.buf.as_ref().expect("just created")
     }
+}
 
-    /// The buffer of the last `get`.
-    pub fn current(&self) -> &wgpu::Buffer {
-        self.buf.as_ref().expect("Reusable::current before get")
+/// Texels per row of every table texture (`ROW` in the shaders).
+pub const ROW: usize = 4096;
+
+/// A table of `[u32; 4]` rows kept in an `Rgba32Uint` texture of `ROW`-texel rows: the
+/// kernels read their inputs with `textureLoad`, which lavapipe turns into SIMD gathers,
+/// where a storage-buffer load costs one branchy scalar load per lane and component.
+pub struct Table {
+    label: &'static str,
+    texture: Option<(wgpu::Texture, wgpu::TextureView)>,
+}
+
+impl Table {
+    pub fn new(label: &'static str) -> Self {
+        Table {
+            label,
+            texture: None,
+        }
+    }
+
+    /// Rows a table of `n` texels needs.
+    pub fn rows(n: usize) -> u32 {
+        n.div_ceil(ROW).max(1) as u32
+    }
+
+    /// A texture for `rows` rows, reused when large enough.
+    fn reserve(&mut self, ctx: &Context, rows: u32) -> &(wgpu::Texture, wgpu::TextureView) {
+        if self.texture.as_ref().is_none_or(|(t, _)| t.height() < rows) {
+            let grown = self.texture.as_ref().map_or(0, |(t, _)| t.height() * 3 / 2);
+            let height = rows
+                .max(grown)
+                .min(ctx.limits.max_texture_dimension_2d)
+                .max(rows);
+            self.texture = Some(table_texture(ctx, self.label, height));
+        }
+        self.texture.as_ref().expect("just created")
+    }
+
+    /// Uploads `texels` (row-major from texel 0) and returns the view to bind.
+    pub fn write(&mut self, ctx: &Context, texels: &[[u32; 4]]) -> wgpu::TextureView {
+        let (texture, view) = self.reserve(ctx, Table::rows(texels.len()));
+        write_texels(ctx, texture, texels);
+        view.clone()
+    }
+}
+
+/// An `Rgba32Uint` texture of `height` rows of `ROW` texels.
+pub fn table_texture(
+    ctx: &Context,
+    label: &str,
+    height: u32,
+) -> (wgpu::Texture, wgpu::TextureView) {
+    let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width: ROW as u32,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::Rgba32Uint,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+    (texture, view)
+}
+
+/// Writes `texels` from texel 0 of `texture`: the full rows in one copy, the last partial
+/// row in another (no padded copy of the data).
+pub fn write_texels(ctx: &Context, texture: &wgpu::Texture, texels: &[[u32; 4]]) {
+    let full = texels.len() / ROW;
+    let copy = |origin_y: u32, data: &[[u32; 4]], width: u32, height: u32| {
+        ctx.queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d {
+                    x: 0,
+                    y: origin_y,
+                    z: 0,
+                },
+                aspect: wgpu::TextureAspect::All,
+            },
+            bytemuck::cast_slice(data),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some((ROW * 16) as u32),
+                rows_per_image: Some(height),
+            },
+            wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+        );
+    };
+    if full > 0 {
+        copy(0, &texels[..full * ROW], ROW as u32, full as u32);
+    }
+    let rest = &texels[full * ROW..];
+    if !rest.is_empty() {
+        copy(full as u32, rest, rest.len() as u32, 1);
     }
 }
 
@@ -277,24 +389,29 @@ pub fn head(buf: &wgpu::Buffer, size: u64) -> wgpu::BindingResource<'_> {
     })
 }
 
+/// Item groups per workgroup (`GROUPS_PER_WORKGROUP` in the shaders; 64 invocations).
+const GROUPS_PER_WORKGROUP: u64 = 8;
+
 /// `struct Params` of the shaders: the uniform every kernel reads.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct Params {
-    pub n_items: u32,
+    /// Groups (workgroups) in the dispatch.
+    pub n_groups: u32,
     /// Sorted index of the first point of the bound part.
     pub part_base: u32,
     pub mode: u32,
-    pub pad: u32,
+    /// First group of the dispatch in the slice's group list.
+    pub group_base: u32,
 }
 
-/// Records one dispatch of `pipeline` over `n_items` invocations of `workgroup` threads.
+/// Records one dispatch of `pipeline` over `n_groups` item groups, `GROUPS_PER_WORKGROUP`
+/// per workgroup.
 pub fn encode(
     ctx: &Context,
     pipeline: &wgpu::ComputePipeline,
     group: &wgpu::BindGroup,
-    n_items: usize,
-    workgroup: u64,
+    n_groups: usize,
     max_x: u32,
 ) -> wgpu::CommandEncoder {
     let mut encoder = ctx
@@ -304,10 +421,18 @@ pub fn encode(
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, group, &[]);
-        let (x, y) = tiles(n_items as u64, workgroup, max_x);
+        let (x, y) = tiles(n_groups as u64, GROUPS_PER_WORKGROUP, max_x);
         pass.dispatch_workgroups(x, y, 1);
     }
     encoder
+}
+
+/// `bytes` as a slice of `T`, in place when aligned (mapped memory always is).
+pub fn pods<T: bytemuck::Pod>(bytes: &[u8]) -> std::borrow::Cow<'_, [T]> {
+    match bytemuck::try_cast_slice(bytes) {
+        Ok(s) => std::borrow::Cow::Borrowed(s),
+        Err(_) => std::borrow::Cow::Owned(bytemuck::pod_collect_to_vec(bytes)),
+    }
 }
 
 /// Test builds fill new buffers with garbage (also on request: `LINEGS_GPU_GARBAGE=1`).
@@ -375,8 +500,10 @@ mod tests {
         );
         let staging = ctx.buffer("staging", 256, wgpu::BufferUsages::MAP_READ);
         let enc = ctx.device.create_command_encoder(&Default::default());
-        let bytes = ctx.read_back(enc, &buf, &staging, 256).unwrap();
-        assert!(bytes.iter().all(|&b| b == 0xFF));
+        let all_ff = ctx
+            .read_back(enc, &buf, &staging, 256, |b| b.iter().all(|&x| x == 0xFF))
+            .unwrap();
+        assert!(all_ff);
     }
 
     #[test]

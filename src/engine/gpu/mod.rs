@@ -1,18 +1,23 @@
 //! The GPU engine: wgpu + WGSL kernels answering the same batches as
 //! [`CpuEngine`](super::cpu::CpuEngine), within the tolerance of SPEC 2.
 //!
-//! The grid's sorted centers go to the device once, as f32 coordinates relative to their
-//! cell's origin (computed in f64). A batch becomes work items (`items.rs`): a query and at
-//! most [`CHUNK`] points of one cell, with the f64 geometry done on the host. Each kernel
+//! The grid's sorted centers go to the device once, as f32 coordinates relative to the
+//! origin of their block of a few cells (computed in f64). A batch becomes work items
+//! (`items.rs`): a query and a chunk of at most [`CHUNK`] points of one block row, with
+//! the f64 geometry done on the host; items sharing a chunk run side by side. Each kernel
 //! (`stats.rs`, `nearest.rs`, `coverage.rs`, one `shaders/*.wgsl` each) gives every item
 //! its own output slot or uses integer atomics; the host reduces the slots per query in
-//! item order, so results repeat exactly. What keeps the device within its limits:
+//! build order, so results repeat exactly. Kernel inputs are textures: on lavapipe a
+//! texel fetch is a SIMD gather, a storage-buffer load a scalar loop over the lanes.
+//!
+//! What keeps the device within its limits:
 //! - no invocation loops over more than `CHUNK` points (lavapipe stops an invocation after
 //!   65,535 iterations);
-//! - the point buffer is split into parts no larger than the storage binding limit, and no
-//!   item crosses a part;
-//! - a batch runs in sub-batches of at most `max_queries` queries, each in dispatches of at
-//!   most `max_items` items, tiled in 2D beyond `max_workgroups_x` workgroups;
+//! - the point store is split into parts no larger than the binding limit (and the
+//!   texture size limit), and no item crosses a part;
+//! - a batch runs in sub-batches of at most `max_queries` queries, each in slices of at
+//!   most `max_items` items, so every per-batch buffer stays under the binding limit;
+//!   dispatches are tiled in 2D beyond `max_workgroups_x` workgroups;
 //! - every wgpu call runs inside error scopes, so errors come back as `EngineError::Gpu`.
 
 mod coverage;
@@ -26,9 +31,9 @@ pub use items::CHUNK;
 use super::{Counters, Coverage, CylStats, Engine, EngineError, NearestSum, Query, Want};
 use crate::geom::p64;
 use crate::index::Grid;
-use device::{Context, Reusable};
+use device::{Context, Reusable, Table};
 use glam::DVec3;
-use items::Item;
+use items::{Item, Layout, Slice, Work};
 use nearest::Plan;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -38,8 +43,8 @@ use std::sync::{Arc, Mutex};
 /// the splitting paths with small data.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct GpuOptions {
-    /// Largest storage buffer binding in bytes; `None`: the device's
-    /// `max_storage_buffer_binding_size`. Never above the device's limit.
+    /// Largest buffer binding and point-store part in bytes (16 per point); `None`: the
+    /// device's `max_storage_buffer_binding_size`. Never above the device's limit.
     pub max_binding_bytes: Option<u64>,
     /// Most work items per dispatch.
     pub max_items: usize,
@@ -60,29 +65,80 @@ impl Default for GpuOptions {
     }
 }
 
-/// One piece of the sorted points on the device: points `base..base + len`.
+/// One piece of the sorted points on the device, from sorted index `base` on: a table
+/// texture (`device::Table`) of the bits of f32 x, y, z (and an unused w).
 pub(crate) struct Part {
-    buffer: wgpu::Buffer,
+    view: wgpu::TextureView,
     base: usize,
 }
 
-/// One dispatch: items that all read `part`, tiled at `max_x` workgroups.
+/// One slice of work for a kernel: its items, their order by chunk and groups, and the
+/// point store's parts its dispatches read; dispatches are tiled at `max_x` workgroups.
 pub(crate) struct Job<'a> {
-    part: &'a Part,
+    parts: &'a [Part],
     items: &'a [Item],
+    slice: &'a Slice,
     max_x: u32,
 }
 
 /// Per-batch buffers, reused across batches.
 pub(crate) struct Scratch {
     params: wgpu::Buffer,
-    items: Reusable,
+    items: Table,
+    order: Table,
+    groups: Table,
     out: Reusable,
     staging: Reusable,
     /// Histogram (nearest) or bitmask (coverage).
     aux: Reusable,
     aux_staging: Reusable,
     cut: Reusable,
+}
+
+impl Scratch {
+    /// Uploads the slice of `job` and submits `pipeline` over it, one dispatch per part
+    /// of the point store. Bindings: params, points, items, order, groups, then `outputs`
+    /// (buffer, bytes bound).
+    fn submit(
+        &mut self,
+        ctx: &Context,
+        pipeline: &wgpu::ComputePipeline,
+        job: &Job<'_>,
+        mode: u32,
+        outputs: &[(&wgpu::Buffer, u64)],
+    ) {
+        let sl = job.slice;
+        let items = self.items.write(ctx, bytemuck::cast_slice(job.items));
+        // Four order entries per texel.
+        let mut order: Vec<u32> = sl.order.clone();
+        order.resize(order.len().next_multiple_of(4), 0);
+        let order = self.order.write(ctx, bytemuck::cast_slice(&order));
+        let groups = self.groups.write(ctx, bytemuck::cast_slice(&sl.groups));
+        for d in &sl.dispatches {
+            let part = &job.parts[d.part];
+            let params = device::Params {
+                n_groups: d.groups.len() as u32,
+                part_base: part.base as u32,
+                mode,
+                group_base: d.groups.start as u32,
+            };
+            // Written before this dispatch's submit, after the previous one's: each
+            // dispatch sees its own parameters.
+            ctx.queue
+                .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+            let mut res = vec![
+                self.params.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&part.view),
+                wgpu::BindingResource::TextureView(&items),
+                wgpu::BindingResource::TextureView(&order),
+                wgpu::BindingResource::TextureView(&groups),
+            ];
+            res.extend(outputs.iter().map(|&(b, n)| device::head(b, n)));
+            let bind = ctx.bind(pipeline, &res);
+            let encoder = device::encode(ctx, pipeline, &bind, d.groups.len(), job.max_x);
+            ctx.queue.submit([encoder.finish()]);
+        }
+    }
 }
 
 struct Kernels {
@@ -96,8 +152,8 @@ pub struct GpuEngine {
     ctx: Context,
     kernels: Kernels,
     parts: Vec<Part>,
-    /// Points per part (the last may hold fewer).
-    part_len: usize,
+    /// Points per part (the last may hold fewer) and cells per block.
+    layout: Layout,
     max_items: usize,
     max_x: u32,
     max_queries: usize,
@@ -126,9 +182,17 @@ impl GpuEngine {
             .min(ctx.limits.max_storage_buffer_binding_size)
             .min(ctx.limits.max_buffer_size);
         let point_bytes = std::mem::size_of::<[f32; 4]>() as u64;
-        let part_len = (binding / point_bytes).max(1) as usize;
+        let part_len = ((binding / point_bytes) as usize)
+            .min(device::ROW * ctx.limits.max_texture_dimension_2d as usize)
+            .max(1);
         let slot_bytes = std::mem::size_of::<Item>().max(std::mem::size_of::<nearest::Below>());
-        let max_items = opts.max_items.min(binding as usize / slot_bytes).max(1);
+        // Items take 3 texels of a table texture.
+        let table_texels = device::ROW * ctx.limits.max_texture_dimension_2d as usize;
+        let max_items = opts
+            .max_items
+            .min(binding as usize / slot_bytes)
+            .min(table_texels / 3)
+            .max(1);
         let kernels = ctx.scoped("compiling the kernels", || Kernels {
             stats: stats::Stats::new(&ctx),
             nearest: nearest::Nearest::new(&ctx),
@@ -143,7 +207,9 @@ impl GpuEngine {
                     std::mem::size_of::<device::Params>() as u64,
                     wgpu::BufferUsages::UNIFORM,
                 ),
-                items: Reusable::new("items", wgpu::BufferUsages::STORAGE),
+                items: Table::new("items"),
+                order: Table::new("order"),
+                groups: Table::new("groups"),
                 out: Reusable::new("out", storage),
                 staging: Reusable::new("staging", read),
                 aux: Reusable::new("aux", storage),
@@ -153,13 +219,17 @@ impl GpuEngine {
         })?;
         let engine = GpuEngine {
             parts: Vec::new(),
+            layout: Layout::for_grid(&grid, part_len),
             grid,
             ctx,
             kernels,
-            part_len,
             max_items,
             max_x: opts.max_workgroups_x.max(1),
-            max_queries: opts.max_queries.clamp(1, items::MAX_QUERY_SLOTS),
+            // The nearest histograms take 256 bytes per query of a sub-batch.
+            max_queries: opts
+                .max_queries
+                .min(binding as usize / (nearest::NBINS * 4))
+                .clamp(1, items::MAX_QUERY_SLOTS),
             scratch: Mutex::new(scratch),
             uploads: AtomicU64::new(0),
             batches: AtomicU64::new(0),
@@ -169,9 +239,10 @@ impl GpuEngine {
         engine.upload()
     }
 
-    /// Sends the sorted centers to the device, relative to their cells' origins.
+    /// Sends the sorted centers to the device, relative to their blocks' origins.
     fn upload(mut self) -> Result<Self, EngineError> {
         let g = &*self.grid;
+        let layout = self.layout;
         let (dx, dy) = (g.dims[0], g.dims[1]);
         let rel: Vec<[f32; 4]> = g
             .points
@@ -180,27 +251,22 @@ impl GpuEngine {
                 let p = p64(*p);
                 // Same function the grid sorted with, so this is the point's own cell.
                 let c = g.cell_of(p);
-                let o = g.cell_origin(c % dx, (c / dx) % dy, c / (dx * dy));
+                let o = layout.block_origin(g, c % dx, (c / dx) % dy, c / (dx * dy));
                 let r = p - o;
                 [r.x as f32, r.y as f32, r.z as f32, 0.0]
             })
             .collect();
         let ctx = &self.ctx;
-        let part_len = self.part_len;
+        let part_len = self.layout.part_len;
         self.parts = ctx.scoped("uploading the Gaussians", || {
             rel.chunks(part_len)
                 .enumerate()
                 .map(|(i, chunk)| {
-                    let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                        label: Some("points"),
-                        size: std::mem::size_of_val(chunk) as u64,
-                        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-                        mapped_at_creation: false,
-                    });
-                    ctx.queue
-                        .write_buffer(&buffer, 0, bytemuck::cast_slice(chunk));
+                    let (texture, view) =
+                        device::table_texture(ctx, "points", device::Table::rows(chunk.len()));
+                    device::write_texels(ctx, &texture, bytemuck::cast_slice(chunk));
                     Part {
-                        buffer,
+                        view,
                         base: i * part_len,
                     }
                 })
@@ -219,7 +285,7 @@ impl GpuEngine {
 
     /// How the point buffer is split: (parts, points per part).
     pub fn parts(&self) -> (usize, usize) {
-        (self.parts.len(), self.part_len)
+        (self.parts.len(), self.layout.part_len)
     }
 
     fn count_batch(&self, n: usize) {
@@ -238,18 +304,19 @@ impl GpuEngine {
             .map(move |a| a..(a + self.max_queries).min(n))
     }
 
-    fn job<'a>(&'a self, part: usize, items: &'a [Item]) -> Job<'a> {
+    fn job<'a>(&'a self, work: &'a Work, slice: &'a Slice) -> Job<'a> {
         Job {
-            part: &self.parts[part],
-            items,
+            parts: &self.parts,
+            items: &work.items[slice.items.clone()],
+            slice,
             max_x: self.max_x,
         }
     }
 
-    /// Work items of a sub-batch, grouped by part, each group cut into dispatches.
-    fn dispatches(&self, queries: &[Query]) -> Vec<(usize, Vec<Item>)> {
-        let all = items::build(&self.grid, queries, self.part_len);
-        items::by_part(all, self.part_len, self.parts.len())
+    /// The work items of a sub-batch, grouped and cut into dispatches.
+    fn work(&self, queries: &[Query]) -> Work {
+        let all = items::build(&self.grid, queries, self.layout);
+        items::group(all, self.layout.part_len, self.max_items)
     }
 }
 
@@ -271,23 +338,22 @@ impl Engine for GpuEngine {
         let mut out = vec![CylStats::default(); queries.len()];
         let mut s = self.lock();
         for range in self.sub_batches(queries.len()) {
-            let groups = self.dispatches(&queries[range.clone()]);
+            let work = self.work(&queries[range.clone()]);
             let acc = &mut out[range];
-            for (part, items) in &groups {
-                for chunk in items.chunks(self.max_items) {
-                    let partials = self.ctx.scoped("stats kernel", || {
-                        self.kernels
-                            .stats
-                            .run(&self.ctx, &mut s, &self.job(*part, chunk))
-                    })??;
-                    for (it, p) in chunk.iter().zip(&partials) {
-                        let a = &mut acc[it.query()];
-                        a.count += p.count as u64;
-                        a.side_pos += p.side_pos as u64;
-                        a.sum_d2 += p.sum_d2 as f64;
-                        a.sum_offset += p64(p.off);
-                    }
-                }
+            for sl in &work.slices {
+                let items = &work.items[sl.items.clone()];
+                self.ctx.scoped("stats kernel", || {
+                    let job = self.job(&work, sl);
+                    self.kernels.stats.run(&self.ctx, &mut s, &job, |partials| {
+                        for (it, p) in items.iter().zip(partials) {
+                            let a = &mut acc[it.query()];
+                            a.count += p.count as u64;
+                            a.side_pos += p.side_pos as u64;
+                            a.sum_d2 += p.sum_d2 as f64;
+                            a.sum_offset += p64(p.off);
+                        }
+                    })
+                })??;
             }
         }
         for a in &mut out {
@@ -314,36 +380,26 @@ impl Engine for GpuEngine {
         let mut s = self.lock();
         for range in self.sub_batches(queries.len()) {
             let qs = &queries[range.clone()];
-            let groups = self.dispatches(qs);
+            let work = self.work(qs);
             let hist_bytes = (qs.len() * nearest::NBINS * 4) as u64;
             let cut_bytes = (qs.len() * 4) as u64;
             // Pass 0: per-query histograms of the members' distances.
             let hist: Vec<u32> = self.ctx.scoped("nearest kernel (histogram)", || {
                 let hist = s.aux.get(&self.ctx, hist_bytes).clone();
-                let mut clear = self
-                    .ctx
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
+                let mut clear = self.ctx.encoder();
                 clear.clear_buffer(&hist, 0, Some(hist_bytes));
                 self.ctx.queue.submit([clear.finish()]);
-                for (part, items) in &groups {
-                    for chunk in items.chunks(self.max_items) {
-                        self.kernels.nearest.histogram(
-                            &self.ctx,
-                            &mut s,
-                            &self.job(*part, chunk),
-                            hist_bytes,
-                        );
-                    }
+                for sl in &work.slices {
+                    let job = self.job(&work, sl);
+                    self.kernels
+                        .nearest
+                        .histogram(&self.ctx, &mut s, &job, &hist, hist_bytes);
                 }
                 let staging = s.aux_staging.get(&self.ctx, hist_bytes).clone();
-                let encoder = self
-                    .ctx
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
                 self.ctx
-                    .read_back(encoder, &hist, &staging, hist_bytes)
-                    .map(|b| bytemuck::pod_collect_to_vec(&b))
+                    .read_back(self.ctx.encoder(), &hist, &staging, hist_bytes, |b| {
+                        bytemuck::pod_collect_to_vec(b)
+                    })
             })??;
             let ks = &k[range.clone()];
             let plans: Vec<Plan> = hist
@@ -357,39 +413,41 @@ impl Engine for GpuEngine {
             let mut below = vec![0u64; qs.len()];
             let mut flagged: Vec<(u32, u32)> = Vec::new();
             self.ctx.scoped("nearest kernel (sums)", || {
-                let cut = s.cut.get(&self.ctx, cut_bytes);
+                let hist = s.aux.get(&self.ctx, hist_bytes).clone();
+                let cut = s.cut.get(&self.ctx, cut_bytes).clone();
                 self.ctx
                     .queue
-                    .write_buffer(cut, 0, bytemuck::cast_slice(&cuts));
-                for (part, items) in &groups {
-                    let base = self.parts[*part].base;
-                    for chunk in items.chunks(self.max_items) {
-                        let res = self.kernels.nearest.below(
-                            &self.ctx,
-                            &mut s,
-                            &self.job(*part, chunk),
-                            hist_bytes,
-                            cut_bytes,
-                        )?;
-                        for (it, b) in chunk.iter().zip(&res) {
-                            let q = it.query();
-                            if plans[q].k == 0 {
-                                continue;
-                            }
-                            below[q] += b.count as u64;
-                            acc[q].sum_d2 += b.sum_d2 as f64;
-                            acc[q].sum_offset += p64(b.off);
-                            for (w, &bits) in b.in_cut.iter().enumerate() {
-                                let mut bits = bits;
-                                while bits != 0 {
-                                    let j = bits.trailing_zeros() as usize + 32 * w;
-                                    bits &= bits - 1;
-                                    let i = base + it.start as usize + j;
-                                    flagged.push((q as u32, i as u32));
+                    .write_buffer(&cut, 0, bytemuck::cast_slice(&cuts));
+                for sl in &work.slices {
+                    let items = &work.items[sl.items.clone()];
+                    let job = self.job(&work, sl);
+                    self.kernels.nearest.below(
+                        &self.ctx,
+                        &mut s,
+                        &job,
+                        (&hist, hist_bytes),
+                        (&cut, cut_bytes),
+                        |res| {
+                            for (it, b) in items.iter().zip(res) {
+                                let q = it.query();
+                                if plans[q].k == 0 {
+                                    continue;
+                                }
+                                below[q] += b.count as u64;
+                                acc[q].sum_d2 += b.sum_d2 as f64;
+                                acc[q].sum_offset += p64(b.off);
+                                // Bit j: point `start + j` of the item's chunk.
+                                for (w, &bits) in b.in_cut.iter().enumerate() {
+                                    let mut bits = bits;
+                                    while bits != 0 {
+                                        let j = bits.trailing_zeros() + 32 * w as u32;
+                                        bits &= bits - 1;
+                                        flagged.push((q as u32, it.start + j));
+                                    }
                                 }
                             }
-                        }
-                    }
+                        },
+                    )?;
                 }
                 Ok::<(), EngineError>(())
             })??;
@@ -445,33 +503,23 @@ impl Engine for GpuEngine {
         let mut s = self.lock();
         let words: Vec<u32> = self.ctx.scoped("coverage kernel", || {
             let mask = s.aux.get(&self.ctx, mask_bytes).clone();
-            let mut clear = self
-                .ctx
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
+            let mut clear = self.ctx.encoder();
             clear.clear_buffer(&mask, 0, Some(mask_bytes));
             self.ctx.queue.submit([clear.finish()]);
             for range in self.sub_batches(queries.len()) {
-                for (part, items) in &self.dispatches(&queries[range]) {
-                    for chunk in items.chunks(self.max_items) {
-                        self.kernels.coverage.run(
-                            &self.ctx,
-                            &mut s,
-                            &self.job(*part, chunk),
-                            &mask,
-                            mask_bytes,
-                        );
-                    }
+                let work = self.work(&queries[range]);
+                for sl in &work.slices {
+                    let job = self.job(&work, sl);
+                    self.kernels
+                        .coverage
+                        .run(&self.ctx, &mut s, &job, &mask, mask_bytes);
                 }
             }
             let staging = s.aux_staging.get(&self.ctx, mask_bytes).clone();
-            let encoder = self
-                .ctx
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
             self.ctx
-                .read_back(encoder, &mask, &staging, mask_bytes)
-                .map(|b| bytemuck::pod_collect_to_vec(&b))
+                .read_back(self.ctx.encoder(), &mask, &staging, mask_bytes, |b| {
+                    bytemuck::pod_collect_to_vec(b)
+                })
         })??;
         let mask = words
             .chunks(2)

@@ -3,7 +3,7 @@
 //! members below it; the members inside it are ranked exactly in f64, by
 //! (distance², sorted index) like `CpuEngine::nearest`.
 
-use super::device::{encode, head, Context, Params};
+use super::device::Context;
 use super::items::CHUNK;
 use super::{Job, Scratch};
 use crate::engine::{EngineError, NearestSum, Query};
@@ -12,7 +12,6 @@ use crate::index::Grid;
 use bytemuck::{Pod, Zeroable};
 use glam::DVec3;
 
-const WORKGROUP: u64 = 64;
 /// Histogram bins per query (`NBINS` in the shader).
 pub const NBINS: usize = 64;
 /// `cut` value that puts every member below the cut.
@@ -39,81 +38,53 @@ impl Nearest {
         }
     }
 
-    /// Mode 0: adds the members of `job` to `s.hist` (cleared by the caller). Submits
-    /// without waiting.
-    pub fn histogram(&self, ctx: &Context, s: &mut Scratch, job: &Job<'_>, hist_bytes: u64) {
-        self.submit(ctx, s, job, hist_bytes, 0, 0);
-    }
-
-    /// Mode 1: per item, the members below `cut[query]` and the bitmask of those in it.
-    pub fn below(
+    /// Mode 0: adds the members of the slice of `job` to `hist` (`hist_bytes` long,
+    /// cleared by the caller). Submits without waiting.
+    pub fn histogram(
         &self,
         ctx: &Context,
         s: &mut Scratch,
         job: &Job<'_>,
+        hist: &wgpu::Buffer,
         hist_bytes: u64,
-        cut_bytes: u64,
-    ) -> Result<Vec<Below>, EngineError> {
-        let encoder = self.submit(ctx, s, job, hist_bytes, cut_bytes, 1);
-        let out_bytes = (job.items.len() * std::mem::size_of::<Below>()) as u64;
-        let out = s.out.get(ctx, out_bytes);
-        let bytes = ctx.read_back(encoder, out, s.staging.get(ctx, out_bytes), out_bytes)?;
-        Ok(bytemuck::pod_collect_to_vec(&bytes))
-    }
-
-    /// Encodes the dispatch; mode 0 submits it and returns an empty encoder, mode 1 leaves
-    /// the submit to the read-back.
-    fn submit(
-        &self,
-        ctx: &Context,
-        s: &mut Scratch,
-        job: &Job<'_>,
-        hist_bytes: u64,
-        cut_bytes: u64,
-        mode: u32,
-    ) -> wgpu::CommandEncoder {
-        let params = Params {
-            n_items: job.items.len() as u32,
-            part_base: job.part.base as u32,
-            mode,
-            pad: 0,
-        };
-        let item_bytes = std::mem::size_of_val(job.items) as u64;
-        // Mode 0 writes no `Below`: one slot keeps the binding valid.
-        let out_bytes = if mode == 0 { 1 } else { job.items.len() } * std::mem::size_of::<Below>();
-        ctx.queue
-            .write_buffer(&s.params, 0, bytemuck::bytes_of(&params));
-        let items_buf = s.items.get(ctx, item_bytes);
-        ctx.queue
-            .write_buffer(items_buf, 0, bytemuck::cast_slice(job.items));
-        s.out.get(ctx, out_bytes as u64);
-        s.cut.get(ctx, cut_bytes);
-        let group = ctx.bind(
-            &self.pipeline,
-            &[
-                s.params.as_entire_binding(),
-                job.part.buffer.as_entire_binding(),
-                head(items_buf, item_bytes),
-                head(s.aux.current(), hist_bytes),
-                head(s.cut.current(), cut_bytes),
-                head(s.out.current(), out_bytes as u64),
-            ],
-        );
-        let encoder = encode(
+    ) {
+        // Mode 0 reads no cut and writes no `Below`: one slot each keeps the bindings valid.
+        let below_bytes = std::mem::size_of::<Below>() as u64;
+        let cut = s.cut.get(ctx, 4).clone();
+        let below = s.out.get(ctx, below_bytes).clone();
+        s.submit(
             ctx,
             &self.pipeline,
-            &group,
-            job.items.len(),
-            WORKGROUP,
-            job.max_x,
+            job,
+            0,
+            &[(hist, hist_bytes), (&cut, 4), (&below, below_bytes)],
         );
-        if mode == 0 {
-            ctx.queue.submit([encoder.finish()]);
-            return ctx
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
-        }
-        encoder
+    }
+
+    /// Mode 1: per item, the members below `cut[query]` and the bitmask of those in it,
+    /// handed to `f` in the slice's build order.
+    pub fn below<R>(
+        &self,
+        ctx: &Context,
+        s: &mut Scratch,
+        job: &Job<'_>,
+        (hist, hist_bytes): (&wgpu::Buffer, u64),
+        (cut, cut_bytes): (&wgpu::Buffer, u64),
+        f: impl FnOnce(&[Below]) -> R,
+    ) -> Result<R, EngineError> {
+        let bytes = (job.items.len() * std::mem::size_of::<Below>()) as u64;
+        let below = s.out.get(ctx, bytes).clone();
+        s.submit(
+            ctx,
+            &self.pipeline,
+            job,
+            1,
+            &[(hist, hist_bytes), (cut, cut_bytes), (&below, bytes)],
+        );
+        let staging = s.staging.get(ctx, bytes).clone();
+        ctx.read_back(ctx.encoder(), &below, &staging, bytes, |b| {
+            f(&super::device::pods(b))
+        })
     }
 }
 

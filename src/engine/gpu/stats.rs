@@ -1,12 +1,10 @@
 //! Launcher of `shaders/stats.wgsl`: per work item, the count, side count and sums of its
 //! members.
 
-use super::device::{encode, head, Context, Params};
+use super::device::Context;
 use super::{Job, Scratch};
 use crate::engine::EngineError;
 use bytemuck::{Pod, Zeroable};
-
-const WORKGROUP: u64 = 64;
 
 /// `struct Partial` of the shader.
 #[repr(C)]
@@ -29,44 +27,21 @@ impl Stats {
         }
     }
 
-    /// One partial per item of `job`.
-    pub fn run(
+    /// Runs the kernel over the slice of `job` and hands `f` one partial per item, in the
+    /// slice's build order.
+    pub fn run<R>(
         &self,
         ctx: &Context,
         s: &mut Scratch,
         job: &Job<'_>,
-    ) -> Result<Vec<Partial>, EngineError> {
-        let params = Params {
-            n_items: job.items.len() as u32,
-            part_base: job.part.base as u32,
-            ..Default::default()
-        };
-        let item_bytes = std::mem::size_of_val(job.items) as u64;
-        let out_bytes = (job.items.len() * std::mem::size_of::<Partial>()) as u64;
-        ctx.queue
-            .write_buffer(&s.params, 0, bytemuck::bytes_of(&params));
-        let items_buf = s.items.get(ctx, item_bytes);
-        ctx.queue
-            .write_buffer(items_buf, 0, bytemuck::cast_slice(job.items));
-        let out = s.out.get(ctx, out_bytes);
-        let group = ctx.bind(
-            &self.pipeline,
-            &[
-                s.params.as_entire_binding(),
-                job.part.buffer.as_entire_binding(),
-                head(items_buf, item_bytes),
-                head(out, out_bytes),
-            ],
-        );
-        let encoder = encode(
-            ctx,
-            &self.pipeline,
-            &group,
-            job.items.len(),
-            WORKGROUP,
-            job.max_x,
-        );
-        let bytes = ctx.read_back(encoder, out, s.staging.get(ctx, out_bytes), out_bytes)?;
-        Ok(bytemuck::pod_collect_to_vec(&bytes))
+        f: impl FnOnce(&[Partial]) -> R,
+    ) -> Result<R, EngineError> {
+        let bytes = (job.items.len() * std::mem::size_of::<Partial>()) as u64;
+        let out = s.out.get(ctx, bytes).clone();
+        s.submit(ctx, &self.pipeline, job, 0, &[(&out, bytes)]);
+        let staging = s.staging.get(ctx, bytes).clone();
+        ctx.read_back(ctx.encoder(), &out, &staging, bytes, |b| {
+            f(&super::device::pods(b))
+        })
     }
 }
