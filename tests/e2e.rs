@@ -157,9 +157,14 @@ fn nef_lines_refine_against_gaussians_sampled_from_the_abc_mesh() {
     );
     let nef = io::read_lines(&data("abc_00000006/nef_pred_lines.txt")).unwrap();
     let gt_edges = io::read_lines(&data("abc_00000006/gt_sharp_lines.txt")).unwrap();
-    let mut params = Params::default();
-    params.eval.eval_radius = 0.02;
-    params.radius = linegs_gpu::refine::RadiusArg::Fixed(0.01);
+    let params = Params {
+        radius: linegs_gpu::refine::RadiusArg::Fixed(0.01),
+        eval: linegs_gpu::refine::EvalParams {
+            eval_radius: 0.02,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
     let out = refine_cpu(&pts, &nef.lines, &params);
     assert_sane(&out, nef.lines.len());
     // GT holds only the 12 straight sharp edges (NEF also fits lines to curves), so

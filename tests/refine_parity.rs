@@ -122,9 +122,14 @@ fn nef_lines_refine_alike_on_gpu_and_cpu() {
     let lines = io::read_lines(&dir.join("nef_pred_lines.txt"))
         .unwrap()
         .lines;
-    let mut p = Params::default();
-    p.radius = linegs_gpu::refine::RadiusArg::Fixed(0.01);
-    p.eval.eval_radius = 0.02;
+    let p = Params {
+        radius: linegs_gpu::refine::RadiusArg::Fixed(0.01),
+        eval: linegs_gpu::refine::EvalParams {
+            eval_radius: 0.02,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
     let r = Params {
         profile: linegs_gpu::refine::Profile::Reference,
         ..p.clone()

@@ -172,7 +172,8 @@ pub fn metrics_table(cols: &[(&str, &Metrics)]) -> String {
         out.push_str(&format!("{name:>14}"));
     }
     out.push('\n');
-    let rows: [(&str, Box<dyn Fn(&Metrics) -> String>); 7] = [
+    type Cell = Box<dyn Fn(&Metrics) -> String>;
+    let rows: [(&str, Cell); 7] = [
         ("r_e", Box::new(|m: &Metrics| format!("{}", m.radius))),
         ("E_rms (cm)", Box::new(|m: &Metrics| fmt_opt(m.e_rms_cm, 4))),
         (

@@ -136,7 +136,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
             background,
             seed,
         } => {
-            if !(0.0..=1.0).contains(&background) || !(sigma >= 0.0) {
+            if !(0.0..=1.0).contains(&background) || sigma.is_nan() || sigma < 0.0 {
                 return Err(input_error(
                     "--background must be in [0, 1] and --sigma >= 0",
                 ));
