@@ -269,3 +269,92 @@ fn demo_writes_every_promised_file() {
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
     assert!(v["after"]["score"].as_f64().unwrap() > v["before"]["score"].as_f64().unwrap());
 }
+
+#[test]
+fn eval_sweeps_radii_compares_two_sets_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    for plot in ["sweep.svg", "sweep.png"] {
+        let p = dir.path().join(plot);
+        let o = run(&[
+            "eval",
+            "--gaussians",
+            g.to_str().unwrap(),
+            "--lines",
+            l.to_str().unwrap(),
+            "--compare",
+            l.to_str().unwrap(),
+            "--gt",
+            l.to_str().unwrap(),
+            "--radii",
+            "0.02,0.05,0.1",
+            "--plot",
+            p.to_str().unwrap(),
+            "--backend",
+            "cpu",
+            "--json",
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(std::fs::metadata(&p).unwrap().len() > 1000);
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let sets = v["sets"].as_array().unwrap();
+        assert_eq!(sets.len(), 2);
+        let m = sets[0]["metrics"].as_array().unwrap();
+        assert_eq!(m.len(), 3);
+        assert_eq!(m[1]["radius"], 0.05);
+        // a set against itself as ground truth is perfect
+        assert_eq!(sets[0]["gt"]["accuracy"], 0.0);
+        // coverage grows with the radius
+        assert!(m[2]["coverage_pct"].as_f64() > m[0]["coverage_pct"].as_f64());
+    }
+    let o = run(&[
+        "eval",
+        "--gaussians",
+        "g",
+        "--lines",
+        "l",
+        "--radii",
+        "0.1,-2",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+}
+
+#[test]
+fn render_and_synth_mesh_run_on_real_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let g = dir.path().join("abc.ply");
+    let e = dir.path().join("edges.obj");
+    let o = run(&[
+        "synth",
+        "mesh",
+        "--mesh",
+        data("abc_00000006/mesh.obj").to_str().unwrap(),
+        "-o",
+        g.to_str().unwrap(),
+        "-n",
+        "20000",
+        "--edges-out",
+        e.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = dir.path().join("r.png");
+    let html = dir.path().join("r.html");
+    let o = run(&[
+        "render",
+        "--gaussians",
+        g.to_str().unwrap(),
+        "--lines",
+        data("abc_00000006/nef_pred_lines.txt").to_str().unwrap(),
+        "--lines-after",
+        data("abc_00000006/gt_sharp_lines.txt").to_str().unwrap(),
+        "-o",
+        png.to_str().unwrap(),
+        "--viewer",
+        html.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(&png).unwrap();
+    assert_eq!(&bytes[1..4], b"PNG");
+    let page = std::fs::read_to_string(&html).unwrap();
+    assert!(!page.contains("http://") && !page.contains("https://"));
+}

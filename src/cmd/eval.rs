@@ -1,5 +1,5 @@
 use super::{
-    engine, input_error, input_report, load, metrics_table, parse_radii, write_atomic, InputArgs,
+    engine, input_error, input_report, load, metrics_table, parse_radius, write_atomic, InputArgs,
 };
 use anyhow::Result;
 use clap::Args;
@@ -27,7 +27,7 @@ pub struct EvalArgs {
     #[arg(long, value_name = "FILE")]
     pub compare: Option<PathBuf>,
     /// The paper's radius sweep: metrics at each radius, e.g. 0.02,0.05,0.1,0.2.
-    #[arg(long, value_name = "R,R,...", value_parser = parse_radii)]
+    #[arg(long, value_name = "R,R,...", value_delimiter = ',', value_parser = parse_radius)]
     pub radii: Option<Vec<f64>>,
     /// Write the radius-sweep plot (needs --radii): `.png` or `.svg`.
     #[arg(long, value_name = "FILE", requires = "radii")]

@@ -225,23 +225,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
-/// Parses `0.02,0.05,0.1`.
-pub fn parse_radii(s: &str) -> std::result::Result<Vec<f64>, String> {
-    let v: std::result::Result<Vec<f64>, String> = s
-        .split(',')
-        .map(|x| {
-            let x = x.trim();
-            match x.parse::<f64>() {
-                Ok(r) if r.is_finite() && r > 0.0 => Ok(r),
-                _ => Err(format!("`{x}` is not a positive radius")),
-            }
-        })
-        .collect();
-    let v = v?;
-    if v.is_empty() {
-        return Err("no radius given".into());
+/// One radius of `--radii 0.02,0.05,0.1`.
+pub fn parse_radius(s: &str) -> std::result::Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(r) if r.is_finite() && r > 0.0 => Ok(r),
+        _ => Err(format!("`{s}` is not a positive radius")),
     }
-    Ok(v)
 }
 
 /// The segment formats we write, by extension.
