@@ -11,7 +11,10 @@ pub struct Coverage {
 impl Coverage {
     pub fn new(ctx: &Context) -> Self {
         Coverage {
-            pipeline: ctx.pipeline("coverage", include_str!("../../../shaders/coverage.wgsl")),
+            pipeline: ctx.pipeline(
+                "coverage",
+                &super::kernel_source(include_str!("../../../shaders/coverage.wgsl")),
+            ),
         }
     }
 

@@ -147,6 +147,14 @@ struct Kernels {
     coverage: coverage::Coverage,
 }
 
+/// The layouts, textures and loaders every kernel shares (`shaders/common.wgsl`).
+pub const COMMON_WGSL: &str = include_str!("../../../shaders/common.wgsl");
+
+/// A kernel's full source: the shared prelude, then the kernel (WGSL has no include).
+pub fn kernel_source(kernel: &str) -> String {
+    format!("{COMMON_WGSL}\n{kernel}")
+}
+
 pub struct GpuEngine {
     grid: Arc<Grid>,
     ctx: Context,

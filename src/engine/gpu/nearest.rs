@@ -34,7 +34,10 @@ pub struct Nearest {
 impl Nearest {
     pub fn new(ctx: &Context) -> Self {
         Nearest {
-            pipeline: ctx.pipeline("nearest", include_str!("../../../shaders/nearest.wgsl")),
+            pipeline: ctx.pipeline(
+                "nearest",
+                &super::kernel_source(include_str!("../../../shaders/nearest.wgsl")),
+            ),
         }
     }
 

@@ -23,7 +23,10 @@ pub struct Stats {
 impl Stats {
     pub fn new(ctx: &Context) -> Self {
         Stats {
-            pipeline: ctx.pipeline("stats", include_str!("../../../shaders/stats.wgsl")),
+            pipeline: ctx.pipeline(
+                "stats",
+                &super::kernel_source(include_str!("../../../shaders/stats.wgsl")),
+            ),
         }
     }
 
