@@ -216,6 +216,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })?;
     f.write_all(bytes)
         .with_context(|| format!("{}: write failed", path.display()))?;
+    // tempfile creates 0600; a report or a page is an ordinary file (0644).
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        f.as_file()
+            .set_permissions(std::fs::Permissions::from_mode(0o644))
+            .with_context(|| format!("{}: cannot set permissions", path.display()))?;
+    }
     f.persist(path).with_context(|| {
         format!(
             "{}: cannot move the finished file into place",
