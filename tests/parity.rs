@@ -14,22 +14,6 @@ use linegs_gpu::geom::{p64, Segment};
 use linegs_gpu::index::Grid;
 use std::sync::Arc;
 
-/// The GPU engine, or `None` with a notice when this machine has no adapter. In CI
-/// (`CI=true`) a missing adapter is a failure.
-fn gpu_engine(grid: Arc<Grid>, opts: GpuOptions) -> Option<GpuEngine> {
-    match GpuEngine::with_options(grid, opts) {
-        Ok(e) => Some(e),
-        Err(EngineError::NoAdapter(why)) => {
-            if std::env::var("CI").is_ok_and(|v| v == "true") {
-                panic!("CI=true but no GPU adapter: {why}");
-            }
-            eprintln!("SKIPPED: no GPU adapter ({why}); install mesa-vulkan-drivers for lavapipe");
-            None
-        }
-        Err(e) => panic!("GPU engine failed to start: {e}"),
-    }
-}
-
 const EPS: f64 = 1e-6;
 
 /// Whether `p` lies within 1e-6 (relative to the larger of `r` and the cell) of a boundary

@@ -2,31 +2,17 @@
 //! CI) and on the CPU engine, within the cross-backend tolerance of SPEC 3; each backend
 //! alone repeats itself exactly; the Gaussians are uploaded once per run.
 
+mod common;
+
 use linegs_gpu::engine::cpu::CpuEngine;
-use linegs_gpu::engine::gpu::GpuEngine;
 use linegs_gpu::engine::Engine;
 use linegs_gpu::eval::Metrics;
 use linegs_gpu::geom::{LineSet, Segment};
-use linegs_gpu::index::Grid;
 use linegs_gpu::io;
 use linegs_gpu::pipeline::{self, RunOutput};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 use std::path::Path;
-use std::sync::Arc;
-
-fn gpu(grid: Arc<Grid>) -> Option<GpuEngine> {
-    match GpuEngine::new(grid) {
-        Ok(e) => Some(e),
-        Err(why) => {
-            if std::env::var("CI").is_ok_and(|v| v == "true") {
-                panic!("CI=true but no GPU adapter: {why}");
-            }
-            eprintln!("skipping GPU parity: {why}");
-            None
-        }
-    }
-}
 
 fn run(e: &dyn Engine, lines: &LineSet, radius: f64, p: &Params) -> RunOutput {
     pipeline::run(e, lines, radius, p, |_| {}).unwrap()
@@ -78,7 +64,7 @@ fn assert_metrics_close(a: &Metrics, b: &Metrics) {
 fn check_scene(points: &[[f32; 3]], lines: &LineSet, profiles: &[Params]) {
     for p in profiles {
         let prep = pipeline::prepare(points, &lines.segments, p).unwrap();
-        let Some(g) = gpu(prep.grid.clone()) else {
+        let Some(g) = common::gpu_engine(prep.grid.clone(), Default::default()) else {
             return;
         };
         let c = CpuEngine::new(prep.grid.clone());

@@ -162,3 +162,22 @@ pub fn cpu_engine(
     let grid = Grid::build(&ws.points, ws.bounds, cell);
     linegs_gpu::engine::cpu::CpuEngine::new(std::sync::Arc::new(grid))
 }
+
+/// The GPU engine, or `None` with a notice when this machine has no adapter. In CI
+/// (`CI=true`) a missing adapter is a failure.
+pub fn gpu_engine(
+    grid: std::sync::Arc<Grid>,
+    opts: linegs_gpu::engine::gpu::GpuOptions,
+) -> Option<linegs_gpu::engine::gpu::GpuEngine> {
+    match linegs_gpu::engine::gpu::GpuEngine::with_options(grid, opts) {
+        Ok(e) => Some(e),
+        Err(linegs_gpu::engine::EngineError::NoAdapter(why)) => {
+            if std::env::var("CI").is_ok_and(|v| v == "true") {
+                panic!("CI=true but no GPU adapter: {why}");
+            }
+            eprintln!("SKIPPED: no GPU adapter ({why}); install mesa-vulkan-drivers for lavapipe");
+            None
+        }
+        Err(e) => panic!("GPU engine failed to start: {e}"),
+    }
+}
