@@ -136,6 +136,16 @@ impl LineSet {
         }
     }
 
+    /// Number of distinct input lines, when the format groups segments.
+    pub fn input_lines(&self) -> Option<usize> {
+        self.groups.as_ref().map(|g| {
+            let mut g = g.clone();
+            g.sort_unstable();
+            g.dedup();
+            g.len()
+        })
+    }
+
     /// Input line of segment `i` (its own index when ungrouped).
     pub fn group(&self, i: usize) -> u32 {
         match &self.groups {

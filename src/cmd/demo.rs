@@ -1,4 +1,4 @@
-use super::{engine, metrics_table, write_atomic};
+use super::{engine, metrics_table};
 use crate::cmd::eval::SeriesCols;
 use crate::cmd::render::{AFTER, BEFORE};
 use anyhow::{Context, Result};
@@ -106,7 +106,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     let series = [cb.series("before", &radii), ca.series("after", &radii)];
     let title = "synthetic toy scene: metrics against the evaluation radius";
     render::sweep_plot_png(&series, title, 1400, 900).write_png(&file("sweep.png"))?;
-    write_atomic(
+    io::write_bytes_atomic(
         &file("sweep.svg"),
         render::sweep_plot_svg(&series, title).as_bytes(),
     )?;
@@ -167,7 +167,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         "linegs-gpu demo (synthetic)",
         200_000,
     );
-    write_atomic(&file("viewer.html"), html.as_bytes())?;
+    io::write_bytes_atomic(&file("viewer.html"), html.as_bytes())?;
     let report = json!({
         "tool": "linegs-gpu",
         "version": env!("CARGO_PKG_VERSION"),
@@ -191,7 +191,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         "ground_truth": { "before": gt_before, "after": gt_after },
         "sweep": { "radii": radii, "before": sw_b, "after": sw_a },
     });
-    write_atomic(
+    io::write_bytes_atomic(
         &file("report.json"),
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;

@@ -1,6 +1,4 @@
-use super::{
-    engine, input_error, input_report, load, metrics_table, parse_radius, write_atomic, InputArgs,
-};
+use super::{engine, input_error, input_report, load, metrics_table, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::{self, gt, Metrics};
@@ -27,7 +25,7 @@ pub struct EvalArgs {
     #[arg(long, value_name = "FILE")]
     pub compare: Option<PathBuf>,
     /// The paper's radius sweep: metrics at each radius, e.g. 0.02,0.05,0.1,0.2.
-    #[arg(long, value_name = "R,R,...", value_delimiter = ',', value_parser = parse_radius)]
+    #[arg(long, value_name = "R,R,...", value_delimiter = ',', value_parser = linegs_gpu::refine::params::positive)]
     pub radii: Option<Vec<f64>>,
     /// Write the radius-sweep plot (needs --radii): `.png` or `.svg`.
     #[arg(long, value_name = "FILE", requires = "radii")]
@@ -138,7 +136,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             ws.len()
         );
         if p.extension().and_then(|e| e.to_str()) == Some("svg") {
-            write_atomic(p, render::sweep_plot_svg(&series, &title).as_bytes())?;
+            io::write_bytes_atomic(p, render::sweep_plot_svg(&series, &title).as_bytes())?;
         } else {
             render::sweep_plot_png(&series, &title, 1400, 900).write_png(p)?;
         }

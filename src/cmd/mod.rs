@@ -13,11 +13,10 @@ use clap::Args;
 use linegs_gpu::engine::select::{make_engine, Backend};
 use linegs_gpu::engine::Engine;
 use linegs_gpu::eval::Metrics;
-use linegs_gpu::geom::LineSet;
 use linegs_gpu::index::Grid;
 use linegs_gpu::io::{self, GaussianCloud, LineFile, PlyOptions};
 use serde::Serialize;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 
 /// Marks an error as the user's input being wrong (exit code 2).
@@ -143,18 +142,9 @@ pub fn input_report(a: &InputArgs, l: &Loaded, n_box: usize) -> InputReport {
         gaussians_below_opacity: l.cloud.dropped_low_opacity,
         segments_read: l.lines.lines.len(),
         segments_invalid_dropped: l.lines.dropped_invalid,
-        input_lines: groups_count(&l.lines.lines),
+        input_lines: l.lines.lines.input_lines(),
         n_box,
     }
-}
-
-pub fn groups_count(lines: &LineSet) -> Option<usize> {
-    lines.groups.as_ref().map(|g| {
-        let mut v = g.clone();
-        v.sort_unstable();
-        v.dedup();
-        v.len()
-    })
 }
 
 fn fmt_opt(v: Option<f64>, prec: usize) -> String {
@@ -198,65 +188,4 @@ pub fn metrics_table(cols: &[(&str, &Metrics)]) -> String {
         }
     }
     out
-}
-
-/// Writes `text` to `path` atomically (temp file in the same folder, then rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    use std::io::Write;
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut f = tempfile::NamedTempFile::new_in(dir).with_context(|| {
-        format!(
-            "{}: cannot create a file in {}",
-            path.display(),
-            dir.display()
-        )
-    })?;
-    f.write_all(bytes)
-        .with_context(|| format!("{}: write failed", path.display()))?;
-    // tempfile creates 0600; a report or a page is an ordinary file (0644).
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        f.as_file()
-            .set_permissions(std::fs::Permissions::from_mode(0o644))
-            .with_context(|| format!("{}: cannot set permissions", path.display()))?;
-    }
-    f.persist(path).with_context(|| {
-        format!(
-            "{}: cannot move the finished file into place",
-            path.display()
-        )
-    })?;
-    Ok(())
-}
-
-/// One radius of `--radii 0.02,0.05,0.1`.
-pub fn parse_radius(s: &str) -> std::result::Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(r) if r.is_finite() && r > 0.0 => Ok(r),
-        _ => Err(format!("`{s}` is not a positive radius")),
-    }
-}
-
-/// The segment formats we write, by extension.
-pub const LINE_OUTPUTS: [&str; 5] = ["obj", "stl", "ply", "txt", "npy"];
-
-/// Fails early (before any work) when `path` has no segment format we can write.
-pub fn check_line_output(path: &Path) -> Result<()> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(|e| e.to_ascii_lowercase())
-        .unwrap_or_default();
-    if LINE_OUTPUTS.contains(&ext.as_str()) {
-        Ok(())
-    } else {
-        Err(input_error(format!(
-            "{}: unknown output format `.{ext}`; use one of .obj .stl .ply .txt .npy",
-            path.display()
-        )))
-    }
 }

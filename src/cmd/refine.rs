@@ -1,4 +1,4 @@
-use super::{engine, input_report, load, metrics_table, write_atomic, InputArgs, InputReport};
+use super::{engine, input_report, load, metrics_table, InputArgs, InputReport};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -51,7 +51,7 @@ pub struct Report<'a> {
 pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     let t0 = Instant::now();
     // Check the output format before any work, so a typo costs nothing.
-    super::check_line_output(&a.output)?;
+    io::check_line_output(&a.output)?;
     let loaded = load(&a.input)?;
     let prep = pipeline::prepare(
         &loaded.cloud.centers,
@@ -139,7 +139,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             after: &out.after,
             warnings,
         };
-        write_atomic(rp, serde_json::to_string_pretty(&report)?.as_bytes())?;
+        io::write_bytes_atomic(rp, serde_json::to_string_pretty(&report)?.as_bytes())?;
         println!("wrote {}", rp.display());
     }
     Ok(())

@@ -71,7 +71,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             });
         }
         let html = render::viewer_html(&loaded.cloud.centers, &layers, "linegs-gpu", 200_000);
-        super::write_atomic(v, html.as_bytes())?;
+        io::write_bytes_atomic(v, html.as_bytes())?;
         println!("wrote {}", v.display());
     }
     Ok(())

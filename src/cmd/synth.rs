@@ -1,4 +1,4 @@
-use super::{check_line_output, input_error};
+use super::input_error;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 use linegs_gpu::io;
@@ -77,9 +77,9 @@ pub fn run(a: SynthArgs) -> Result<()> {
             gaussians,
             seed,
         } => {
-            check_line_output(&lines_out)?;
+            io::check_line_output(&lines_out)?;
             if let Some(g) = &gt_out {
-                check_line_output(g)?;
+                io::check_line_output(g)?;
             }
             let scene = synth::toy_scene(&synth::ToyParams {
                 seed,
@@ -107,7 +107,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
             seed,
         } => {
             if let Some(e) = &edges_out {
-                check_line_output(e)?;
+                io::check_line_output(e)?;
             }
             let m = synth::mesh::read_obj_mesh(&mesh).map_err(|e| input_error(e.to_string()))?;
             let pts = synth::mesh::gaussians_from_mesh(

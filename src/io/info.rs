@@ -96,12 +96,7 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
     let segs = &file.lines.segments;
     let mut lens: Vec<f64> = segs.iter().map(|s| s.length()).collect();
     lens.sort_by(f64::total_cmp);
-    let groups = file.lines.groups.as_ref().map(|g| {
-        let mut g = g.clone();
-        g.sort_unstable();
-        g.dedup();
-        g.len()
-    });
+    let groups = file.lines.input_lines();
     Ok(FileInfo {
         path: path.to_path_buf(),
         bytes,

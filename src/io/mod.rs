@@ -15,6 +15,6 @@ pub use info::{info, FileInfo, FileKind};
 pub use lines::{read_lines, LineFile, LineFormat};
 pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
 pub use write::{
-    gaussian_3dgs_properties, write_gaussians_3dgs, write_lines, write_lines_ply_layers,
-    DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT,
+    check_line_output, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,
+    write_lines, write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
 };

@@ -47,6 +47,34 @@ pub(crate) fn write_atomic(
     Ok(())
 }
 
+/// Writes `bytes` to `path` atomically: for outputs that are not segments or Gaussians
+/// (pictures, plots, reports, viewer pages).
+pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    write_atomic(path, |w| w.write_all(bytes))
+}
+
+/// The segment formats `write_lines` writes, by extension.
+pub const LINE_OUTPUTS: [&str; 5] = ["obj", "stl", "ply", "txt", "npy"];
+
+/// Checks that `write_lines` can write `path` (by its extension), so a command can refuse
+/// a bad output name before doing any work.
+pub fn check_line_output(path: &Path) -> Result<String, Error> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    if LINE_OUTPUTS.contains(&ext.as_str()) {
+        Ok(ext)
+    } else {
+        Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: format!(
+                "cannot tell the line format from the extension `{ext}`; use .obj, .stl, .ply, .txt or .npy"
+            ),
+        })
+    }
+}
+
 /// Shortest text that reads back to the same f64, without the 300-digit expansions that
 /// plain `Display` gives for tiny or huge values.
 pub(crate) fn num(x: f64) -> String {
@@ -83,18 +111,7 @@ fn check_finite(path: &Path, lines: &[Segment], first: usize) -> Result<(), Erro
 /// Writes segments in the format named by the extension: `.obj`, `.stl` (Line3D++ style),
 /// `.ply` (vertex + edge), `.txt` (x1 y1 z1 x2 y2 z2 per row) or `.npy` (N x 2 x 3 f64).
 pub fn write_lines(path: &Path, lines: &[Segment]) -> Result<(), Error> {
-    let ext = path
-        .extension()
-        .map(|e| e.to_string_lossy().to_ascii_lowercase())
-        .unwrap_or_default();
-    if !matches!(ext.as_str(), "obj" | "stl" | "ply" | "txt" | "npy") {
-        return Err(Error::Unsupported {
-            path: path.to_path_buf(),
-            msg: format!(
-                "cannot tell the line format from the extension `{ext}`; use .obj, .stl, .ply, .txt or .npy"
-            ),
-        });
-    }
+    let ext = check_line_output(path)?;
     check_finite(path, lines, 0)?;
     match ext.as_str() {
         "obj" => write_atomic(path, |w| {

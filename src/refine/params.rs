@@ -72,7 +72,8 @@ impl fmt::Display for RadiusArg {
     }
 }
 
-fn positive(s: &str) -> Result<f64, String> {
+/// Clap value parser: a finite number above 0 (also for `eval --radii`).
+pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
         _ => Err(format!("expected a positive number, got `{s}`")),

@@ -2,7 +2,7 @@
 //! clouds and anti-aliased thick lines. A CPU rasterizer, not wgpu's render pipeline, so
 //! that pictures come out the same on every machine, with or without an adapter.
 
-use std::io::{self, Write};
+use std::io;
 use std::path::Path;
 
 use glam::DVec3;
@@ -91,35 +91,11 @@ impl Image {
 
     /// Writes a PNG atomically: a temporary file beside `path`, renamed over it, so a
     /// failed run never leaves a half-written picture.
-    pub fn write_png(&self, path: &Path) -> io::Result<()> {
-        let bytes = self.encode_png()?;
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
-        };
-        let mut builder = tempfile::Builder::new();
-        builder.prefix(".linegs-").suffix(".tmp");
-        // Temporary files are private (0600); a picture gets the usual umask-filtered mode.
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            builder.permissions(std::fs::Permissions::from_mode(0o666));
-        }
-        let mut tmp = builder.tempfile_in(dir).map_err(|e| {
-            io::Error::new(
-                e.kind(),
-                format!(
-                    "{}: cannot create a temporary file beside it: {e}",
-                    path.display()
-                ),
-            )
-        })?;
-        tmp.write_all(&bytes)?;
-        tmp.as_file().sync_all()?;
-        tmp.persist(path).map_err(|e| {
-            io::Error::new(e.error.kind(), format!("{}: {}", path.display(), e.error))
-        })?;
-        Ok(())
+    pub fn write_png(&self, path: &Path) -> Result<(), crate::io::Error> {
+        let bytes = self
+            .encode_png()
+            .map_err(|e| crate::io::Error::io(path, "encode PNG for", e))?;
+        crate::io::write_bytes_atomic(path, &bytes)
     }
 }
 
