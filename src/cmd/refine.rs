@@ -60,7 +60,9 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     )?;
     let eng = engine(a.input.backend, prep.grid.clone(), verbose)?;
     let bar = ProgressBar::new_spinner();
-    bar.set_style(ProgressStyle::with_template("{spinner} {elapsed} {msg}").unwrap());
+    if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
+        bar.set_style(style);
+    }
     bar.enable_steady_tick(std::time::Duration::from_millis(120));
     bar.set_message("evaluating the input");
     let mut load_stage = vec![Stage {
