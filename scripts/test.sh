@@ -34,4 +34,7 @@ fi
 
 cargo fmt --check
 cargo clippy --all-targets --locked -- -D warnings
-cargo test --locked "$@"
+# Release profile: the same build as `cargo run --release -- demo`. Debug assertions are
+# off there, so the GPU engine's garbage-filled buffers are switched on by name.
+export LINEGS_GPU_GARBAGE=1
+cargo test --release --locked "$@"
