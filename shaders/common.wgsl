@@ -10,7 +10,7 @@ fn linear_id(wg: vec3<u32>, n_wg: vec3<u32>, lane: u32) -> u32 {
 }
 
 // The geometry of one work item, in cell units relative to its cell's corner. The axis
-// point `o` nearest the cell's centre keeps every |p - o| within a few cells, so the
+// point `o` near the cell's centre keeps every |p - o| within a few cells, so the
 // differences below lose little to f32.
 struct Geom {
     o: vec3<f32>,
@@ -32,13 +32,24 @@ fn cell_xyz(c: u32) -> vec3<f32> {
     return vec3<f32>(f32(x), f32(y), f32(z));
 }
 
+// Keeps the 12 leading significant bits of a non-negative float (rounding toward 0).
+fn bits12(t: f32) -> f32 {
+    return bitcast<f32>(bitcast<u32>(t) & 0xFFFFF000u);
+}
+
 fn geom(q: GQuery, cell: u32) -> Geom {
-    // h - cell is exact (both on the same integer grid of f32); l adds the rest once.
-    let base = (vec3<f32>(q.hx, q.hy, q.hz) - cell_xyz(cell)) + vec3<f32>(q.lx, q.ly, q.lz);
+    let c = cell_xyz(cell);
+    // The integer part of P1 minus the cell's corner: exact.
+    let a = vec3<f32>(vec3<i32>(q.ix, q.iy, q.iz) - vec3<i32>(c));
+    let f = vec3<f32>(q.fx, q.fy, q.fz);
     let d = vec3<f32>(q.dx, q.dy, q.dz);
-    let t_o = clamp(dot(vec3<f32>(0.5) - base, d), 0.0, q.len);
+    let t_o = bits12(clamp(dot(vec3<f32>(0.5) - (a + f), d), 0.0, q.len));
+    // a + dh t_o cancels to within a few cells, exactly (dh t_o is exact); the small
+    // terms are added after, so o is accurate to f32 of its own size.
+    let dh = vec3<f32>(q.dhx, q.dhy, q.dhz);
+    let dl = vec3<f32>(q.dlx, q.dly, q.dlz);
     var g: Geom;
-    g.o = base + d * t_o;
+    g.o = ((a + dh * t_o) + f) + dl * t_o;
     g.d = d;
     g.lo = -t_o;
     g.hi = q.len - t_o;

@@ -68,7 +68,7 @@ fn main(
     let first = at;
     var steps = 0u;
     if q.r2 >= 0.0 {
-        let p = vec3<f32>(q.hx, q.hy, q.hz) + vec3<f32>(q.lx, q.ly, q.lz);
+        let p = vec3<f32>(vec3<i32>(q.ix, q.iy, q.iz)) + vec3<f32>(q.fx, q.fy, q.fz);
         let d = vec3<f32>(q.dx, q.dy, q.dz);
         let ap = abs(p);
         let margin = 1e-3 + (max(ap.x, max(ap.y, ap.z)) + q.len) * 4e-6;
@@ -114,7 +114,7 @@ fn main(
     }
     if !emit {
         let n = at - first;
-        let host = steps >= MAX_WALK || n > MAX_QUERY_ITEMS;
+        let host = steps >= MAX_WALK || n > MAX_QUERY_ITEMS || q.r2 < -1.5;
         // A query answered on the host gets no items.
         scan[qi] = select(n, 0u, host);
         var r: QResult;

@@ -127,14 +127,12 @@ fn every_kernel_lays_out_the_shared_structs_as_the_host_writes_them() {
 fn the_layout_check_catches_a_drifted_struct() {
     // A vec3 field is 16-byte aligned in WGSL but not in Rust: the check must see it.
     let src = common_wgsl().replacen(
-        "    hx: f32,\n    hy: f32,\n    hz: f32,\n",
-        "    h: vec3<f32>,\n",
+        "    fx: f32,\n    fy: f32,\n    fz: f32,\n",
+        "    f: vec3<f32>,\n",
         1,
     );
     assert_ne!(src, common_wgsl());
-    let src = src
-        .replace("q.hx, q.hy, q.hz", "q.h.x, q.h.y, q.h.z")
-        .replace("(q.hx, q.hy, q.hz)", "(q.h)");
+    let src = src.replace("q.fx, q.fy, q.fz", "q.f.x, q.f.y, q.f.z");
     let module = parse(&src, Path::new("drifted.wgsl")).unwrap();
     let bad = layout_mismatches(&module);
     assert_eq!(bad.len(), 1, "{bad:?}");

@@ -66,26 +66,34 @@ macro_rules! shared {
 
 shared! {
     /// One cylinder query as the kernels see it, in cell units relative to the grid's
-    /// origin. `P1 = h + l` (two f32 each, so that `h - cell` is exact and `l` adds the
-    /// rest): the kernels subtract the cell corner first and stay accurate far from it.
+    /// origin: `P1 = i + f` (an integer cell and an f32 fraction), so that a kernel
+    /// subtracts its cell's integer corner exactly; the direction `d` also as `dh + dl`,
+    /// where `dh` has 12 significant bits so that `dh * t` is exact for a `t` of 12 bits:
+    /// the axis point a kernel starts from is then accurate to f32 near its own cell,
+    /// however far that is from `P1`.
     struct GQuery {
-        hx: f32 => "f32", hy: f32 => "f32", hz: f32 => "f32",
+        ix: i32 => "i32", iy: i32 => "i32", iz: i32 => "i32",
         /// `L / cell`.
         len: f32 => "f32",
-        lx: f32 => "f32", ly: f32 => "f32", lz: f32 => "f32",
-        /// `(r / cell)^2`; negative: the query has no members (invalid segment or radius).
+        fx: f32 => "f32", fy: f32 => "f32", fz: f32 => "f32",
+        /// `(r / cell)^2`; -1: the query has no members (invalid segment or radius); -2: the
+        /// host answers it (too far from the grid for the kernels' arithmetic).
         r2: f32 => "f32",
         dx: f32 => "f32", dy: f32 => "f32", dz: f32 => "f32",
         /// `(plane - P1)·d / cell`.
         mid: f32 => "f32",
+        dhx: f32 => "f32", dhy: f32 => "f32", dhz: f32 => "f32",
         /// `r / cell`.
         r: f32 => "f32",
+        dlx: f32 => "f32", dly: f32 => "f32", dlz: f32 => "f32",
         /// Bound on the f32 error of positions and axial coordinates (cell units).
         eps: f32 => "f32",
         /// Bound on the f32 error of squared distances.
         e2: f32 => "f32",
         /// k of the k-nearest batch.
         k: u32 => "u32",
+        pad0: u32 => "u32",
+        pad1: u32 => "u32",
     }
 }
 
