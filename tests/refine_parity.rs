@@ -7,23 +7,23 @@
 
 mod common;
 
-use linegs_gpu::engine::cpu::CpuEngine;
-use linegs_gpu::engine::Engine;
+use linegs_gpu::engine::select::Backend;
+use linegs_gpu::engine::{Engine, EngineError};
 use linegs_gpu::eval::Metrics;
 use linegs_gpu::geom::LineSet;
 use linegs_gpu::io;
-use linegs_gpu::pipeline::{self, RunOutput};
+use linegs_gpu::pipeline::{Refined, Refiner};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 use std::path::Path;
 
-fn run(e: &dyn Engine, lines: &LineSet, radius: f64, p: &Params) -> RunOutput {
-    pipeline::run(e, lines, radius, p, |_| {}).unwrap()
+fn run(r: &Refiner, lines: &LineSet) -> Refined {
+    r.refine(lines, |_| {}).unwrap()
 }
 
 /// The same segment count; >= 99.5 % of one backend's segments match the other's segment
 /// of the same index within 1e-5 r at both ends; metrics within `metric_tol` relative.
-fn assert_close(a: &RunOutput, b: &RunOutput, r: f64, metric_tol: f64) {
+fn assert_close(a: &Refined, b: &Refined, r: f64, metric_tol: f64) {
     assert_eq!(a.lines.len(), b.lines.len(), "segment counts");
     let tol = 1e-5 * r;
     let hit = a
@@ -64,21 +64,30 @@ fn assert_metrics_close(what: &str, a: &Metrics, b: &Metrics, tol: f64) {
 
 fn check_scene(points: &[[f32; 3]], lines: &LineSet, profiles: &[Params], metric_tol: f64) {
     for p in profiles {
-        let prep = pipeline::prepare(points, &lines.segments, p).unwrap();
-        let Some(g) = common::gpu_engine(prep.grid.clone(), Default::default()) else {
+        // Both engines over the grid the library builds for these parameters.
+        let gpu =
+            Refiner::with_engine(points, &lines.segments, p, |grid| match common::gpu_engine(
+                grid,
+                Default::default(),
+            ) {
+                Some(e) => Ok((Box::new(e) as Box<dyn Engine>, Vec::new())),
+                None => Err(EngineError::NoAdapter("skipped".into())),
+            });
+        let Ok(g) = gpu else {
             return;
         };
-        let c = CpuEngine::new(prep.grid.clone());
-        let out_g = run(&g, lines, prep.radius, p);
-        let out_c = run(&c, lines, prep.radius, p);
-        assert_close(&out_g, &out_c, prep.radius, metric_tol);
+        let c = Refiner::new(points, &lines.segments, p, Backend::Cpu).unwrap();
+        assert_eq!(g.settings(), c.settings());
+        let out_g = run(&g, lines);
+        let out_c = run(&c, lines);
+        assert_close(&out_g, &out_c, g.settings().radius(), metric_tol);
         // the grid went to the device once for every step and both evaluations
-        assert_eq!(g.counters().uploads, 1);
+        assert_eq!(g.engine().counters().uploads, 1);
         // each backend alone repeats itself to the bit
-        let again = run(&g, lines, prep.radius, p);
+        let again = run(&g, lines);
         assert_eq!(again.lines, out_g.lines);
         assert_eq!(again.after, out_g.after);
-        assert_eq!(g.counters().uploads, 1);
+        assert_eq!(g.engine().counters().uploads, 1);
     }
 }
 
