@@ -193,6 +193,12 @@ fn print_case(c: &Case) {
     println!();
     for r in &c.runs {
         println!("  {}: {} (N_box {})", r.backend, r.adapter, r.n_box);
+        if let (Some(h), Some(d)) = (r.host_seconds, r.device_seconds) {
+            println!(
+                "  {}: host {h:.3} s, waiting for the device {d:.3} s",
+                r.backend
+            );
+        }
     }
     if let Some(x) = c.gpu_over_cpu {
         println!("gpu / cpu total time: {x:.2}");

@@ -718,5 +718,5 @@ pub fn read_mask(ctx: &Context, b: &mut Buffers, n: usize) -> Result<(Vec<u32>, 
     let staging = b.staging.get(ctx, bytes).clone();
     let mut enc = ctx.encoder();
     enc.copy_buffer_to_buffer(&aux, 0, &staging, 0, bytes);
-    ctx.submit_and_map(enc, &staging, bytes, |w| bytemuck::pod_collect_to_vec(w))
+    ctx.submit_and_map(enc, &staging, bytes, bytemuck::pod_collect_to_vec)
 }

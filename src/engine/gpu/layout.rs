@@ -225,8 +225,11 @@ pub fn prelude() -> String {
     s
 }
 
-/// Every shared struct: (name, size, fields with offsets), for the layout test.
-pub fn layouts() -> Vec<(&'static str, usize, &'static [(&'static str, usize)])> {
+/// (name, size, fields with their offsets) of one shared struct.
+pub type Layout = (&'static str, usize, &'static [(&'static str, usize)]);
+
+/// Every shared struct, for the layout test.
+pub fn layouts() -> Vec<Layout> {
     vec![
         ("GQuery", std::mem::size_of::<GQuery>(), GQuery::FIELDS),
         ("Item", std::mem::size_of::<Item>(), Item::FIELDS),
