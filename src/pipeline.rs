@@ -72,7 +72,7 @@ pub fn resolve_radius(params: &Params, ws: &WorkingSet) -> Result<f64, RunError>
         RadiusArg::Fixed(r) => Ok(r),
         RadiusArg::Auto => auto_radius(&ws.points).ok_or_else(|| {
             RunError::Input(
-                "--radius auto needs Gaussian centers near the lines, and none are".into(),
+                "--radius auto needs Gaussian centers near the lines, and none are: are the lines and the Gaussians in one frame? (--gaussians-transform maps the model; README: Frames)".into(),
             )
         }),
     }

@@ -1,4 +1,4 @@
-use super::{engine, input_error, input_report, load, metrics_table, InputArgs};
+use super::{engine, frame_check, input_error, input_report, load, metrics_table, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::{self, gt, Metrics};
@@ -99,6 +99,9 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
     let min_r = radii.iter().copied().fold(f64::INFINITY, f64::min);
     let grid = Arc::new(Grid::build(&ws.points, ws.bounds, min_r));
     let eng = engine(a.input.backend, grid, verbose)?;
+    if let Some(msg) = frame_check(&a.input, &loaded, eng.as_ref(), min_r)? {
+        eprintln!("warning: {msg}");
+    }
     let rl = a.eval.r_l.unwrap_or(match a.profile {
         Profile::Default => RlMode::Paper,
         Profile::Reference => RlMode::Authors,

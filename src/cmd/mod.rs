@@ -1,6 +1,7 @@
 //! Subcommands. Each parses its arguments, calls the library, and prints.
 
 pub mod bench;
+pub mod convert;
 pub mod demo;
 pub mod eval;
 pub mod info;
@@ -54,14 +55,19 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
 /// The Gaussians and lines every command reads.
 #[derive(Args, Debug, Clone)]
 pub struct InputArgs {
-    /// The trained 3DGS model (`point_cloud.ply`; only the centers are used).
-    #[arg(short, long, value_name = "PLY")]
+    /// The trained model; only the centers are used: 3DGS `point_cloud.ply`, SuperSplat
+    /// compressed `.ply`, Niantic `.spz` (v1-v4) or antimatter15 `.splat`.
+    #[arg(short, long, value_name = "MODEL")]
     pub gaussians: PathBuf,
-    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, ELSR `.obj`, plain
+    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, `finaltracks/` or
+    /// `alltracks.txt`, ELSR `.obj`, EMAP/EdgeGaussians `parametric_edges.json`, plain
     /// text (6 numbers a row) or our `.ply` with edges.
     #[arg(short, long, value_name = "FILE")]
     pub lines: PathBuf,
-    /// Keep only Gaussians with sigmoid(opacity) >= this (3DGS stores the logit).
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Keep only Gaussians with opacity >= this (in [0, 1]: sigmoid of the logit that 3DGS
+    /// stores; SPZ, .splat and compressed PLY store it directly).
     #[arg(long, value_name = "ALPHA")]
     pub min_opacity: Option<f64>,
     /// Make Gaussians with NaN or infinite centers an error instead of a warning.
@@ -71,6 +77,38 @@ pub struct InputArgs {
     /// one, lavapipe included, else the CPU), `gpu` or `cpu`.
     #[arg(long, value_enum, default_value_t = Backend::Auto)]
     pub backend: Backend,
+}
+
+/// How the Gaussians are brought into the lines' frame, and what to do with curves.
+#[derive(Args, Debug, Clone, Default)]
+pub struct FrameArgs {
+    /// Map the Gaussians into the lines' frame first: a 4x4 matrix as text (row-major,
+    /// applied as given) or nerfstudio's `dataparser_transforms.json` (inverted, so a
+    /// splatfacto/gsplat model goes back to the COLMAP frame of the lines).
+    #[arg(long, value_name = "FILE")]
+    pub gaussians_transform: Option<PathBuf>,
+    /// Bezier curves of EMAP/EdgeGaussians edge files: `skip` them (with a warning) or
+    /// sample each as a `polyline` of 16 segments.
+    #[arg(long, value_enum, default_value_t = io::Curves::Skip)]
+    pub curves: io::Curves,
+}
+
+impl FrameArgs {
+    pub fn line_options(&self) -> io::LineOptions {
+        io::LineOptions {
+            curves: self.curves,
+        }
+    }
+
+    /// Applies `--gaussians-transform` to `cloud`, saying what it did.
+    pub fn transform(&self, cloud: &mut GaussianCloud) -> Result<()> {
+        if let Some(p) = &self.gaussians_transform {
+            let t = io::read_transform(p)?;
+            t.apply(&mut cloud.centers);
+            eprintln!("note: Gaussians mapped by {}", t.describe);
+        }
+        Ok(())
+    }
 }
 
 pub struct Loaded {
@@ -86,18 +124,43 @@ pub fn load(a: &InputArgs) -> Result<Loaded> {
             )));
         }
     }
-    let cloud = io::read_gaussians(
+    let mut cloud = io::read_gaussians(
         &a.gaussians,
         &PlyOptions {
             min_opacity: a.min_opacity,
             strict: a.strict,
         },
     )?;
-    let lines = io::read_lines(&a.lines)?;
+    a.frame.transform(&mut cloud)?;
+    let lines = io::read_lines_with(&a.lines, &a.frame.line_options())?;
     for w in cloud.warnings.iter().chain(&lines.warnings) {
         eprintln!("warning: {w}");
     }
     Ok(Loaded { cloud, lines })
+}
+
+/// The frame check of `refine` and `eval`: segments with no Gaussian near them.
+pub fn frame_check(
+    a: &InputArgs,
+    l: &Loaded,
+    eng: &dyn linegs_gpu::engine::Engine,
+    radius: f64,
+) -> Result<Option<String>> {
+    let fc = linegs_gpu::frames::check_frames(
+        eng,
+        &l.lines.lines.segments,
+        radius,
+        &l.cloud.centers,
+    )
+    .context("checking that the lines and the Gaussians share a frame")?;
+    Ok(fc.mismatch().then(|| {
+        format!(
+            "{} and {}: {}",
+            a.lines.display(),
+            a.gaussians.display(),
+            fc.message()
+        )
+    }))
 }
 
 /// Builds the engine for `grid` and says which one answered.
@@ -123,6 +186,7 @@ pub struct InputReport {
     pub gaussians: String,
     pub lines: String,
     pub lines_format: String,
+    pub gaussians_transform: Option<String>,
     pub gaussians_read: usize,
     pub gaussians_nonfinite_skipped: usize,
     pub gaussians_below_opacity: usize,
@@ -137,6 +201,11 @@ pub fn input_report(a: &InputArgs, l: &Loaded, n_box: usize) -> InputReport {
         gaussians: a.gaussians.display().to_string(),
         lines: a.lines.display().to_string(),
         lines_format: l.lines.format.name().to_string(),
+        gaussians_transform: a
+            .frame
+            .gaussians_transform
+            .as_ref()
+            .map(|p| p.display().to_string()),
         gaussians_read: l.cloud.centers.len(),
         gaussians_nonfinite_skipped: l.cloud.skipped_nonfinite,
         gaussians_below_opacity: l.cloud.dropped_low_opacity,

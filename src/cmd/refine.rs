@@ -1,4 +1,6 @@
-use super::{engine, input_report, load, metrics_table, InputArgs, InputReport};
+use super::{
+    engine, frame_check, input_error, input_report, load, metrics_table, InputArgs, InputReport,
+};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -24,6 +26,10 @@ pub struct RefineArgs {
     /// Also write a PLY with the input (red) and refined (blue) segments as coloured edges.
     #[arg(long, value_name = "PLY")]
     pub compare_ply: Option<PathBuf>,
+    /// Refine even when (almost) no segment has a Gaussian center within r, which
+    /// otherwise stops the run (lines and model in different frames or units).
+    #[arg(long)]
+    pub no_frame_check: bool,
     #[command(flatten)]
     pub params: Params,
 }
@@ -59,6 +65,13 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         &a.params,
     )?;
     let eng = engine(a.input.backend, prep.grid.clone(), verbose)?;
+    if !a.no_frame_check {
+        if let Some(msg) = frame_check(&a.input, &loaded, eng.as_ref(), prep.radius)? {
+            return Err(input_error(format!(
+                "{msg} (--no-frame-check refines anyway); nothing was written"
+            )));
+        }
+    }
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
         bar.set_style(style);
