@@ -5,8 +5,9 @@
 //! `packed_position` holds x in bits 21–31 (11 bits), y in bits 11–20 (10 bits) and z in
 //! bits 0–10 (11 bits), each the fraction `v / (2^bits - 1)` of its chunk's `[min, max]`;
 //! `packed_color`'s low byte is the opacity in `[0, 1]` (sigmoid already applied). The
-//! decode below is the one of PlayCanvas' splat-transform, operation for operation, so a
-//! center comes out bit for bit as that tool writes it in an uncompressed PLY.
+//! decode below follows PlayCanvas' splat-transform (in f64, as JavaScript computes, then
+//! rounded to f32), so centers and opacity logits come out bit for bit as that tool writes
+//! them in an uncompressed PLY (tested on all 90,854 splats of the guitar model).
 
 use std::path::Path;
 
