@@ -40,10 +40,13 @@ fn write(dir: &Path, name: &str, bytes: impl AsRef<[u8]>) -> PathBuf {
 #[test]
 fn compressed_ply_centers_and_opacities_are_splat_transforms_bit_for_bit() {
     let (cloud, op) =
-        read_gaussians_with_opacity(&data("gaussians/guitar.compressed.ply"), &opts(None))
-            .unwrap();
+        read_gaussians_with_opacity(&data("gaussians/guitar.compressed.ply"), &opts(None)).unwrap();
     assert_eq!(cloud.centers.len(), 90854);
-    assert!(cloud.format.starts_with("SuperSplat compressed PLY"), "{}", cloud.format);
+    assert!(
+        cloud.format.starts_with("SuperSplat compressed PLY"),
+        "{}",
+        cloud.format
+    );
     let op = op.unwrap();
     // Every 16th vertex of splat-transform's own decode (tests/data/README.md).
     let (reference, ref_op) =
@@ -131,7 +134,11 @@ fn a_real_spz_v4_file_reads_in_the_ply_convention() {
     assert!(kept.centers.len() < cloud.centers.len());
     // The cut is on alpha / 255 and the logit is its f32 inverse sigmoid: the same set
     // except for alphas within rounding of the threshold.
-    assert!(kept.centers.len().abs_diff(want) <= 2, "{} {want}", kept.centers.len());
+    assert!(
+        kept.centers.len().abs_diff(want) <= 2,
+        "{} {want}",
+        kept.centers.len()
+    );
 
     // Every version holds these centers exactly (they are already on the 1/4096 grid),
     // version 1 to float16 precision.
@@ -148,7 +155,11 @@ fn a_real_spz_v4_file_reads_in_the_ply_convention() {
         assert_eq!(back.centers.len(), cloud.centers.len());
         for (a, b) in back.centers.iter().zip(&cloud.centers) {
             for k in 0..3 {
-                let tol = if version == 1 { 2e-3 * b[k].abs().max(1.0) } else { 0.0 };
+                let tol = if version == 1 {
+                    2e-3 * b[k].abs().max(1.0)
+                } else {
+                    0.0
+                };
                 assert!((a[k] - b[k]).abs() <= tol, "v{version}: {a:?} vs {b:?}");
             }
         }
@@ -169,7 +180,11 @@ fn spz_versions_1_to_3_round_trip_centers_and_opacity() {
         let p = write(dir.path(), "m.spz", encode_spz(version, &centers, &alpha));
         let g = read_gaussians(&p, &opts(None)).unwrap();
         assert_eq!(g.centers.len(), 1000);
-        let tol = if version == 1 { 4e-3 } else { 0.5 / 4096.0 + 1e-6 };
+        let tol = if version == 1 {
+            4e-3
+        } else {
+            0.5 / 4096.0 + 1e-6
+        };
         for (a, b) in g.centers.iter().zip(&centers) {
             for k in 0..3 {
                 assert!((a[k] - b[k]).abs() <= tol, "v{version}: {a:?} vs {b:?}");
@@ -207,11 +222,19 @@ fn broken_spz_files_are_refused_and_bombs_stay_bounded() {
     let raw = gunzip(&v2);
 
     // A gzip file that is not SPZ inside.
-    let p = write(dir.path(), "a.spz", gzip(b"hello, this is not a splat file"));
+    let p = write(
+        dir.path(),
+        "a.spz",
+        gzip(b"hello, this is not a splat file"),
+    );
     let e = read_gaussians(&p, &opts(None)).unwrap_err();
     assert!(e.to_string().contains("NGSP"), "{e}");
     // Wrong magic, no gzip: unknown.
-    let p = write(dir.path(), "b.spz", b"NGSX and more bytes here, thirty-two+");
+    let p = write(
+        dir.path(),
+        "b.spz",
+        b"NGSX and more bytes here, thirty-two+",
+    );
     assert!(read_gaussians(&p, &opts(None)).is_err());
     // A gzip stream cut short.
     let p = write(dir.path(), "c.spz", &v2[..v2.len() - 40]);
@@ -472,7 +495,11 @@ fn edge_json_lines_are_read_and_curves_skipped_or_sampled() {
     assert_eq!(f.format, LineFormat::EdgesJson);
     assert_eq!(f.lines.len(), 2);
     assert_eq!(f.lines.segments[1].p2.to_array(), [0.0, 1.0, 1.0]);
-    assert!(f.warnings.iter().any(|w| w.contains("1 Bézier curve")), "{:?}", f.warnings);
+    assert!(
+        f.warnings.iter().any(|w| w.contains("1 Bézier curve")),
+        "{:?}",
+        f.warnings
+    );
     let f = read_lines_with(
         &p,
         &LineOptions {
@@ -491,13 +518,29 @@ fn edge_json_lines_are_read_and_curves_skipped_or_sampled() {
     assert_eq!(&g[..3], &[0, 1, 2]);
     assert!(g[2..].iter().all(|&x| x == 2));
 
-    let p = write(dir.path(), "e.json", r#"{"lines_end_pts": [[0, 0, 0, 1, 0]]}"#);
+    let p = write(
+        dir.path(),
+        "e.json",
+        r#"{"lines_end_pts": [[0, 0, 0, 1, 0]]}"#,
+    );
     let e = read_lines(&p).unwrap_err();
     assert!(e.to_string().contains("not a multiple of 6"), "{e}");
-    let p = write(dir.path(), "e.json", r#"{"lines_end_pts": [[0, 0, 0, 1, "a", 0]]}"#);
+    let p = write(
+        dir.path(),
+        "e.json",
+        r#"{"lines_end_pts": [[0, 0, 0, 1, "a", 0]]}"#,
+    );
     let e = read_lines(&p).unwrap_err();
-    assert_eq!(e.position(), Some(&Position::RowValue { row: 0, value: 4 }), "{e}");
-    let p = write(dir.path(), "e.json", "{\"lines_end_pts\": [[0, 0, 0, 1, 0, 0]\n");
+    assert_eq!(
+        e.position(),
+        Some(&Position::RowValue { row: 0, value: 4 }),
+        "{e}"
+    );
+    let p = write(
+        dir.path(),
+        "e.json",
+        "{\"lines_end_pts\": [[0, 0, 0, 1, 0, 0]\n",
+    );
     let e = read_lines(&p).unwrap_err();
     assert!(e.to_string().contains("not valid JSON"), "{e}");
 }
@@ -525,7 +568,10 @@ fn info_and_convert_handle_every_new_format() {
     let o = bin(&["info", data("gaussians/biker.spz").to_str().unwrap()]);
     assert!(o.status.success(), "{}", err(&o));
     assert!(out(&o).contains("SPZ version 4"), "{}", out(&o));
-    let o = bin(&["info", data("gaussians/guitar.compressed.ply").to_str().unwrap()]);
+    let o = bin(&[
+        "info",
+        data("gaussians/guitar.compressed.ply").to_str().unwrap(),
+    ]);
     assert!(out(&o).contains("SuperSplat compressed PLY"), "{}", out(&o));
     assert!(out(&o).contains("90854"), "{}", out(&o));
 
@@ -544,15 +590,36 @@ fn info_and_convert_handle_every_new_format() {
     // Lines: a LIMAP folder to OBJ.
     let tracks = dir.path().join("finaltracks");
     std::fs::create_dir(&tracks).unwrap();
-    write(&tracks, "track_0.txt", track_file([0.0, 0.0, 0.0, 1.0, 2.0, 3.0], 2));
-    write(&tracks, "track_1.txt", track_file([1.0, 0.0, 0.0, 1.0, 2.0, 3.0], 2));
+    write(
+        &tracks,
+        "track_0.txt",
+        track_file([0.0, 0.0, 0.0, 1.0, 2.0, 3.0], 2),
+    );
+    write(
+        &tracks,
+        "track_1.txt",
+        track_file([1.0, 0.0, 0.0, 1.0, 2.0, 3.0], 2),
+    );
     let obj = dir.path().join("tracks.obj");
-    let o = bin(&["convert", tracks.to_str().unwrap(), "-o", obj.to_str().unwrap()]);
+    let o = bin(&[
+        "convert",
+        tracks.to_str().unwrap(),
+        "-o",
+        obj.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", err(&o));
-    assert_eq!(read_lines(&obj).unwrap().lines.segments, read_lines(&tracks).unwrap().lines.segments);
+    assert_eq!(
+        read_lines(&obj).unwrap().lines.segments,
+        read_lines(&tracks).unwrap().lines.segments
+    );
     // Gaussians only go to PLY; nothing is written otherwise.
     let bad = dir.path().join("biker.obj");
-    let o = bin(&["convert", data("gaussians/biker.spz").to_str().unwrap(), "-o", bad.to_str().unwrap()]);
+    let o = bin(&[
+        "convert",
+        data("gaussians/biker.spz").to_str().unwrap(),
+        "-o",
+        bad.to_str().unwrap(),
+    ]);
     assert_eq!(o.status.code(), Some(2), "{}", err(&o));
     assert!(!bad.exists());
 }
@@ -563,7 +630,14 @@ fn toy_in_two_frames(dir: &Path) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
     let g = dir.join("g.ply");
     let l = dir.join("l.obj");
     let o = bin(&[
-        "synth", "toy", "-o", g.to_str().unwrap(), "--lines-out", l.to_str().unwrap(), "-n", "6000",
+        "synth",
+        "toy",
+        "-o",
+        g.to_str().unwrap(),
+        "--lines-out",
+        l.to_str().unwrap(),
+        "-n",
+        "6000",
     ]);
     assert!(o.status.success(), "{}", err(&o));
     let cloud = read_gaussians(&g, &opts(None)).unwrap();
@@ -589,11 +663,7 @@ fn toy_in_two_frames(dir: &Path) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
         r#"{"transform": [[0, -1, 0, 5], [1, 0, 0, -7], [0, 0, 1, 9]], "scale": 0.25}"#,
     );
     // The same map back as a matrix: p = R^T (p_ns / s) - R^T t.
-    let m = write(
-        dir,
-        "m.txt",
-        "0 4 0 7\n-4 0 0 5\n0 0 4 -9\n0 0 0 1\n",
-    );
+    let m = write(dir, "m.txt", "0 4 0 7\n-4 0 0 5\n0 0 4 -9\n0 0 0 1\n");
     (ns, l, json, m)
 }
 
@@ -619,9 +689,21 @@ fn refine_stops_on_a_frame_mismatch_and_the_transform_fixes_it() {
     assert!(err(&o).contains("--gaussians-transform"), "{}", err(&o));
     assert!(!outp.exists(), "a mismatch writes nothing");
 
-    let e = bin(&["eval", "--backend", "cpu", "-g", ns.to_str().unwrap(), "-l", l.to_str().unwrap()]);
+    let e = bin(&[
+        "eval",
+        "--backend",
+        "cpu",
+        "-g",
+        ns.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+    ]);
     assert!(e.status.success(), "{}", err(&e));
-    assert!(err(&e).contains("warning") && err(&e).contains("not in one frame"), "{}", err(&e));
+    assert!(
+        err(&e).contains("warning") && err(&e).contains("not in one frame"),
+        "{}",
+        err(&e)
+    );
 
     let mut results = Vec::new();
     for t in [&json, &m] {

@@ -146,13 +146,9 @@ pub fn frame_check(
     eng: &dyn linegs_gpu::engine::Engine,
     radius: f64,
 ) -> Result<Option<String>> {
-    let fc = linegs_gpu::frames::check_frames(
-        eng,
-        &l.lines.lines.segments,
-        radius,
-        &l.cloud.centers,
-    )
-    .context("checking that the lines and the Gaussians share a frame")?;
+    let fc =
+        linegs_gpu::frames::check_frames(eng, &l.lines.lines.segments, radius, &l.cloud.centers)
+            .context("checking that the lines and the Gaussians share a frame")?;
     Ok(fc.mismatch().then(|| {
         format!(
             "{} and {}: {}",

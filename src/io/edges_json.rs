@@ -41,7 +41,12 @@ fn flatten(v: &serde_json::Value, out: &mut Vec<f64>) -> Result<(), String> {
     }
 }
 
-fn numbers(path: &Path, json: &serde_json::Value, key: &str, per: usize) -> Result<Vec<f64>, Error> {
+fn numbers(
+    path: &Path,
+    json: &serde_json::Value,
+    key: &str,
+    per: usize,
+) -> Result<Vec<f64>, Error> {
     let Some(v) = json.get(key) else {
         return Ok(Vec::new());
     };
@@ -88,12 +93,11 @@ fn numbers(path: &Path, json: &serde_json::Value, key: &str, per: usize) -> Resu
     Ok(out)
 }
 
+/// Segments, their groups (only with sampled curves) and warnings.
+pub(crate) type Edges = (Vec<Segment>, Option<Vec<u32>>, Vec<String>);
+
 /// Straight edges, their groups (only with sampled curves) and warnings.
-pub(crate) fn parse(
-    path: &Path,
-    text: &str,
-    curves: Curves,
-) -> Result<(Vec<Segment>, Option<Vec<u32>>, Vec<String>), Error> {
+pub(crate) fn parse(path: &Path, text: &str, curves: Curves) -> Result<Edges, Error> {
     let json: serde_json::Value = serde_json::from_str(text).map_err(|e| {
         Error::parse(
             path,
@@ -104,7 +108,9 @@ pub(crate) fn parse(
             format!("not valid JSON: {e}"),
         )
     })?;
-    if !json.is_object() || (json.get("lines_end_pts").is_none() && json.get("curves_ctl_pts").is_none()) {
+    if !json.is_object()
+        || (json.get("lines_end_pts").is_none() && json.get("curves_ctl_pts").is_none())
+    {
         return Err(Error::missing(
             path,
             "an edge file (EMAP, EdgeGaussians parametric_edges.json) has `lines_end_pts` or `curves_ctl_pts`, and this JSON has neither",

@@ -255,7 +255,11 @@ impl<'a> Sink<'a> {
         if !c.iter().all(|v| v.is_finite()) {
             let pos = pos();
             if self.strict {
-                let bad = c.iter().copied().find(|v| !v.is_finite()).unwrap_or(f32::NAN);
+                let bad = c
+                    .iter()
+                    .copied()
+                    .find(|v| !v.is_finite())
+                    .unwrap_or(f32::NAN);
                 let mut e = Error::non_finite(self.path, pos, "Gaussian center", bad as f64);
                 if let Error::NonFinite { hint, .. } = &mut e {
                     *hint = "; without --strict such Gaussians are skipped with a warning";
@@ -268,7 +272,7 @@ impl<'a> Sink<'a> {
         }
         if let Some(t) = self.min_opacity {
             // NaN opacity fails the test and is dropped, as in the PLY reader.
-            if !(opacity >= t) {
+            if opacity.partial_cmp(&t).is_none_or(|o| o.is_lt()) {
                 self.low += 1;
                 return Ok(());
             }

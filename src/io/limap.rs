@@ -59,9 +59,13 @@ impl<'a> Tokens<'a> {
     fn coord(&mut self, what: &str) -> Result<f64, Error> {
         let (line, value, t) = self.next(what)?;
         let pos = Position::LineValue { line, value };
-        let x: f64 = t
-            .parse()
-            .map_err(|_| Error::parse(self.path, pos.clone(), format!("{what}: `{t}` is not a number")))?;
+        let x: f64 = t.parse().map_err(|_| {
+            Error::parse(
+                self.path,
+                pos.clone(),
+                format!("{what}: `{t}` is not a number"),
+            )
+        })?;
         if !x.is_finite() {
             return Err(Error::non_finite(self.path, pos, "line coordinate", x));
         }
@@ -118,7 +122,10 @@ impl<'a> Tokens<'a> {
         for (k, slot) in v.iter_mut().enumerate() {
             *slot = self.coord(["x1", "y1", "z1", "x2", "y2", "z2"][k])?;
         }
-        Ok((line, Segment::from_arrays([v[0], v[1], v[2]], [v[3], v[4], v[5]])))
+        Ok((
+            line,
+            Segment::from_arrays([v[0], v[1], v[2]], [v[3], v[4], v[5]]),
+        ))
     }
 }
 
@@ -132,8 +139,11 @@ fn row_tokens(text: &str, row: usize) -> Option<Vec<&str>> {
 
 /// A single `track_<id>.txt`: 6 numbers, 2 counts, then `image_id_list`.
 pub(crate) fn looks_like_track(text: &str) -> bool {
-    let (Some(a), Some(b), Some(c)) = (row_tokens(text, 0), row_tokens(text, 1), row_tokens(text, 2))
-    else {
+    let (Some(a), Some(b), Some(c)) = (
+        row_tokens(text, 0),
+        row_tokens(text, 1),
+        row_tokens(text, 2),
+    ) else {
         return false;
     };
     a.len() == 6
@@ -174,11 +184,11 @@ pub(crate) fn parse_track(path: &Path, text: &str) -> Result<(usize, Segment), E
     Ok((line, seg))
 }
 
+/// Segments with one number each (a track id, or a text line), and warnings.
+type Tracks<T> = (Vec<Segment>, Vec<u32>, Vec<T>);
+
 /// Segments, their track ids and their lines, from `alltracks.txt`.
-pub(crate) fn parse_alltracks(
-    path: &Path,
-    text: &str,
-) -> Result<(Vec<Segment>, Vec<u32>, Vec<usize>), Error> {
+pub(crate) fn parse_alltracks(path: &Path, text: &str) -> Result<Tracks<usize>, Error> {
     let mut t = Tokens::new(path, text);
     let (_, n) = t.count("the track count")?;
     let mut segs = Vec::with_capacity(n);
@@ -214,9 +224,7 @@ pub(crate) fn parse_alltracks(
 }
 
 /// A `finaltracks/` folder: every `track_<id>.txt` in it, by id.
-pub(crate) fn read_folder(
-    dir: &Path,
-) -> Result<(Vec<Segment>, Vec<u32>, Vec<String>), Error> {
+pub(crate) fn read_folder(dir: &Path) -> Result<Tracks<String>, Error> {
     let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, "read", e))?;
     let mut tracks: Vec<(u32, PathBuf)> = Vec::new();
     for entry in entries {

@@ -167,8 +167,7 @@ pub fn read_lines_with(path: &Path, opts: &LineOptions) -> Result<LineFile, Erro
                     p
                 }
                 LineFormat::EdgesJson => {
-                    let (segments, groups, warnings) =
-                        edges_json::parse(path, text, opts.curves)?;
+                    let (segments, groups, warnings) = edges_json::parse(path, text, opts.curves)?;
                     let mut p = Parsed::new(Origin::Records("edge"));
                     p.segments = segments;
                     p.groups = groups;

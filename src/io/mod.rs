@@ -17,13 +17,13 @@ mod spz;
 mod transform;
 mod write;
 
-pub use error::{Error, Position, KNOWN_FORMATS};
-pub use info::{info, info_with, FileInfo, FileKind};
 pub use edges_json::{Curves, POLYLINE_PIECES};
+pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
-    detect_gaussians, is_gaussian_model, read_gaussians, read_gaussians_with_opacity, write_gaussians_ply,
-    GaussianFormat,
+    detect_gaussians, is_gaussian_model, read_gaussians, read_gaussians_with_opacity,
+    write_gaussians_ply, GaussianFormat,
 };
+pub use info::{info, info_with, FileInfo, FileKind};
 pub use lines::{read_lines, read_lines_with, LineFile, LineFormat, LineOptions};
 pub use ply::{GaussianCloud, PlyOptions};
 pub use spz::encode_spz;

@@ -109,7 +109,7 @@ pub(crate) fn read(
         }
     };
     let bounds = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"]
-        .map(|b| chunk_prop(b))
+        .map(chunk_prop)
         .into_iter()
         .collect::<Result<Vec<_>, _>>()?;
     let word = |name: &str| -> Result<usize, Error> {
@@ -143,11 +143,7 @@ pub(crate) fn read(
         let rec = &bytes[v_start + i * v_stride..];
         let u32_at = |o: usize| u32::from_le_bytes([rec[o], rec[o + 1], rec[o + 2], rec[o + 3]]);
         let p = u32_at(pos_off);
-        let t = [
-            unorm(p >> 21, 11),
-            unorm(p >> 11, 10),
-            unorm(p, 11),
-        ];
+        let t = [unorm(p >> 21, 11), unorm(p >> 11, 10), unorm(p, 11)];
         let mut c = [0f32; 3];
         for k in 0..3 {
             c[k] = lerp(lo_hi[k], lo_hi[k + 3], t[k]) as f32;

@@ -33,9 +33,15 @@ pub(crate) fn read(
         let f = |o: usize| f32::from_le_bytes([rec[o], rec[o + 1], rec[o + 2], rec[o + 3]]);
         let a = rec[27];
         let p = a as f32 / 255.0;
-        sink.push([f(0), f(4), f(8)], a as f64 / 255.0, (p / (1.0 - p)).ln(), || {
-            Position::record("splat", i, Some((i * RECORD) as u64))
-        })?;
+        sink.push(
+            [f(0), f(4), f(8)],
+            a as f64 / 255.0,
+            (p / (1.0 - p)).ln(),
+            || Position::record("splat", i, Some((i * RECORD) as u64)),
+        )?;
     }
-    sink.finish(n, format!("antimatter15 .splat ({n} splats of {RECORD} bytes)"))
+    sink.finish(
+        n,
+        format!("antimatter15 .splat ({n} splats of {RECORD} bytes)"),
+    )
 }

@@ -89,7 +89,12 @@ impl Header {
     }
 
     /// The checks both layouts share; `bound` is the largest count the file size allows.
-    fn check(&self, path: &Path, versions: std::ops::RangeInclusive<u32>, bound: u64) -> Result<(), Error> {
+    fn check(
+        &self,
+        path: &Path,
+        versions: std::ops::RangeInclusive<u32>,
+        bound: u64,
+    ) -> Result<(), Error> {
         if !versions.contains(&self.version) {
             return Err(Error::parse(
                 path,
@@ -170,7 +175,7 @@ fn decode(
     let n = h.count as usize;
     sink.reserve(n);
     let scale = (1.0f64 / (1u64 << h.fractional_bits) as f64) as f32;
-    for i in 0..n {
+    for (i, &a) in alphas.iter().enumerate().take(n) {
         let mut c = [0f32; 3];
         if h.version == 1 {
             for (k, v) in c.iter_mut().enumerate() {
@@ -190,7 +195,6 @@ fn decode(
         }
         // `0.0 - v` rather than `-v`: no negative zeros in the output.
         let c = [c[0], 0.0 - c[1], 0.0 - c[2]];
-        let a = alphas[i];
         let p = a as f32 / 255.0;
         let logit = (p / (1.0 - p)).ln();
         sink.push(c, a as f64 / 255.0, logit, || {
@@ -419,7 +423,11 @@ fn read_v4(path: &Path, bytes: &[u8], sink: &mut Sink) -> Result<Decoded, Error>
         if out.len() as u64 != need {
             return Err(bad(format!(
                 "decompresses to {}{} bytes, the table of contents says {need}",
-                if out.len() as u64 > need { "more than " } else { "" },
+                if out.len() as u64 > need {
+                    "more than "
+                } else {
+                    ""
+                },
                 out.len().min(need as usize)
             )));
         }
@@ -473,8 +481,7 @@ pub fn encode_spz(version: u32, centers: &[[f32; 3]], opacity: &[f32]) -> Vec<u8
         for s in &sections {
             raw.extend_from_slice(s);
         }
-        let mut enc =
-            flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
         std::io::Write::write_all(&mut enc, &raw).expect("in-memory write");
         return enc.finish().expect("in-memory write");
     }
@@ -531,7 +538,10 @@ mod tests {
         for v in [0.0f32, 1.0, -2.5, 0.333, 1000.0, -0.000_1, 65504.0] {
             let h = f32_to_half(v);
             let back = half_to_f32(h);
-            assert!((back - v).abs() <= v.abs() * 1e-3 + 1e-7, "{v} -> {h:#x} -> {back}");
+            assert!(
+                (back - v).abs() <= v.abs() * 1e-3 + 1e-7,
+                "{v} -> {h:#x} -> {back}"
+            );
         }
         assert_eq!(half_to_f32(0x3c00), 1.0);
         assert_eq!(half_to_f32(0xc000), -2.0);

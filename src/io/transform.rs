@@ -162,10 +162,11 @@ fn nerfstudio(path: &Path, text: &str) -> Result<GaussianTransform, Error> {
             )));
         }
         for x in row {
-            let x = x
-                .as_f64()
-                .filter(|x| x.is_finite())
-                .ok_or_else(|| bad(format!("`transform` row {r} holds `{x}`, not a finite number")))?;
+            let x = x.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
+                bad(format!(
+                    "`transform` row {r} holds `{x}`, not a finite number"
+                ))
+            })?;
             v.push(x);
         }
     }
@@ -182,7 +183,8 @@ fn nerfstudio(path: &Path, text: &str) -> Result<GaussianTransform, Error> {
             .filter(|s| s.is_finite() && *s > 0.0)
             .ok_or_else(|| bad(format!("`scale` is `{s}`, not a positive number")))?,
     };
-    let forward = DMat4::from_scale(DVec3::splat(scale)) * rows_to_matrix(path, &v, Position::Line(1))?;
+    let forward =
+        DMat4::from_scale(DVec3::splat(scale)) * rows_to_matrix(path, &v, Position::Line(1))?;
     Ok(GaussianTransform {
         matrix: forward.inverse(),
         describe: format!(
@@ -239,14 +241,32 @@ mod tests {
         let e = read_transform(&p).unwrap_err();
         assert!(e.to_string().contains("line 3, value 3"), "{e}");
         let (_d, p) = write("m.txt", "1 0 0\n0 1 0\n");
-        assert!(read_transform(&p).unwrap_err().to_string().contains("found 6 numbers"));
+        assert!(read_transform(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("found 6 numbers"));
         let (_d, p) = write("m.txt", "0 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n");
-        assert!(read_transform(&p).unwrap_err().to_string().contains("singular"));
+        assert!(read_transform(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("singular"));
         let (_d, p) = write("m.txt", "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 1 1\n");
-        assert!(read_transform(&p).unwrap_err().to_string().contains("projective"));
+        assert!(read_transform(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("projective"));
         let (_d, p) = write("t.json", r#"{"scale": 2}"#);
-        assert!(read_transform(&p).unwrap_err().to_string().contains("`transform`"));
-        let (_d, p) = write("t.json", r#"{"transform": [[1,0,0,0],[0,1,0,0],[0,0,1,0]], "scale": -1}"#);
-        assert!(read_transform(&p).unwrap_err().to_string().contains("`scale`"));
+        assert!(read_transform(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("`transform`"));
+        let (_d, p) = write(
+            "t.json",
+            r#"{"transform": [[1,0,0,0],[0,1,0,0],[0,0,1,0]], "scale": -1}"#,
+        );
+        assert!(read_transform(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("`scale`"));
     }
 }
