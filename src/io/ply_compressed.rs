@@ -67,8 +67,9 @@ pub(crate) fn read(
             ));
         };
         starts.push(at);
-        let len = stride as u64 * e.count as u64;
-        if at + len > bytes.len() as u64 {
+        // Saturating: a lying count must not wrap around to a small length.
+        let len = (stride as u64).saturating_mul(e.count as u64);
+        if at.saturating_add(len) > bytes.len() as u64 {
             let index = ((bytes.len() as u64).saturating_sub(at) / stride.max(1) as u64) as usize;
             return Err(Error::truncated(
                 path,

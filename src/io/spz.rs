@@ -174,7 +174,8 @@ fn decode(
 ) -> Result<(), Error> {
     let n = h.count as usize;
     sink.reserve(n);
-    let scale = (1.0f64 / (1u64 << h.fractional_bits) as f64) as f32;
+    // Version 1 has float16 positions and no use for the fractional bits (unchecked there).
+    let scale = (0.5f64).powi(h.fractional_bits as i32) as f32;
     for (i, &a) in alphas.iter().enumerate().take(n) {
         let mut c = [0f32; 3];
         if h.version == 1 {
