@@ -475,7 +475,7 @@ fn decide_join(
 
 /// Runs every group to its end, one engine batch per round.
 fn run(engine: &dyn Engine, machines: &mut [Machine], cx: Ctx) -> Result<(), EngineError> {
-    loop {
+    while machines.iter().any(|m| m.phase != Phase::Done) {
         let listings: Vec<Option<Listing>> = machines
             .par_iter()
             .map(|m| (m.phase != Phase::Done).then(|| m.list(cx)))
@@ -488,11 +488,13 @@ fn run(engine: &dyn Engine, machines: &mut [Machine], cx: Ctx) -> Result<(), Eng
                 queries.extend_from_slice(&l.queries);
             }
         }
-        // Every listed pair asks at least one query, so no query means no pair left.
-        if queries.is_empty() {
-            return Ok(());
-        }
-        let res = engine.stats(&queries, Want::SUMS)?;
+        // A round may ask nothing (its pairs were all decided earlier) and still apply a
+        // success: the loop ends only when every group's scan has found nothing to do.
+        let res = if queries.is_empty() {
+            Vec::new()
+        } else {
+            engine.stats(&queries, Want::SUMS)?
+        };
         machines
             .par_iter_mut()
             .zip(listings.into_par_iter())
@@ -504,6 +506,7 @@ fn run(engine: &dyn Engine, machines: &mut [Machine], cx: Ctx) -> Result<(), Eng
                 }
             });
     }
+    Ok(())
 }
 
 fn items_of(lines: &LineSet, idx: &[usize]) -> Vec<Item> {
@@ -682,6 +685,26 @@ mod tests {
             let out = run(&e, segs.clone(), &p);
             // The longest sits on the ridge: every merge keeps it (G' moves off the ridge).
             assert_eq!(out, vec![segs[0]]);
+        }
+    }
+
+    #[test]
+    fn two_duplicate_pairs_in_one_cluster_both_merge() {
+        // A/B on the ridge y = 0 over [0, 1], C/D on the ridge y = 0.5 over [1, 2]: the
+        // pair (C, D) is decided in favour in the round where (A, B) wins, and must still
+        // be applied although its next round needs no query.
+        let mut pts = ridge(0.0, 1.0, 0.005, 0.0);
+        pts.extend(ridge(1.0, 2.0, 0.005, 0.5));
+        let e = engine(&pts);
+        let segs = vec![
+            seg(0.0, 0.0, 1.0, 0.0),
+            seg(0.02, 0.004, 0.98, 0.004),
+            seg(1.0, 0.5, 2.0, 0.5),
+            seg(1.02, 0.504, 1.98, 0.504),
+        ];
+        for p in [Params::default(), Params::reference()] {
+            let out = run(&e, segs.clone(), &p);
+            assert_eq!(out, vec![segs[0], segs[2]], "{:?}", p.profile);
         }
     }
 
