@@ -492,3 +492,74 @@ fn batched_rounds_give_the_sequential_result_on_random_clusters() {
     // The scenes exercise the loops: most segments merge or join away.
     assert!(2 * merges > cases, "{merges} successes in {cases} scenes");
 }
+
+/// Gaussian centers every 0.005 along `s` extended by `ext` at both ends, alternately
+/// 0.003 above and below it in z (a ridge with a non-zero RMSE).
+fn ridge_along(s: &Segment, ext: f64) -> Vec<[f32; 3]> {
+    let n = ((s.length() + 2.0 * ext) / 0.005) as usize;
+    (0..=n)
+        .map(|k| {
+            let z = if k % 2 == 0 { 0.003 } else { -0.003 };
+            let q = s.point_at(-ext + k as f64 * 0.005) + DVec3::new(0.0, 0.0, z);
+            [q.x as f32, q.y as f32, q.z as f32]
+        })
+        .collect()
+}
+
+#[test]
+fn reference_orders_every_merged_segment_so_a_later_join_sees_its_p1_first() {
+    // G nearly tangent to a circle about the origin (|P1| just below |P2|); S, shorter and
+    // 10 degrees off below it, pulls it to G' whose order flips (|P1| > |P2|). The
+    // Gaussians sit on G' and on its extension to the left, where T lies past a small gap.
+    let g = Segment::new(DVec3::new(-1.0, 1.0, 0.0), DVec3::new(1.0001, 1.0, 0.0));
+    let phi = -10f64.to_radians();
+    let s0 = DVec3::new(-0.9, 0.9, 0.0);
+    let s = Segment::new(s0, s0 + DVec3::new(phi.cos(), phi.sin(), 0.0) * 0.5);
+    let p = Params::reference();
+    let g_prime = rules::merge_candidate(&g, &s, &p).unwrap().g_prime;
+    assert!(g_prime.p1.length() > g_prime.p2.length(), "{g_prime:?}");
+    let d = g_prime.dir();
+    let t = Segment::new(g_prime.p1 - d * 0.6, g_prime.p1 - d * 0.05);
+    let e = engine(&ridge_along(&Segment::new(t.p1, g_prime.p2), 0.0));
+    // The authors' constructor makes G' = (right end, left end); their join sorts the
+    // endpoints by distance from that P1, finds the gap to T and joins.
+    let out = run(&e, vec![g, s, t], &p);
+    assert_eq!(out.len(), 1, "{out:?}");
+    assert!(
+        near(&out[0], &Segment::new(g_prime.p2, t.p1), 1e-12),
+        "{out:?}"
+    );
+    assert!(out[0].p1.length() <= out[0].p2.length());
+    // Unordered, G' keeps P1 on the left, next to T: sorted by distance from it, the
+    // "gap" is T itself, too long, and the join is refused.
+    let unordered = Params {
+        order_endpoints: Some(false),
+        ..Params::reference()
+    };
+    let out = run(&e, vec![g, s, t], &unordered);
+    assert_eq!(out, vec![g_prime, t]);
+}
+
+#[test]
+fn reference_tests_overlap_from_the_shorter_segment_only() {
+    // S starts just past G's end, 2 cm below its line, rising at 5 degrees back onto it:
+    // G's end projects inside S, S's ends do not project inside G. The symmetric test calls
+    // that an overlap and merges (G kept, S dropped); the authors' test sends the pair to
+    // the join, which closes the 2 cm gap.
+    let g = seg(0.0, 0.0, 2.0, 0.0);
+    let phi = 5f64.to_radians();
+    let a = DVec3::new(2.001, -0.02, 0.0);
+    let s = Segment::new(
+        a,
+        a + DVec3::new(phi.cos(), phi.sin(), 0.0) * (0.02 / phi.sin()),
+    );
+    assert!(s.axial(g.p2) > 0.0 && g.axial(s.p1) > g.length());
+    let e = engine(&ridge_along(&seg(0.0, 0.0, 2.5, 0.0), 0.0));
+    let reference = run(&e, vec![g, s], &Params::reference());
+    assert_eq!(reference, vec![Segment::new(g.p1, s.p2)]);
+    let only_overlap = Params {
+        fix_merge_overlap: Some(true),
+        ..Params::reference()
+    };
+    assert_eq!(run(&e, vec![g, s], &only_overlap), vec![g]);
+}
