@@ -486,6 +486,14 @@ fn batched_rounds_give_the_sequential_result_on_random_clusters() {
             want,
             "seed {seed}"
         );
+        // Step 7 sets isolated exact copies aside: still the definition's result.
+        let (c, c_all) = (
+            crate::refine::cluster::cluster(&lines, R, &p, &fixes),
+            crate::refine::cluster::cluster_all(&lines, R, &p, &fixes),
+        );
+        let got = merge_join(&e, &lines, &c, R, &p, &fixes).unwrap();
+        let def = sequential::merge_join_sequential(&e, &lines, &c_all, R, &p, &fixes).unwrap();
+        assert_eq!(got, def, "seed {seed}, clustered");
         merges += lines.len() - want.len();
         cases += 1;
     }
