@@ -5,19 +5,18 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use glam::DVec3;
-use linegs_gpu::engine::cpu::CpuEngine;
+use linegs_gpu::engine::select::Backend;
 use linegs_gpu::geom::{LineSet, Segment};
-use linegs_gpu::pipeline::prepare;
+use linegs_gpu::pipeline::Refiner;
 use linegs_gpu::refine::{run_steps, Params};
 use linegs_gpu::{io, synth};
 use std::path::Path;
 
 fn refine(points: &[[f32; 3]], lines: &LineSet, p: &Params) -> usize {
-    let prep = prepare(points, &lines.segments, p).unwrap();
-    let e = CpuEngine::new(prep.grid);
+    let r = Refiner::new(points, &lines.segments, p, Backend::Cpu).unwrap();
     // `LINEGS_BENCH_STAGES=1` prints each step's time.
     let show = std::env::var_os("LINEGS_BENCH_STAGES").is_some();
-    run_steps(&e, lines, prep.radius, p, |name, n, t| {
+    run_steps(r.engine(), lines, r.settings(), |name, n, t| {
         if show {
             eprintln!("{name}: {n} segments, {:.3} s", t.elapsed().as_secs_f64());
         }

@@ -3,6 +3,7 @@
 
 pub mod engine;
 pub mod eval;
+pub mod frames;
 pub mod geom;
 pub mod index;
 pub mod io;
@@ -10,4 +11,5 @@ pub mod mem;
 pub mod pipeline;
 pub mod refine;
 pub mod render;
+pub mod report;
 pub mod synth;

@@ -1,6 +1,7 @@
 //! Subcommands. Each parses its arguments, calls the library, and prints.
 
 pub mod bench;
+pub mod convert;
 pub mod demo;
 pub mod eval;
 pub mod info;
@@ -8,16 +9,14 @@ pub mod refine;
 pub mod render;
 pub mod synth;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
-use linegs_gpu::engine::select::{make_engine, Backend};
-use linegs_gpu::engine::Engine;
+use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::Metrics;
-use linegs_gpu::index::Grid;
-use linegs_gpu::io::{self, GaussianCloud, LineFile, PlyOptions};
-use serde::Serialize;
+use linegs_gpu::io;
+use linegs_gpu::pipeline::{LoadOptions, RunError, Scene};
+use linegs_gpu::report::Report;
 use std::path::PathBuf;
-use std::sync::Arc;
 
 /// Marks an error as the user's input being wrong (exit code 2).
 #[derive(Debug)]
@@ -44,8 +43,8 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
         if let Some(ioe) = cause.downcast_ref::<io::Error>() {
             return if ioe.is_input_error() { 2 } else { 1 };
         }
-        if let Some(linegs_gpu::pipeline::RunError::Input(_)) = cause.downcast_ref() {
-            return 2;
+        if let Some(re) = cause.downcast_ref::<RunError>() {
+            return if re.is_input_error() { 2 } else { 1 };
         }
     }
     1
@@ -54,14 +53,19 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
 /// The Gaussians and lines every command reads.
 #[derive(Args, Debug, Clone)]
 pub struct InputArgs {
-    /// The trained 3DGS model (`point_cloud.ply`; only the centers are used).
-    #[arg(short, long, value_name = "PLY")]
+    /// The trained model; only the centers are used: 3DGS `point_cloud.ply`, SuperSplat
+    /// compressed `.ply`, Niantic `.spz` (v1-v4) or antimatter15 `.splat`.
+    #[arg(short, long, value_name = "MODEL")]
     pub gaussians: PathBuf,
-    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, ELSR `.obj`, plain
+    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, `finaltracks/` or
+    /// `alltracks.txt`, ELSR `.obj`, EMAP/EdgeGaussians `parametric_edges.json`, plain
     /// text (6 numbers a row) or our `.ply` with edges.
     #[arg(short, long, value_name = "FILE")]
     pub lines: PathBuf,
-    /// Keep only Gaussians with sigmoid(opacity) >= this (3DGS stores the logit).
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Keep only Gaussians with opacity >= this (in [0, 1]: sigmoid of the logit that 3DGS
+    /// stores; SPZ, .splat and compressed PLY store it directly).
     #[arg(long, value_name = "ALPHA")]
     pub min_opacity: Option<f64>,
     /// Make Gaussians with NaN or infinite centers an error instead of a warning.
@@ -73,38 +77,71 @@ pub struct InputArgs {
     pub backend: Backend,
 }
 
-pub struct Loaded {
-    pub cloud: GaussianCloud,
-    pub lines: LineFile,
+impl InputArgs {
+    /// The options of [`Scene::load`]; reads the `--gaussians-transform` file.
+    pub fn load_options(&self) -> Result<LoadOptions> {
+        Ok(LoadOptions {
+            min_opacity: self.min_opacity,
+            strict: self.strict,
+            transform: self.frame.read_transform()?,
+            lines: self.frame.line_options(),
+        })
+    }
 }
 
-pub fn load(a: &InputArgs) -> Result<Loaded> {
-    if let Some(o) = a.min_opacity {
-        if !(0.0..=1.0).contains(&o) {
-            return Err(input_error(format!(
-                "--min-opacity {o}: expected an opacity in [0, 1]"
-            )));
+/// How the Gaussians are brought into the lines' frame, and what to do with curves.
+#[derive(Args, Debug, Clone, Default)]
+pub struct FrameArgs {
+    /// Map the Gaussians into the lines' frame first: a 4x4 matrix as text (row-major,
+    /// applied as given) or nerfstudio's `dataparser_transforms.json` (inverted, so a
+    /// splatfacto/gsplat model goes back to the COLMAP frame of the lines).
+    #[arg(long, value_name = "FILE")]
+    pub gaussians_transform: Option<PathBuf>,
+    /// Bezier curves of EMAP/EdgeGaussians edge files: `skip` them (with a warning) or
+    /// sample each as a `polyline` of 16 segments.
+    #[arg(long, value_enum, default_value_t = io::Curves::Skip)]
+    pub curves: io::Curves,
+}
+
+impl FrameArgs {
+    pub fn line_options(&self) -> io::LineOptions {
+        io::LineOptions {
+            curves: self.curves,
         }
     }
-    let cloud = io::read_gaussians(
-        &a.gaussians,
-        &PlyOptions {
-            min_opacity: a.min_opacity,
-            strict: a.strict,
-        },
-    )?;
-    let lines = io::read_lines(&a.lines)?;
-    for w in cloud.warnings.iter().chain(&lines.warnings) {
-        eprintln!("warning: {w}");
+
+    /// The `--gaussians-transform` file, read and announced.
+    pub fn read_transform(&self) -> Result<Option<io::GaussianTransform>> {
+        let Some(p) = &self.gaussians_transform else {
+            return Ok(None);
+        };
+        let t = io::read_transform(p)?;
+        eprintln!("note: Gaussians mapped by {}", t.describe);
+        Ok(Some(t))
     }
-    Ok(Loaded { cloud, lines })
+
+    /// Applies `--gaussians-transform` to `cloud`.
+    pub fn transform(&self, cloud: &mut io::GaussianCloud) -> Result<()> {
+        if let Some(t) = self.read_transform()? {
+            t.apply(&mut cloud.centers);
+        }
+        Ok(())
+    }
 }
 
-/// Builds the engine for `grid` and says which one answered.
-pub fn engine(backend: Backend, grid: Arc<Grid>, verbose: bool) -> Result<Box<dyn Engine>> {
-    let (engine, warnings) = make_engine(backend, grid).context("starting the query engine")?;
-    for w in warnings {
-        // `auto` says which adapter it picked; only a fallback is a warning.
+/// Reads the scene and prints what loading it found.
+pub fn load(a: &InputArgs) -> Result<Scene> {
+    let scene = Scene::load(&a.gaussians, &a.lines, &a.load_options()?)?;
+    for w in &scene.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(scene)
+}
+
+/// Prints what choosing the engine said: which adapter `auto` picked is a note, a
+/// fallback a warning; with `verbose`, the engine that answered.
+pub fn print_engine(r: &Report, verbose: bool) {
+    for w in &r.notes {
         let kind = if w.contains("using the GPU adapter") {
             "note"
         } else {
@@ -113,37 +150,7 @@ pub fn engine(backend: Backend, grid: Arc<Grid>, verbose: bool) -> Result<Box<dy
         eprintln!("{kind}: {w}");
     }
     if verbose {
-        eprintln!("engine: {} ({})", engine.backend(), engine.adapter());
-    }
-    Ok(engine)
-}
-
-#[derive(Serialize)]
-pub struct InputReport {
-    pub gaussians: String,
-    pub lines: String,
-    pub lines_format: String,
-    pub gaussians_read: usize,
-    pub gaussians_nonfinite_skipped: usize,
-    pub gaussians_below_opacity: usize,
-    pub segments_read: usize,
-    pub segments_invalid_dropped: usize,
-    pub input_lines: Option<usize>,
-    pub n_box: usize,
-}
-
-pub fn input_report(a: &InputArgs, l: &Loaded, n_box: usize) -> InputReport {
-    InputReport {
-        gaussians: a.gaussians.display().to_string(),
-        lines: a.lines.display().to_string(),
-        lines_format: l.lines.format.name().to_string(),
-        gaussians_read: l.cloud.centers.len(),
-        gaussians_nonfinite_skipped: l.cloud.skipped_nonfinite,
-        gaussians_below_opacity: l.cloud.dropped_low_opacity,
-        segments_read: l.lines.lines.len(),
-        segments_invalid_dropped: l.lines.dropped_invalid,
-        input_lines: l.lines.lines.input_lines(),
-        n_box,
+        eprintln!("engine: {} ({})", r.backend, r.adapter);
     }
 }
 

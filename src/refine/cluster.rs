@@ -10,7 +10,7 @@
 //! offset of segments that do not overlap, so it has no spatial bound and uses all pairs.
 
 use crate::geom::{LineSet, Segment};
-use crate::refine::{Fixes, Params};
+use crate::refine::Settings;
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -77,7 +77,8 @@ fn distance_bound(r_c: f64, min_weight: f64) -> Option<f64> {
 /// Every edge `w >= p.cluster_min_weight` between segments of different input lines,
 /// sorted ascending by `w` (ties in `(i, j)` order, which is what a stable sort of the
 /// all-pairs loop gives).
-pub fn edges(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Edge> {
+pub fn edges(lines: &LineSet, s: &Settings) -> Vec<Edge> {
+    let (r_c, p, fixes) = (s.radius(), s.params(), s.fixes());
     let bound = distance_bound(r_c, p.cluster_min_weight);
     let mut e = match bound {
         Some(b) if fixes.cluster_distance && lines.len() > 1 => {
@@ -400,10 +401,10 @@ fn greedy_order(members: &[usize], edges: &[Edge]) -> Vec<usize> {
 /// such a group is set aside before the edges are built (its `m^2 / 2` edges would cost
 /// quadratic time and memory) and comes back as one cluster, its first member in front as
 /// the greedy order puts it, the others in index order (which step 8 cannot tell apart).
-pub fn cluster(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<usize>> {
-    let copies = isolated_copies(lines, r_c, p, fixes);
+pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
+    let copies = isolated_copies(lines, s);
     if copies.is_empty() {
-        return cluster_all(lines, r_c, p, fixes);
+        return cluster_all(lines, s);
     }
     let mut rest = vec![false; lines.len()];
     for c in &copies {
@@ -412,7 +413,7 @@ pub fn cluster(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<
         }
     }
     let keep: Vec<usize> = (0..lines.len()).filter(|&k| !rest[k]).collect();
-    let mut out: Vec<Vec<usize>> = cluster_all(&lines.select(&keep), r_c, p, fixes)
+    let mut out: Vec<Vec<usize>> = cluster_all(&lines.select(&keep), s)
         .into_iter()
         .map(|c| c.into_iter().map(|k| keep[k]).collect())
         .collect();
@@ -436,7 +437,8 @@ pub fn cluster(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<
 /// union-find joins them all: every threshold stays above their common `w < 1`), and, when
 /// merge results are ordered (`order_endpoints`), it is ordered already, so the merge of
 /// two copies gives back the first one bit for bit (`G' = G`, tie keeps `G`).
-fn isolated_copies(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<usize>> {
+fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
+    let (r_c, p, fixes) = (st.radius(), st.params(), st.fixes());
     let bits = |s: &Segment| {
         let (a, b) = (s.p1.to_array(), s.p2.to_array());
         [a[0], a[1], a[2], b[0], b[1], b[2]].map(f64::to_bits)
@@ -455,13 +457,13 @@ fn isolated_copies(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<
     }
     let reps = LineSet::new(same.iter().map(|c| lines.segments[c[0]]).collect());
     let mut linked = vec![false; reps.len()];
-    for e in edges(&reps, r_c, p, fixes) {
+    for e in edges(&reps, st) {
         linked[e.i] = true;
         linked[e.j] = true;
     }
     let n = reps.len();
     let reversed = LineSet::new(reps.segments.iter().rev().copied().collect());
-    for e in edges(&reversed, r_c, p, fixes) {
+    for e in edges(&reversed, st) {
         linked[n - 1 - e.i] = true;
         linked[n - 1 - e.j] = true;
     }
@@ -481,9 +483,10 @@ fn isolated_copies(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<
 }
 
 /// [`cluster`] without setting copies aside: the definition.
-pub(crate) fn cluster_all(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<usize>> {
+pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
     let n = lines.len();
-    let edges = edges(lines, r_c, p, fixes);
+    let p = s.params();
+    let edges = edges(lines, s);
     let root = union_find(n, &edges, p.cluster_c);
     let mut id_of_root = vec![usize::MAX; n];
     let mut members: Vec<Vec<usize>> = Vec::new();
@@ -513,6 +516,7 @@ pub(crate) fn cluster_all(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::refine::Params;
 
     fn seg(a: [f64; 3], b: [f64; 3]) -> Segment {
         Segment::from_arrays(a, b)
@@ -675,14 +679,14 @@ mod tests {
             groups: Some(vec![0, 1, 2, 0, 1]),
         };
         let p = Params::default();
-        let c = cluster(&lines, 0.03, &p, &p.fixes());
+        let c = cluster(&lines, &p.with_radius(0.03));
         // 3 joins 0 and 2 through its edge with 2; 4 never meets 1. Inside, (2, 3) is the
         // strongest pair (the larger length ratio), so it leads the greedy order.
         assert_eq!(c, vec![vec![2, 3, 0], vec![1], vec![4]]);
         // reference: 1 lies 5 away beside 0, with equal lengths and no endpoint strictly
         // inside, so only the (zero) axial gap counts and 1 joins the cluster.
         let p = Params::reference();
-        let c = cluster(&lines, 0.03, &p, &p.fixes());
+        let c = cluster(&lines, &p.with_radius(0.03));
         assert_eq!(c, vec![vec![2, 3, 0, 1], vec![4]]);
     }
 
@@ -697,10 +701,10 @@ mod tests {
             groups: Some(vec![0, 2, 1, 2, 0, 3]),
         };
         for p in [Params::default(), Params::reference()] {
-            let f = p.fixes();
-            assert_eq!(isolated_copies(&lines, 0.03, &p, &f), vec![vec![0, 2, 4]]);
-            let c = cluster(&lines, 0.03, &p, &f);
-            let all = cluster_all(&lines, 0.03, &p, &f);
+            let st = p.with_radius(0.03);
+            assert_eq!(isolated_copies(&lines, &st), vec![vec![0, 2, 4]]);
+            let c = cluster(&lines, &st);
+            let all = cluster_all(&lines, &st);
             assert_eq!(c, vec![vec![0, 2, 4], vec![1, 5, 3]]);
             // The definition: the same clusters, the first member the same.
             assert_eq!(all.len(), c.len());
@@ -838,7 +842,7 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| cluster(&lines, 0.03, p, &p.fixes()))
+                .install(|| cluster(&lines, &p.with_radius(0.03)))
         };
         for p in [Params::default(), Params::reference()] {
             let one = run(1, &p);

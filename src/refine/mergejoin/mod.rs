@@ -21,7 +21,7 @@ pub mod sequential;
 
 use crate::engine::{CylStats, Engine, EngineError};
 use crate::geom::{LineSet, Segment};
-use crate::refine::{Fixes, Params};
+use crate::refine::{Fixes, Params, Settings};
 use std::collections::HashMap;
 
 /// Pairs one group may list in its first round. A group whose list runs out without a
@@ -54,6 +54,17 @@ struct Ctx<'a> {
     fixes: &'a Fixes,
 }
 
+impl<'a> Ctx<'a> {
+    fn new(mode: Mode, s: &'a Settings) -> Self {
+        Ctx {
+            mode,
+            r: s.radius(),
+            p: s.params(),
+            fixes: s.fixes(),
+        }
+    }
+}
+
 fn items_of(lines: &LineSet, idx: &[usize]) -> Vec<Item> {
     idx.iter()
         .map(|&k| Item {
@@ -82,28 +93,19 @@ pub fn merge_join(
     engine: &dyn Engine,
     lines: &LineSet,
     clusters: &[Vec<usize>],
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
 ) -> Result<LineSet, EngineError> {
-    merge_join_budget(engine, lines, clusters, r, p, fixes, FIRST_BUDGET)
+    merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET)
 }
 
 fn merge_join_budget(
     engine: &dyn Engine,
     lines: &LineSet,
     clusters: &[Vec<usize>],
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
     budget: usize,
 ) -> Result<LineSet, EngineError> {
-    let cx = Ctx {
-        mode: Mode::Cluster,
-        r,
-        p,
-        fixes,
-    };
+    let cx = Ctx::new(Mode::Cluster, s);
     let mut machines: Vec<rounds::Machine> = clusters
         .iter()
         .map(|c| rounds::Machine::new(items_of(lines, c), Mode::Cluster, budget))
@@ -148,23 +150,16 @@ fn in_input_order(lines: &LineSet, members: &[Vec<usize>], mut results: Vec<Vec<
 pub fn collinear_merge(
     engine: &dyn Engine,
     lines: &LineSet,
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
 ) -> Result<LineSet, EngineError> {
     let Some(groups) = &lines.groups else {
         return Ok(lines.clone());
     };
-    if !p.collinear_merge {
+    if !s.params().collinear_merge {
         return Ok(lines.clone());
     }
     let members = input_lines(groups);
-    let cx = Ctx {
-        mode: Mode::Collinear,
-        r,
-        p,
-        fixes,
-    };
+    let cx = Ctx::new(Mode::Collinear, s);
     let mut machines: Vec<rounds::Machine> = members
         .iter()
         .map(|m| rounds::Machine::new(items_of(lines, m), Mode::Collinear, FIRST_BUDGET))

@@ -8,7 +8,7 @@ use super::rules;
 use super::{in_input_order, input_lines, items_of, line_set, Ctx, Item, Mode};
 use crate::engine::{CylStats, Engine, EngineError, Query, Want};
 use crate::geom::{LineSet, Segment};
-use crate::refine::{Fixes, Params};
+use crate::refine::Settings;
 
 /// `X(s, r)`, asked alone.
 fn ask(engine: &dyn Engine, s: Segment, r: f64) -> Result<CylStats, EngineError> {
@@ -82,16 +82,9 @@ pub fn merge_join_sequential(
     engine: &dyn Engine,
     lines: &LineSet,
     clusters: &[Vec<usize>],
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
 ) -> Result<LineSet, EngineError> {
-    let cx = Ctx {
-        mode: Mode::Cluster,
-        r,
-        p,
-        fixes,
-    };
+    let cx = Ctx::new(Mode::Cluster, s);
     let mut out = Vec::with_capacity(lines.len());
     for c in clusters {
         let mut items = items_of(lines, c);
@@ -106,19 +99,12 @@ pub fn merge_join_sequential(
 pub fn collinear_merge_sequential(
     engine: &dyn Engine,
     lines: &LineSet,
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
 ) -> Result<LineSet, EngineError> {
-    let (Some(groups), true) = (&lines.groups, p.collinear_merge) else {
+    let (Some(groups), true) = (&lines.groups, s.params().collinear_merge) else {
         return Ok(lines.clone());
     };
-    let cx = Ctx {
-        mode: Mode::Collinear,
-        r,
-        p,
-        fixes,
-    };
+    let cx = Ctx::new(Mode::Collinear, s);
     let members = input_lines(groups);
     let mut results = Vec::with_capacity(members.len());
     for m in &members {

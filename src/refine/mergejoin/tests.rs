@@ -35,7 +35,7 @@ fn one_cluster(segs: Vec<Segment>) -> (LineSet, Vec<Vec<usize>>) {
 
 fn run(e: &CpuEngine, segs: Vec<Segment>, p: &Params) -> Vec<Segment> {
     let (lines, c) = one_cluster(segs);
-    merge_join(e, &lines, &c, R, p, &p.fixes())
+    merge_join(e, &lines, &c, &p.with_radius(R))
         .unwrap()
         .segments
 }
@@ -207,7 +207,7 @@ fn each_round_is_one_batch_for_all_clusters() {
     let (e, lines, clusters) = broken_edges();
     let p = Params::default();
     let before = e.counters();
-    let out = merge_join(&e, &lines, &clusters, R, &p, &p.fixes()).unwrap();
+    let out = merge_join(&e, &lines, &clusters, &p.with_radius(R)).unwrap();
     let after = e.counters();
     let want: Vec<Segment> = [0.0, 0.5, 1.0, 1.5]
         .iter()
@@ -243,7 +243,7 @@ fn output_does_not_depend_on_the_thread_count() {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| merge_join(&e, &lines, &clusters, R, &p, &p.fixes()).unwrap())
+                .install(|| merge_join(&e, &lines, &clusters, &p.with_radius(R)).unwrap())
         };
         let one = go(1);
         assert!(one.len() <= 8, "{} segments left", one.len());
@@ -282,7 +282,7 @@ fn the_round_budget_changes_rounds_not_results() {
     for p in [Params::default(), Params::reference()] {
         let go = |budget: usize| {
             let b = e.counters().batches;
-            let out = merge_join_budget(&e, &lines, &c, R, &p, &p.fixes(), budget).unwrap();
+            let out = merge_join_budget(&e, &lines, &c, &p.with_radius(R), budget).unwrap();
             (out, e.counters().batches - b)
         };
         let (all, rounds_all) = go(usize::MAX);
@@ -307,7 +307,7 @@ fn collinear_merge_joins_inside_input_lines_only() {
         groups: Some(vec![7, 3, 7, 3, 5]),
     };
     let p = Params::default();
-    let out = collinear_merge(&e, &lines, R, &p, &p.fixes()).unwrap();
+    let out = collinear_merge(&e, &lines, &p.with_radius(R)).unwrap();
     assert_eq!(
         out.segments,
         vec![
@@ -320,13 +320,13 @@ fn collinear_merge_joins_inside_input_lines_only() {
     // Ungrouped input, or the step switched off: unchanged, and no query.
     let q = e.counters().queries;
     let flat = LineSet::new(lines.segments.clone());
-    assert_eq!(collinear_merge(&e, &flat, R, &p, &p.fixes()).unwrap(), flat);
+    assert_eq!(collinear_merge(&e, &flat, &p.with_radius(R)).unwrap(), flat);
     let off = Params {
         collinear_merge: false,
         ..Params::default()
     };
     assert_eq!(
-        collinear_merge(&e, &lines, R, &off, &off.fixes()).unwrap(),
+        collinear_merge(&e, &lines, &off.with_radius(R)).unwrap(),
         lines
     );
     assert_eq!(e.counters().queries, q);
@@ -340,7 +340,7 @@ fn merged_and_joined_segments_take_the_group_of_the_first() {
         groups: Some(vec![4, 9]),
     };
     let p = Params::default();
-    let out = merge_join(&e, &lines, &[vec![1, 0]], R, &p, &p.fixes()).unwrap();
+    let out = merge_join(&e, &lines, &[vec![1, 0]], &p.with_radius(R)).unwrap();
     assert_eq!(out.segments, vec![seg(0.0, 0.0, 2.0, 0.0)]);
     assert_eq!(out.groups, Some(vec![9]));
 }
@@ -467,6 +467,7 @@ fn batched_rounds_give_the_sequential_result_on_random_clusters() {
     for seed in 0..192u64 {
         let (e, mut lines, clusters) = random_scene(seed);
         let p = switches(seed as usize % 64);
+        let st = p.with_radius(R);
         let fixes = p.fixes();
         if fixes.order_endpoints {
             for s in &mut lines.segments {
@@ -475,24 +476,24 @@ fn batched_rounds_give_the_sequential_result_on_random_clusters() {
                 }
             }
         }
-        let want = sequential::merge_join_sequential(&e, &lines, &clusters, R, &p, &fixes).unwrap();
+        let want = sequential::merge_join_sequential(&e, &lines, &clusters, &st).unwrap();
         for budget in [FIRST_BUDGET, 2] {
-            let got = merge_join_budget(&e, &lines, &clusters, R, &p, &fixes, budget).unwrap();
+            let got = merge_join_budget(&e, &lines, &clusters, &st, budget).unwrap();
             assert_eq!(got, want, "seed {seed}, budget {budget}, {fixes:?}");
         }
-        let want = sequential::collinear_merge_sequential(&e, &lines, R, &p, &fixes).unwrap();
+        let want = sequential::collinear_merge_sequential(&e, &lines, &st).unwrap();
         assert_eq!(
-            collinear_merge(&e, &lines, R, &p, &fixes).unwrap(),
+            collinear_merge(&e, &lines, &st).unwrap(),
             want,
             "seed {seed}"
         );
         // Step 7 sets isolated exact copies aside: still the definition's result.
         let (c, c_all) = (
-            crate::refine::cluster::cluster(&lines, R, &p, &fixes),
-            crate::refine::cluster::cluster_all(&lines, R, &p, &fixes),
+            crate::refine::cluster::cluster(&lines, &st),
+            crate::refine::cluster::cluster_all(&lines, &st),
         );
-        let got = merge_join(&e, &lines, &c, R, &p, &fixes).unwrap();
-        let def = sequential::merge_join_sequential(&e, &lines, &c_all, R, &p, &fixes).unwrap();
+        let got = merge_join(&e, &lines, &c, &st).unwrap();
+        let def = sequential::merge_join_sequential(&e, &lines, &c_all, &st).unwrap();
         assert_eq!(got, def, "seed {seed}, clustered");
         merges += lines.len() - want.len();
         cases += 1;
