@@ -10,6 +10,7 @@
 //!    steps and the evaluations, and returns one [`Report`] (SPEC 7) — the same shape for
 //!    refine, eval and demo.
 
+use crate::engine::dedup::Dedup;
 use crate::engine::select::{make_engine, Backend};
 use crate::engine::{Engine, EngineError};
 use crate::eval::{self, gt, Metrics};
@@ -258,6 +259,8 @@ impl Refiner {
 
     /// [`Refiner::new`] with an engine of the caller's making (tests: a GPU engine with
     /// particular options). `make` returns the engine and the notes to show the user.
+    /// Every engine is wrapped in [`Dedup`], so that identical queries in a batch (copies
+    /// of a segment) are answered once.
     pub fn with_engine(
         gaussians: &[[f32; 3]],
         segments: &[Segment],
@@ -272,6 +275,7 @@ impl Refiner {
         let mut stages = vec![Stage::since("index", segments.len(), t)];
         let t = Instant::now();
         let (engine, notes) = make(grid)?;
+        let engine: Box<dyn Engine> = Box::new(Dedup::new(engine));
         stages.push(Stage::since("engine", segments.len(), t));
         Ok(Refiner {
             settings,

@@ -3,6 +3,7 @@
 //! (rayon, f64) or the GPU engine (wgpu + WGSL). Steps never know which.
 
 pub mod cpu;
+pub mod dedup;
 pub mod gpu;
 pub mod select;
 
