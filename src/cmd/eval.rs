@@ -1,4 +1,4 @@
-use super::{engine, input_error, input_report, load, metrics_table, InputArgs};
+use super::{engine, input_report, load, metrics_table, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::{self, gt, Metrics};
@@ -69,15 +69,14 @@ struct EvalReport {
 }
 
 pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
-    if let Some(p) = &a.plot {
-        let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("");
-        if !matches!(ext, "png" | "svg") {
-            return Err(input_error(format!(
-                "{}: the plot is written as .png or .svg",
-                p.display()
-            )));
-        }
+    let mut outs = super::outputs(&a.input);
+    for p in a.compare.iter().chain(&a.gt) {
+        outs.input(p);
     }
+    if let Some(p) = &a.plot {
+        outs.output("--plot", p, &["png", "svg"]);
+    }
+    outs.check()?;
     let loaded = load(&a.input)?;
     let mut sets = vec![(
         a.input.lines.display().to_string(),
@@ -135,11 +134,15 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             "metrics against the evaluation radius ({} Gaussians)",
             ws.len()
         );
-        if p.extension().and_then(|e| e.to_str()) == Some("svg") {
-            io::write_bytes_atomic(p, render::sweep_plot_svg(&series, &title).as_bytes())?;
-        } else {
-            render::sweep_plot_png(&series, &title, 1400, 900).write_png(p)?;
-        }
+        let svg = p.extension().is_some_and(|e| e.eq_ignore_ascii_case("svg"));
+        outs.write(p, |tmp| {
+            if svg {
+                io::write_bytes_atomic(tmp, render::sweep_plot_svg(&series, &title).as_bytes())
+            } else {
+                render::sweep_plot_png(&series, &title, 1400, 900).write_png(tmp)
+            }
+        })?;
+        outs.commit()?;
         if !a.json {
             println!("wrote {}", p.display());
         }

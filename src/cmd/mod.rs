@@ -73,6 +73,13 @@ pub struct InputArgs {
     pub backend: Backend,
 }
 
+/// An output set whose outputs may not replace the two inputs every command reads.
+pub fn outputs(a: &InputArgs) -> io::OutputSet {
+    let mut outs = io::OutputSet::new();
+    outs.input(&a.gaussians).input(&a.lines);
+    outs
+}
+
 pub struct Loaded {
     pub cloud: GaussianCloud,
     pub lines: LineFile,

@@ -50,8 +50,16 @@ pub struct Report<'a> {
 
 pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     let t0 = Instant::now();
-    // Check the output format before any work, so a typo costs nothing.
-    io::check_line_output(&a.output)?;
+    // Every output is checked before any work, so a typo or a collision costs nothing.
+    let mut outs = super::outputs(&a.input);
+    outs.output("-o", &a.output, &io::LINE_OUTPUTS);
+    if let Some(p) = &a.report {
+        outs.output("--report", p, &["json"]);
+    }
+    if let Some(p) = &a.compare_ply {
+        outs.output("--compare-ply", p, &["ply"]);
+    }
+    outs.check()?;
     let loaded = load(&a.input)?;
     let prep = pipeline::prepare(
         &loaded.cloud.centers,
@@ -87,15 +95,17 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     )?;
     bar.finish_and_clear();
     let t = Instant::now();
-    io::write_lines(&a.output, &out.lines.segments)?;
-    if let Some(p) = &a.compare_ply {
-        io::write_lines_ply_layers(
-            p,
-            &[
-                (&loaded.lines.lines.segments[..], [220, 50, 40]),
-                (&out.lines.segments[..], [30, 90, 220]),
-            ],
-        )?;
+    outs.write(&a.output, |p| io::write_lines(p, &out.lines.segments))?;
+    if let Some(cp) = &a.compare_ply {
+        outs.write(cp, |p| {
+            io::write_lines_ply_layers(
+                p,
+                &[
+                    (&loaded.lines.lines.segments[..], [220, 50, 40]),
+                    (&out.lines.segments[..], [30, 90, 220]),
+                ],
+            )
+        })?;
     }
     let mut stages = std::mem::take(&mut load_stage);
     stages.extend(out.stages.iter().cloned());
@@ -118,7 +128,6 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         "{}",
         metrics_table(&[("before", &out.before), ("after", &out.after)])
     );
-    println!("wrote {} in {total:.2} s", a.output.display());
     if let Some(rp) = &a.report {
         let mut warnings = loaded.cloud.warnings.clone();
         warnings.extend(loaded.lines.warnings.iter().cloned());
@@ -141,7 +150,13 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             after: &out.after,
             warnings,
         };
-        io::write_bytes_atomic(rp, serde_json::to_string_pretty(&report)?.as_bytes())?;
+        let json = serde_json::to_string_pretty(&report)?;
+        outs.write(rp, |p| io::write_bytes_atomic(p, json.as_bytes()))?;
+    }
+    // All outputs land together, or none does.
+    outs.commit()?;
+    println!("wrote {} in {total:.2} s", a.output.display());
+    if let Some(rp) = &a.report {
         println!("wrote {}", rp.display());
     }
     Ok(())

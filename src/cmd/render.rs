@@ -18,9 +18,11 @@ pub struct RenderArgs {
     /// Also write a self-contained HTML viewer (orbit, zoom, toggle layers).
     #[arg(long, value_name = "HTML")]
     pub viewer: Option<PathBuf>,
-    #[arg(long, default_value_t = 1600)]
+    /// Picture width in pixels (16 to 16384).
+    #[arg(long, default_value_t = 1600, value_parser = clap::value_parser!(u32).range(16..=16384))]
     pub width: u32,
-    #[arg(long, default_value_t = 900)]
+    /// Picture height in pixels (16 to 16384).
+    #[arg(long, default_value_t = 900, value_parser = clap::value_parser!(u32).range(16..=16384))]
     pub height: u32,
 }
 
@@ -28,6 +30,15 @@ pub const BEFORE: [u8; 3] = [220, 60, 40];
 pub const AFTER: [u8; 3] = [30, 100, 230];
 
 pub fn run(a: RenderArgs) -> Result<()> {
+    let mut outs = super::outputs(&a.input);
+    if let Some(p) = &a.lines_after {
+        outs.input(p);
+    }
+    outs.output("-o", &a.output, &["png"]);
+    if let Some(v) = &a.viewer {
+        outs.output("--viewer", v, &["html", "htm"]);
+    }
+    outs.check()?;
     let loaded = load(&a.input)?;
     let after = match &a.lines_after {
         Some(p) => Some(io::read_lines(p)?.lines),
@@ -55,8 +66,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         });
     }
     let img = render::render_comparison(&loaded.cloud.centers, &panels, a.width, a.height);
-    img.write_png(&a.output)?;
-    println!("wrote {}", a.output.display());
+    outs.write(&a.output, |p| img.write_png(p))?;
     if let Some(v) = &a.viewer {
         let mut layers = vec![Layer {
             name: "input segments",
@@ -71,7 +81,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
             });
         }
         let html = render::viewer_html(&loaded.cloud.centers, &layers, "linegs-gpu", 200_000);
-        io::write_bytes_atomic(v, html.as_bytes())?;
+        outs.write(v, |p| io::write_bytes_atomic(p, html.as_bytes()))?;
+    }
+    outs.commit()?;
+    println!("wrote {}", a.output.display());
+    if let Some(v) = &a.viewer {
         println!("wrote {}", v.display());
     }
     Ok(())

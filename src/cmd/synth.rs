@@ -77,20 +77,24 @@ pub fn run(a: SynthArgs) -> Result<()> {
             gaussians,
             seed,
         } => {
-            io::check_line_output(&lines_out)?;
+            let mut outs = io::OutputSet::new();
+            outs.output("-o", &output, &["ply"])
+                .output("--lines-out", &lines_out, &io::LINE_OUTPUTS);
             if let Some(g) = &gt_out {
-                io::check_line_output(g)?;
+                outs.output("--gt-out", g, &io::LINE_OUTPUTS);
             }
+            outs.check()?;
             let scene = synth::toy_scene(&synth::ToyParams {
                 seed,
                 n_gaussians: gaussians,
                 ..Default::default()
             });
-            io::write_gaussians_3dgs(&output, &scene.gaussians, None)?;
-            io::write_lines(&lines_out, &scene.lines.segments)?;
+            outs.write(&output, |p| io::write_gaussians_3dgs(p, &scene.gaussians, None))?;
+            outs.write(&lines_out, |p| io::write_lines(p, &scene.lines.segments))?;
             if let Some(g) = &gt_out {
-                io::write_lines(g, &scene.gt)?;
+                outs.write(g, |p| io::write_lines(p, &scene.gt))?;
             }
+            outs.commit()?;
             println!(
                 "synthetic toy scene: {} Gaussians -> {}, {} input segments -> {}",
                 scene.gaussians.len(),
@@ -106,9 +110,12 @@ pub fn run(a: SynthArgs) -> Result<()> {
             edges_out,
             seed,
         } => {
+            let mut outs = io::OutputSet::new();
+            outs.input(&mesh).output("-o", &output, &["ply"]);
             if let Some(e) = &edges_out {
-                io::check_line_output(e)?;
+                outs.output("--edges-out", e, &io::LINE_OUTPUTS);
             }
+            outs.check()?;
             let m = synth::mesh::read_obj_mesh(&mesh).map_err(|e| input_error(e.to_string()))?;
             let pts = synth::mesh::gaussians_from_mesh(
                 &m,
@@ -116,11 +123,12 @@ pub fn run(a: SynthArgs) -> Result<()> {
                 seed,
                 &synth::mesh::MeshGaussianOptions::default(),
             );
-            io::write_gaussians_3dgs(&output, &pts, None)?;
+            outs.write(&output, |p| io::write_gaussians_3dgs(p, &pts, None))?;
             if let Some(e) = &edges_out {
                 let edges = synth::mesh::sharp_edges(&m.welded(1e-9), 30.0);
-                io::write_lines(e, &edges)?;
+                outs.write(e, |p| io::write_lines(p, &edges))?;
             }
+            outs.commit()?;
             println!(
                 "synthetic: {} Gaussians from {} -> {}",
                 pts.len(),
@@ -141,6 +149,9 @@ pub fn run(a: SynthArgs) -> Result<()> {
                     "--background must be in [0, 1] and --sigma >= 0",
                 ));
             }
+            let mut outs = io::OutputSet::new();
+            outs.input(&lines).output("-o", &output, &["ply"]);
+            outs.check()?;
             let l = io::read_lines(&lines)?;
             let pts = synth::gaussians_around_segments(
                 &l.lines.segments,
@@ -149,7 +160,8 @@ pub fn run(a: SynthArgs) -> Result<()> {
                 background,
                 seed,
             );
-            io::write_gaussians_3dgs(&output, &pts, None)?;
+            outs.write(&output, |p| io::write_gaussians_3dgs(p, &pts, None))?;
+            outs.commit()?;
             println!(
                 "synthetic: {} Gaussians around {} segments of {} -> {}",
                 pts.len(),

@@ -1,15 +1,15 @@
 //! `linegs-gpu info FILE`: what a file is and what is in it, before anyone runs a refine.
 
 use std::fmt;
-use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::geom::{p64, Aabb};
 
 use super::error::Error;
-use super::lines::read_lines;
-use super::ply::{parse_header, read_gaussians, PlyOptions};
+use super::input::{open_input, Input};
+use super::lines::{parse_lines, read_lines};
+use super::ply::{parse_gaussians, parse_header, read_gaussians, PlyOptions, BOM};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FileKind {
@@ -44,20 +44,30 @@ pub struct FileInfo {
 
 /// Reads `path` as a Gaussian model (a PLY without `edge` element) or as a line file.
 pub fn info(path: &Path) -> Result<FileInfo, Error> {
-    let bytes = std::fs::metadata(path)
-        .map_err(|e| Error::io(path, "open", e))?
-        .len();
-    let mut head = Vec::new();
-    File::open(path)
-        .map_err(|e| Error::io(path, "open", e))?
-        .take(1 << 20)
-        .read_to_end(&mut head)
-        .map_err(|e| Error::io(path, "read", e))?;
-    let is_ply = head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n");
+    // Opened once: a pipe cannot be read twice (a second open would wait for a writer).
+    let input = open_input(path)?;
+    let (bytes, head, in_memory) = match input {
+        Input::File { file, len } => {
+            let mut head = Vec::new();
+            (&file)
+                .take(len.min(1 << 20))
+                .read_to_end(&mut head)
+                .map_err(|e| Error::io(path, "read", e))?;
+            (len, head, None)
+        }
+        Input::Bytes(b) => (b.len() as u64, Vec::new(), Some(b)),
+    };
+    let head_bytes = in_memory.as_deref().unwrap_or(&head);
+    let text = head_bytes.strip_prefix(BOM).unwrap_or(head_bytes);
+    let is_ply = text.starts_with(b"ply\n") || text.starts_with(b"ply\r\n");
     if is_ply {
-        let header = parse_header(path, &head, head.len() as u64 == bytes)?;
+        let complete = head_bytes.len() as u64 == bytes;
+        let header = parse_header(path, text, complete)?;
         if header.element("edge").is_none() {
-            let cloud = read_gaussians(path, &PlyOptions::default())?;
+            let cloud = match &in_memory {
+                Some(b) => parse_gaussians(path, b, &PlyOptions::default())?,
+                None => read_gaussians(path, &PlyOptions::default())?,
+            };
             let mut bbox = Aabb::empty();
             for c in &cloud.centers {
                 bbox.extend(p64(*c));
@@ -92,7 +102,10 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
             });
         }
     }
-    let file = read_lines(path)?;
+    let file = match in_memory {
+        Some(b) => parse_lines(path, b)?,
+        None => read_lines(path)?,
+    };
     let segs = &file.lines.segments;
     let mut lens: Vec<f64> = segs.iter().map(|s| s.length()).collect();
     lens.sort_by(f64::total_cmp);

@@ -7,6 +7,7 @@ use std::path::Path;
 use crate::geom::{LineSet, Segment, MIN_LENGTH};
 
 use super::error::{Error, Position};
+use super::input::open_input;
 use super::npy;
 use super::ply::{self, PropKind};
 
@@ -99,9 +100,15 @@ impl Parsed {
 /// infinite coordinate is an error naming its position; a file with no valid segment is an
 /// error.
 pub fn read_lines(path: &Path) -> Result<LineFile, Error> {
-    let mut bytes = std::fs::read(path).map_err(|e| Error::io(path, "read", e))?;
+    let bytes = open_input(path)?.into_bytes(path)?;
+    parse_lines(path, bytes)
+}
+
+/// [`read_lines`] on bytes already in memory; `path` names them in messages (and its
+/// extension tells a broken binary STL apart).
+pub fn parse_lines(path: &Path, mut bytes: Vec<u8>) -> Result<LineFile, Error> {
     // Editors on Windows prefix text with a UTF-8 byte-order mark; no binary format starts so.
-    if bytes.starts_with(b"\xEF\xBB\xBF") {
+    if bytes.starts_with(ply::BOM) {
         bytes.drain(..3);
     }
     let format = detect(path, &bytes)?;
@@ -717,10 +724,11 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Parsed, Error> {
                 edges.push(([v[0], v[1]], loc));
                 Ok(())
             })?;
-        } else if i < vi.max(ei) {
+        } else {
             body.skip(path, elem)?;
         }
     }
+    body.finish(path, Some(bytes.len() as u64))?;
     let mut p = Parsed::new(Origin::Records("edge"));
     for (k, (e, loc)) in edges.iter().enumerate() {
         let mut end = [0usize; 2];

@@ -5,15 +5,19 @@
 mod chunked;
 mod error;
 mod info;
+mod input;
 mod lines;
 mod npy;
+mod output;
 mod ply;
 mod write;
 
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use info::{info, FileInfo, FileKind};
-pub use lines::{read_lines, LineFile, LineFormat};
-pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
+pub use input::STREAM_LIMIT;
+pub use output::OutputSet;
+pub use lines::{parse_lines, read_lines, LineFile, LineFormat};
+pub use ply::{parse_gaussians, read_gaussians, GaussianCloud, PlyOptions};
 pub use write::{
     check_line_output, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,
     write_lines, write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,

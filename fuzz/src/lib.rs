@@ -1,0 +1,45 @@
+//! The readers of linegs-gpu, compiled from the package's own sources (`src/geom.rs` and
+//! `src/io/`) without the GPU stack: an instrumented build of wgpu and naga takes longer
+//! than a fuzz run on a small machine, and the readers need none of it. The modules are
+//! the same files the package builds, so what is fuzzed is what ships.
+
+#[allow(dead_code)]
+#[path = "../../src/geom.rs"]
+pub mod geom;
+
+#[allow(dead_code)]
+#[path = "../../src/io/mod.rs"]
+pub mod io;
+
+use std::path::Path;
+
+/// What every accepted line file must hold: finite, non-degenerate segments.
+pub fn check_lines(name: &str, data: &[u8]) {
+    if let Ok(f) = io::parse_lines(Path::new(name), data.to_vec()) {
+        assert!(!f.lines.segments.is_empty());
+        for s in &f.lines.segments {
+            assert!(s.p1.is_finite() && s.p2.is_finite());
+            assert!(s.length() > geom::MIN_LENGTH);
+        }
+        if let Some(g) = &f.lines.groups {
+            assert_eq!(g.len(), f.lines.segments.len());
+        }
+    }
+}
+
+/// What every accepted Gaussian model must hold: finite centers, no more than declared.
+pub fn check_gaussians(data: &[u8]) {
+    for opts in [
+        io::PlyOptions::default(),
+        io::PlyOptions {
+            min_opacity: Some(0.5),
+            strict: true,
+        },
+    ] {
+        if let Ok(c) = io::parse_gaussians(Path::new("fuzz.ply"), data, &opts) {
+            assert!(!c.centers.is_empty());
+            assert!(c.centers.len() <= c.vertex_count);
+            assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+        }
+    }
+}
