@@ -703,8 +703,12 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Parsed, Error> {
     };
     let xyz = [scalar(vi, "x")?, scalar(vi, "y")?, scalar(vi, "z")?];
     let ends = [scalar(ei, "vertex1")?, scalar(ei, "vertex2")?];
-    let mut points: Vec<[f64; 3]> = Vec::with_capacity(header.elements[vi].count);
-    let mut edges: Vec<([f64; 2], ply::Loc)> = Vec::with_capacity(header.elements[ei].count);
+    // Reserved by what the data can hold, never by the header's word alone.
+    let have = (bytes.len() - header.len) as u64;
+    let (v, e) = (&header.elements[vi], &header.elements[ei]);
+    let mut points: Vec<[f64; 3]> = Vec::with_capacity(v.max_records(header.encoding, have));
+    let mut edges: Vec<([f64; 2], ply::Loc)> =
+        Vec::with_capacity(e.max_records(header.encoding, have));
     for (i, elem) in header.elements.iter().enumerate() {
         if i == vi {
             body.for_each(path, elem, &xyz, |loc, v| {

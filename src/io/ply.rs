@@ -372,28 +372,15 @@ impl Element {
     }
 }
 
-/// Refuses a header whose counts cannot fit in the `data_len` bytes after it, before
-/// anything is allocated for them: a count of 2^64 - 1 is a clean error, not an abort.
-pub(crate) fn check_counts_fit(path: &Path, header: &Header, data_len: u64) -> Result<(), Error> {
-    let mut need = 0u128;
-    for e in &header.elements {
-        let rec = e.min_record_len(header.encoding) as u128;
-        need += rec * e.count as u128;
-        // The last ASCII value needs no separator after it.
-        let slack = u128::from(header.encoding == Encoding::Ascii);
-        if need > data_len as u128 + slack {
-            let most = data_len as u128 / rec.max(1);
-            return Err(Error::truncated(
-                path,
-                Position::Line(e.line),
-                format!(
-                    "the header promises {} `{}` records of at least {rec} bytes each, but the {data_len} bytes after the header hold at most {most} (a wrong count in the header, or a cut-short file)",
-                    e.count, e.name
-                ),
-            ));
-        }
+impl Element {
+    /// The most records of this element that `data_len` bytes can hold: what a reader may
+    /// reserve, so a count of 2^64 - 1 costs nothing until the data runs out (and the walk
+    /// then stops with a truncation error naming the record).
+    pub(crate) fn max_records(&self, encoding: Encoding, data_len: u64) -> usize {
+        // +1: the last ASCII value needs no separator after it.
+        let most = (data_len + 1) / self.min_record_len(encoding).max(1);
+        self.count.min(most.try_into().unwrap_or(usize::MAX))
     }
-    Ok(())
 }
 
 /// Where a record is, in the terms its encoding can name.
@@ -566,7 +553,9 @@ impl<R: Read> Body<R> {
             }
             Body::Ascii(rows) => {
                 for index in 0..elem.count {
-                    let more = rows.next().map_err(|e| ascii_read_error(path, rows, e))?;
+                    let more = rows.next().map_err(|e| {
+                        ascii_read_error(path, rows, &format!("{} {index}: ", elem.name), e)
+                    })?;
                     let line = rows.line_no;
                     if !more {
                         return Err(Error::truncated(
@@ -592,13 +581,13 @@ impl<R: Read> Body<R> {
                             PropKind::Scalar(_) => {
                                 let tok = row.next(&mut toks, &mut used, "property", p)?;
                                 if let Some(k) = s {
-                                    vals[*k] = row.number(tok, used, "property", p)?;
+                                    vals[*k] = row.number(tok, "property", p)?;
                                 }
                             }
                             PropKind::List { .. } => {
                                 let label = "the length of list";
                                 let tok = row.next(&mut toks, &mut used, label, p)?;
-                                let n = row.number(tok, used, label, p)?;
+                                let n = row.number(tok, label, p)?;
                                 if n < 0.0 || n.fract() != 0.0 {
                                     return Err(Error::parse(
                                         path,
@@ -654,7 +643,7 @@ impl<R: Read> Body<R> {
                 }
             }
             Body::Ascii(rows) => {
-                if rows.next().map_err(|e| ascii_read_error(path, rows, e))? {
+                if rows.next().map_err(|e| ascii_read_error(path, rows, "", e))? {
                     return Err(Error::parse(
                         path,
                         Position::Line(rows.line_no),
@@ -735,14 +724,11 @@ impl<'a> Row<'a> {
             .ok_or_else(|| self.mismatch(format!("{label} `{}` is value {used}", p.name)))
     }
 
-    fn number(&self, tok: &str, value: usize, label: &str, p: &Property) -> Result<f64, Error> {
+    fn number(&self, tok: &str, label: &str, p: &Property) -> Result<f64, Error> {
         tok.parse::<f64>().map_err(|_| {
             Error::parse(
                 self.path,
-                Position::LineValue {
-                    line: self.line,
-                    value,
-                },
+                Position::Line(self.line),
                 format!(
                     "{} {}, {label} `{}`: `{tok}` is not a number",
                     self.elem.name, self.index, p.name
@@ -753,12 +739,13 @@ impl<'a> Row<'a> {
 }
 
 /// `read_line` refuses bytes that are not UTF-8: binary data in an ASCII body.
-fn ascii_read_error<R>(path: &Path, rows: &Rows<R>, err: io::Error) -> Error {
+/// `record` names the record being read (`"vertex 0: "`), or is empty.
+fn ascii_read_error<R>(path: &Path, rows: &Rows<R>, record: &str, err: io::Error) -> Error {
     if err.kind() == io::ErrorKind::InvalidData {
         Error::parse(
             path,
             Position::Line(rows.line_no + 1),
-            "the ASCII PLY body holds bytes that are not text (binary data with an `ascii` header?)",
+            format!("{record}the ASCII PLY body holds bytes that are not text (binary data with an `ascii` header?)"),
         )
     } else {
         Error::io(path, "read", err)
@@ -989,7 +976,6 @@ fn gaussians_from<R: Read>(
     let have = file_len.saturating_sub(data_start);
     let binary = header.encoding != Encoding::Ascii;
     // A lying header is caught before anything is allocated for it.
-    check_counts_fit(path, &header, have)?;
     if binary {
         if let Some(data_len) = header.fixed_data_len() {
             if (have as u128) < data_len {
@@ -1007,8 +993,7 @@ fn gaussians_from<R: Read>(
             }
         }
     }
-    // `check_counts_fit` bounds the count by what the file can hold.
-    let capacity = vertex.count;
+    let capacity = vertex.max_records(header.encoding, have);
     let mut col = Collect {
         path,
         centers: Vec::with_capacity(capacity),
@@ -1172,7 +1157,6 @@ pub(crate) fn open_in_memory<'a>(
     let header = parse_header(path, bytes, true)?;
     let header_lines = bytes[..header.len].iter().filter(|&&b| b == b'\n').count();
     let have = (bytes.len() - header.len) as u64;
-    check_counts_fit(path, &header, have)?;
     if header.encoding != Encoding::Ascii {
         if let Some(data_len) = header.fixed_data_len() {
             if (have as u128) < data_len {
