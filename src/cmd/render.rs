@@ -39,12 +39,12 @@ pub fn run(a: RenderArgs) -> Result<()> {
         outs.output("--viewer", v, &["html", "htm"]);
     }
     outs.check()?;
-    let loaded = load(&a.input)?;
+    let scene = load(&a.input)?;
     let after = match &a.lines_after {
         Some(p) => Some(io::read_lines(p)?.lines),
         None => None,
     };
-    let before = &loaded.lines.lines.segments;
+    let before = &scene.lines.segments;
     let mut panels = vec![Panel {
         title: "input",
         layers: vec![Layer {
@@ -65,7 +65,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             metrics: vec![format!("{} segments", af.len())],
         });
     }
-    let img = render::render_comparison(&loaded.cloud.centers, &panels, a.width, a.height);
+    let img = render::render_comparison(&scene.gaussians, &panels, a.width, a.height);
     outs.write(&a.output, |p| img.write_png(p))?;
     if let Some(v) = &a.viewer {
         let mut layers = vec![Layer {
@@ -80,7 +80,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
                 color: AFTER,
             });
         }
-        let html = render::viewer_html(&loaded.cloud.centers, &layers, "linegs-gpu", 200_000);
+        let html = render::viewer_html(&scene.gaussians, &layers, "linegs-gpu", 200_000);
         outs.write(v, |p| io::write_bytes_atomic(p, html.as_bytes()))?;
     }
     outs.commit()?;
