@@ -68,7 +68,7 @@ fn huge_counts_are_a_clean_error_not_an_abort() {
             b.extend_from_slice(GOOD_EDGES.as_bytes());
             let e = lines_err("l.ply", &b);
             assert!(matches!(e, Error::Truncated { .. }), "{e}");
-            assert!(e.to_string().contains(&format!("promises {}", nv.min(ne))), "{e}");
+            assert!(e.to_string().contains("the header promises"), "{e}");
         }
     }
     // With a list property the record size is not fixed: nothing is reserved beyond what
@@ -89,10 +89,14 @@ fn huge_counts_are_a_clean_error_not_an_abort() {
 fn huge_counts_exit_2_on_the_command_line() {
     let dir = tempfile::tempdir().unwrap();
     let mut b = edge_ply("ascii", "18446744073709551615", "1", "").into_bytes();
-    b.extend_from_slice(b"0 0 0\n1 1 1\n0 1\n");
+    b.extend_from_slice(b"0 0 0\n1 1 1\n");
     let l = file(dir.path(), "huge.ply", &b);
     let o = run(&["info", l.to_str().unwrap()]);
-    assert_exit_2(&o, "huge.ply", "promises 18446744073709551615 `vertex` records");
+    assert_exit_2(
+        &o,
+        "huge.ply",
+        "promises 18446744073709551615 `vertex` records but the data ends after 2",
+    );
 }
 
 // ------------------------------------------------- readers: counts and layouts that lie
