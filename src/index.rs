@@ -542,9 +542,16 @@ mod tests {
             .count();
         assert_eq!(counts_f[0], brute);
         let longest = *cost.iter().max().unwrap();
-        assert!(cost_f[0] <= 2 * longest + 100, "far segment visits {}", cost_f[0]);
+        assert!(
+            cost_f[0] <= 2 * longest + 100,
+            "far segment visits {}",
+            cost_f[0]
+        );
         // Queries entirely among the floaters, beyond the core grid, still find them.
-        let out = Segment::new(DVec3::new(899.0, 950.0, 991.0), DVec3::new(910.0, 950.0, 980.0));
+        let out = Segment::new(
+            DVec3::new(899.0, 950.0, 991.0),
+            DVec3::new(910.0, 950.0, 980.0),
+        );
         let (_, c) = cost_and_counts(&gf, &[out], 0.5);
         assert_eq!(c[0], 10);
     }

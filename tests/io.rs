@@ -614,7 +614,10 @@ fn trailing_bytes_after_the_data_are_an_error() {
     // #14: a header that drops a property leaves bytes over; they were only a warning.
     let e = read_gaussians(&p, &PlyOptions::default()).unwrap_err();
     assert!(matches!(e, Error::Parse { .. }), "{e}");
-    assert!(e.to_string().contains("4 bytes after the last element"), "{e}");
+    assert!(
+        e.to_string().contains("4 bytes after the last element"),
+        "{e}"
+    );
 }
 
 #[test]

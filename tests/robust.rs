@@ -40,7 +40,10 @@ fn stderr(o: &Output) -> String {
 fn assert_exit_2(o: &Output, file: &str, needle: &str) {
     let e = stderr(o);
     assert_eq!(o.status.code(), Some(2), "stderr: {e}");
-    assert!(e.contains(file) && e.contains(needle), "`{file}`/`{needle}` not in: {e}");
+    assert!(
+        e.contains(file) && e.contains(needle),
+        "`{file}`/`{needle}` not in: {e}"
+    );
     assert_eq!(e.trim_end().lines().count(), 1, "one line: {e}");
     assert!(!e.contains("panicked") && !e.contains(".linegs-"), "{e}");
 }
@@ -58,9 +61,9 @@ const GOOD_EDGES: &str = "0 0 0\n1 0 0\n1 1 0\n0 1 0\n";
 #[test]
 fn huge_counts_are_a_clean_error_not_an_abort() {
     for (nv, ne) in [
-        ("4", "1000000000000"),         // 24e12 bytes of edges claimed
-        ("1000000000000", "2"),         // the same for vertices
-        ("18446744073709551615", "2"),  // 2^64 - 1: used to panic with "capacity overflow"
+        ("4", "1000000000000"),        // 24e12 bytes of edges claimed
+        ("1000000000000", "2"),        // the same for vertices
+        ("18446744073709551615", "2"), // 2^64 - 1: used to panic with "capacity overflow"
         ("4", "18446744073709551615"),
     ] {
         for format in ["ascii", "binary_little_endian"] {
@@ -79,8 +82,9 @@ fn huge_counts_are_a_clean_error_not_an_abort() {
     let e = gauss_err(&b);
     assert!(matches!(e, Error::Truncated { .. }), "{e}");
     assert!(
-        e.to_string()
-            .contains("promises 18446744073709551615 face records but the data stops inside face 64"),
+        e.to_string().contains(
+            "promises 18446744073709551615 face records but the data stops inside face 64"
+        ),
         "{e}"
     );
 }
@@ -147,7 +151,10 @@ fn a_second_element_of_the_same_name_is_an_error() {
         "{e}"
     );
     let e = gauss_err(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n0 0\n");
-    assert!(e.to_string().contains("`x` of `vertex` is declared twice"), "{e}");
+    assert!(
+        e.to_string().contains("`x` of `vertex` is declared twice"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -157,7 +164,10 @@ fn an_edge_count_smaller_than_its_records_is_an_error() {
     b.extend_from_slice(format!("{GOOD_EDGES}0 1\n1 2\n2 3\n").as_bytes());
     let e = lines_err("l.ply", &b);
     assert_eq!(e.position(), Some(&Position::Line(16)), "{e}");
-    assert!(e.to_string().contains("a row after the last element"), "{e}");
+    assert!(
+        e.to_string().contains("a row after the last element"),
+        "{e}"
+    );
     // Binary: the same with 8-byte edge records.
     let mut b = edge_ply("binary_little_endian", "2", "1", "").into_bytes();
     let start = b.len() as u64;
@@ -169,7 +179,10 @@ fn an_edge_count_smaller_than_its_records_is_an_error() {
     }
     let e = lines_err("l.ply", &b);
     assert_eq!(e.position(), Some(&Position::Byte(start + 24 + 8)), "{e}");
-    assert!(e.to_string().contains("16 bytes after the last element"), "{e}");
+    assert!(
+        e.to_string().contains("16 bytes after the last element"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -185,7 +198,10 @@ fn a_binary_header_that_drops_a_property_is_an_error_not_a_warning() {
     let e = gauss_err(&b);
     assert!(matches!(e, Error::Parse { .. }), "{e}");
     assert_eq!(e.position(), Some(&Position::Byte((h.len() + 48) as u64)));
-    assert!(e.to_string().contains("16 bytes after the last element"), "{e}");
+    assert!(
+        e.to_string().contains("16 bytes after the last element"),
+        "{e}"
+    );
 }
 
 /// A `.npy` of `n x 2 x 3` f64 with the header length field moved by `delta`.
@@ -206,11 +222,21 @@ fn npy(n: usize, rows: usize, delta: i32) -> Vec<u8> {
 
 #[test]
 fn a_npy_header_length_off_by_one_is_an_error() {
-    assert_eq!(parse_lines(Path::new("a.npy"), npy(4, 4, 0)).unwrap().lines.len(), 4);
+    assert_eq!(
+        parse_lines(Path::new("a.npy"), npy(4, 4, 0))
+            .unwrap()
+            .lines
+            .len(),
+        4
+    );
     for delta in [1, -1] {
         let e = lines_err("a.npy", &npy(4, 4, delta));
         assert_eq!(e.position(), Some(&Position::Byte(8)), "{e}");
-        assert!(e.to_string().contains("is not the newline that ends a .npy header"), "{e}");
+        assert!(
+            e.to_string()
+                .contains("is not the newline that ends a .npy header"),
+            "{e}"
+        );
     }
 }
 
@@ -218,7 +244,11 @@ fn a_npy_header_length_off_by_one_is_an_error() {
 fn npy_data_longer_than_its_shape_is_an_error() {
     let e = lines_err("a.npy", &npy(16, 32, 0));
     assert!(matches!(e, Error::Parse { .. }), "{e}");
-    assert!(e.to_string().contains("needs 768 data bytes from byte 128, but the file has 1536"), "{e}");
+    assert!(
+        e.to_string()
+            .contains("needs 768 data bytes from byte 128, but the file has 1536"),
+        "{e}"
+    );
 }
 
 // ------------------------------------------------------- readers: devices, pipes, BOM
@@ -233,7 +263,10 @@ fn devices_are_refused_without_reading_them() {
             read_gaussians(p, &PlyOptions::default()).unwrap_err(),
             info(p).unwrap_err(),
         ] {
-            assert!(e.to_string().starts_with(&format!("{dev}: is a device")), "{e}");
+            assert!(
+                e.to_string().starts_with(&format!("{dev}: is a device")),
+                "{e}"
+            );
         }
         let o = run(&["info", dev]);
         assert_exit_2(&o, dev, "is a device");
@@ -307,15 +340,38 @@ fn a_ply_with_a_byte_order_mark_is_the_same_model_to_info_and_to_eval() {
 #[test]
 fn loop_bounding_options_are_validated_with_their_range_in_help() {
     let o = run(&[
-        "refine", "-g", "g.ply", "-l", "l.obj", "-o", "o.obj", "--crop-max-probes", "1000000",
-        "--crop-min-interval", "1e-30",
+        "refine",
+        "-g",
+        "g.ply",
+        "-l",
+        "l.obj",
+        "-o",
+        "o.obj",
+        "--crop-max-probes",
+        "1000000",
+        "--crop-min-interval",
+        "1e-30",
     ]);
     assert_eq!(o.status.code(), Some(2));
-    assert!(stderr(&o).contains("1000000 is not in 1..=64"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("1000000 is not in 1..=64"),
+        "{}",
+        stderr(&o)
+    );
     let help = run(&["refine", "--help"]);
     let text = String::from_utf8_lossy(&help.stdout);
     assert!(text.contains("1 to 64"), "{text}");
-    let o = run(&["render", "-g", "g", "-l", "l", "-o", "o.png", "--width", "4000000000"]);
+    let o = run(&[
+        "render",
+        "-g",
+        "g",
+        "-l",
+        "l",
+        "-o",
+        "o.png",
+        "--width",
+        "4000000000",
+    ]);
     assert_eq!(o.status.code(), Some(2));
 }
 
@@ -372,9 +428,24 @@ fn no_output_may_replace_an_input_or_another_output() {
     let cases: [(&[&Path], &[&str], &str, &str); 5] = [
         (&[&g], &["-o"], "g.ply", "-o is the input"),
         (&[&l], &["-o"], "l.txt", "-o is the input"),
-        (&[&o_obj, &g], &["-o", "--report"], "g.ply", "--report cannot be written as `.ply`"),
-        (&[&o_obj, &o_obj], &["-o", "--compare-ply"], "o.obj", "--compare-ply cannot be written"),
-        (&[&o_obj, &report, &report], &["-o", "--report", "--compare-ply"], "r.json", "cannot be written"),
+        (
+            &[&o_obj, &g],
+            &["-o", "--report"],
+            "g.ply",
+            "--report cannot be written as `.ply`",
+        ),
+        (
+            &[&o_obj, &o_obj],
+            &["-o", "--compare-ply"],
+            "o.obj",
+            "--compare-ply cannot be written",
+        ),
+        (
+            &[&o_obj, &report, &report],
+            &["-o", "--report", "--compare-ply"],
+            "r.json",
+            "cannot be written",
+        ),
     ];
     for (paths, flags, name, needle) in cases {
         let o = refine(&g, &l, paths, flags);
@@ -404,9 +475,17 @@ fn a_run_whose_last_output_cannot_be_written_fails_before_any_work_and_keeps_eve
     let cmp = file(dir.path(), "cmp.ply", b"earlier comparison");
     let before = snapshot(dir.path());
     let missing = dir.path().join("no-such-folder/r.json");
-    let o = refine(&g, &l, &[&out, &cmp, &missing], &["-o", "--compare-ply", "--report"]);
+    let o = refine(
+        &g,
+        &l,
+        &[&out, &cmp, &missing],
+        &["-o", "--compare-ply", "--report"],
+    );
     assert_exit_2(&o, "r.json", "does not exist");
-    assert!(String::from_utf8_lossy(&o.stdout).is_empty(), "no work was done");
+    assert!(
+        String::from_utf8_lossy(&o.stdout).is_empty(),
+        "no work was done"
+    );
     assert_eq!(snapshot(dir.path()), before);
     // A folder that exists but takes no new files (skipped as root, who may write anyway).
     #[cfg(unix)]
@@ -418,19 +497,32 @@ fn a_run_whose_last_output_cannot_be_written_fails_before_any_work_and_keeps_eve
         if tempfile::tempfile_in(&ro).is_err() {
             let o = refine(&g, &l, &[&out, &ro.join("r.json")], &["-o", "--report"]);
             assert_exit_2(&o, "r.json", "cannot create files in the folder");
-            assert_eq!(std::fs::read(&out).unwrap(), b"# the user's earlier result\n");
+            assert_eq!(
+                std::fs::read(&out).unwrap(),
+                b"# the user's earlier result\n"
+            );
         }
         std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o755)).unwrap();
     }
     // And the same run with good paths writes all three.
     let report = dir.path().join("r.json");
-    let o = refine(&g, &l, &[&out, &cmp, &report], &["-o", "--compare-ply", "--report"]);
+    let o = refine(
+        &g,
+        &l,
+        &[&out, &cmp, &report],
+        &["-o", "--compare-ply", "--report"],
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(std::fs::read_to_string(&out).unwrap().starts_with("# "));
     assert!(std::fs::read(&cmp).unwrap().starts_with(b"ply\n"));
-    assert!(std::fs::read_to_string(&report).unwrap().contains("\"after\""));
+    assert!(std::fs::read_to_string(&report)
+        .unwrap()
+        .contains("\"after\""));
     let names: Vec<String> = snapshot(dir.path()).into_iter().map(|(n, _)| n).collect();
-    assert!(!names.iter().any(|n| n.starts_with(".linegs-")), "{names:?}");
+    assert!(
+        !names.iter().any(|n| n.starts_with(".linegs-")),
+        "{names:?}"
+    );
 }
 
 // ------------------------------------------------------------------------------ errors
@@ -439,7 +531,12 @@ fn a_run_whose_last_output_cannot_be_written_fails_before_any_work_and_keeps_eve
 fn an_io_error_says_its_cause_once() {
     let o = run(&["info", "/no/such/file.ply"]);
     assert_exit_2(&o, "/no/such/file.ply", "cannot open");
-    assert_eq!(stderr(&o).matches("No such file or directory").count(), 1, "{}", stderr(&o));
+    assert_eq!(
+        stderr(&o).matches("No such file or directory").count(),
+        1,
+        "{}",
+        stderr(&o)
+    );
 }
 
 // --------------------------------------------------------------------------- fuzzing

@@ -78,8 +78,11 @@ pub fn run(a: SynthArgs) -> Result<()> {
             seed,
         } => {
             let mut outs = io::OutputSet::new();
-            outs.output("-o", &output, &["ply"])
-                .output("--lines-out", &lines_out, &io::LINE_OUTPUTS);
+            outs.output("-o", &output, &["ply"]).output(
+                "--lines-out",
+                &lines_out,
+                &io::LINE_OUTPUTS,
+            );
             if let Some(g) = &gt_out {
                 outs.output("--gt-out", g, &io::LINE_OUTPUTS);
             }
@@ -89,7 +92,9 @@ pub fn run(a: SynthArgs) -> Result<()> {
                 n_gaussians: gaussians,
                 ..Default::default()
             });
-            outs.write(&output, |p| io::write_gaussians_3dgs(p, &scene.gaussians, None))?;
+            outs.write(&output, |p| {
+                io::write_gaussians_3dgs(p, &scene.gaussians, None)
+            })?;
             outs.write(&lines_out, |p| io::write_lines(p, &scene.lines.segments))?;
             if let Some(g) = &gt_out {
                 outs.write(g, |p| io::write_lines(p, &scene.gt))?;

@@ -15,8 +15,8 @@ mod write;
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use info::{info, FileInfo, FileKind};
 pub use input::STREAM_LIMIT;
-pub use output::OutputSet;
 pub use lines::{parse_lines, read_lines, LineFile, LineFormat};
+pub use output::OutputSet;
 pub use ply::{parse_gaussians, read_gaussians, GaussianCloud, PlyOptions};
 pub use write::{
     check_line_output, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,

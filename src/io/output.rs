@@ -133,7 +133,9 @@ impl OutputSet {
                 if !m.is_file() {
                     return Err(refuse(
                         path,
-                        format!("{option} is a device or pipe; outputs are written to regular files"),
+                        format!(
+                            "{option} is a device or pipe; outputs are written to regular files"
+                        ),
                     ));
                 }
             }
@@ -157,10 +159,7 @@ impl OutputSet {
                 }
             }
             // The real test of "writable" (permissions, read-only mounts, ACLs): make a file.
-            if let Err(e) = tempfile::Builder::new()
-                .prefix(".linegs-")
-                .tempfile_in(dir)
-            {
+            if let Err(e) = tempfile::Builder::new().prefix(".linegs-").tempfile_in(dir) {
                 let cause = super::error::without_temp_path(e);
                 return Err(refuse(
                     path,
@@ -288,7 +287,10 @@ mod tests {
         .unwrap();
         outs.write(&b, |p| super::super::write_bytes_atomic(p, b"b"))
             .unwrap();
-        assert!(!a.exists() && !b.exists(), "nothing lands before the commit");
+        assert!(
+            !a.exists() && !b.exists(),
+            "nothing lands before the commit"
+        );
         outs.commit().unwrap();
         assert_eq!(std::fs::read(&a).unwrap(), b"a");
         assert_eq!(std::fs::read(&b).unwrap(), b"b");
@@ -318,13 +320,18 @@ mod tests {
         let e = check(&[("-o", link, &["ply"])]).unwrap_err();
         assert!(e.contains("is the input"), "{e}");
         let o = dir.path().join("o.ply");
-        let e = check(&[("-o", o.clone(), &["ply"]), ("--compare-ply", o, &["ply"])])
-            .unwrap_err();
+        let e = check(&[("-o", o.clone(), &["ply"]), ("--compare-ply", o, &["ply"])]).unwrap_err();
         assert!(e.contains("--compare-ply is the same file as -o"), "{e}");
         let e = check(&[("--report", dir.path().join("no/r.json"), &["json"])]).unwrap_err();
-        assert!(e.contains("the folder") && e.contains("does not exist"), "{e}");
+        assert!(
+            e.contains("the folder") && e.contains("does not exist"),
+            "{e}"
+        );
         let e = check(&[("-o", dir.path().join("o.dwg"), &["obj", "ply"])]).unwrap_err();
-        assert!(e.contains("-o cannot be written as `.dwg`; use .obj, .ply"), "{e}");
+        assert!(
+            e.contains("-o cannot be written as `.dwg`; use .obj, .ply"),
+            "{e}"
+        );
         let e = check(&[("-o", dir.path().to_path_buf(), &[])]).unwrap_err();
         assert!(e.contains("is a folder"), "{e}");
         assert!(check(&[("-o", dir.path().join("fine.ply"), &["ply"])]).is_ok());

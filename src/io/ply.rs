@@ -606,9 +606,9 @@ impl<R: Read> Body<R> {
                         }
                     }
                     if toks.next().is_some() {
-                        return Err(row.mismatch(format!(
-                            "the header's properties take {used} values"
-                        )));
+                        return Err(
+                            row.mismatch(format!("the header's properties take {used} values"))
+                        );
                     }
                     let loc = Loc {
                         index,
@@ -643,7 +643,10 @@ impl<R: Read> Body<R> {
                 }
             }
             Body::Ascii(rows) => {
-                if rows.next().map_err(|e| ascii_read_error(path, rows, "", e))? {
+                if rows
+                    .next()
+                    .map_err(|e| ascii_read_error(path, rows, "", e))?
+                {
                     return Err(Error::parse(
                         path,
                         Position::Line(rows.line_no),
