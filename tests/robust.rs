@@ -645,3 +645,51 @@ fn random_mutants_of_every_format_are_read_or_refused() {
     }
     assert!(runs >= 2000, "{runs}");
 }
+
+// ------------------------------------------------------------------ hostile geometry
+
+#[test]
+fn a_segment_flung_to_1000_1000_1000_leaves_the_others_results_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = (dir.path().join("g.ply"), dir.path().join("l.obj"));
+    let o = run(&[
+        "synth",
+        "toy",
+        "-o",
+        g.to_str().unwrap(),
+        "--lines-out",
+        l.to_str().unwrap(),
+        "-n",
+        "20000",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // Move the first endpoint of the first segment far away (the grid used to grow with it).
+    let text = std::fs::read_to_string(&l).unwrap();
+    let mut moved = false;
+    let far: Vec<String> = text
+        .lines()
+        .map(|row| {
+            if !moved && row.starts_with("v ") {
+                moved = true;
+                "v 1000 1000 1000".to_string()
+            } else {
+                row.to_string()
+            }
+        })
+        .collect();
+    let lf = file(dir.path(), "far.obj", far.join("\n").as_bytes());
+    let refined = |lines: &Path, out: &str| -> Vec<String> {
+        let out = dir.path().join(out);
+        let o = refine(&g, lines, &[&out], &["-o"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let text = std::fs::read_to_string(&out).unwrap();
+        let v: Vec<&str> = text.lines().filter(|r| r.starts_with("v ")).collect();
+        let mut segs: Vec<String> = v.chunks(2).map(|p| p.join(" | ")).collect();
+        segs.sort();
+        segs
+    };
+    let near = refined(&l, "near.obj");
+    let with_far = refined(&lf, "with_far.obj");
+    let changed = near.iter().filter(|s| !with_far.contains(s)).count();
+    assert!(changed <= 1, "{changed} of {} segments changed", near.len());
+}
