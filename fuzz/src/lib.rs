@@ -3,11 +3,11 @@
 //! than a fuzz run on a small machine, and the readers need none of it. The modules are
 //! the same files the package builds, so what is fuzzed is what ships.
 
-#[allow(dead_code)]
+#[allow(unused)]
 #[path = "../../src/geom.rs"]
 pub mod geom;
 
-#[allow(dead_code)]
+#[allow(unused)]
 #[path = "../../src/io/mod.rs"]
 pub mod io;
 

@@ -55,6 +55,12 @@ pub(crate) fn open_input(path: &Path) -> Result<Input, Error> {
     Ok(Input::Bytes(read_bounded(path, file, STREAM_LIMIT)?))
 }
 
+/// Reads the whole of `path` with the same bounds as the readers (devices refused,
+/// pipes at most [`STREAM_LIMIT`]), for readers outside this module (the mesh sampler).
+pub(crate) fn read_input(path: &Path) -> Result<Vec<u8>, Error> {
+    open_input(path)?.into_bytes(path)
+}
+
 /// Reads all of `r`, refusing a stream longer than `limit` bytes.
 pub(crate) fn read_bounded(path: &Path, r: impl Read, limit: u64) -> Result<Vec<u8>, Error> {
     let mut out = Vec::new();

@@ -14,6 +14,7 @@ mod write;
 
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use info::{info, FileInfo, FileKind};
+pub(crate) use input::read_input;
 pub use input::STREAM_LIMIT;
 pub use lines::{parse_lines, read_lines, LineFile, LineFormat};
 pub use output::OutputSet;
