@@ -1,15 +1,17 @@
 //! `linegs-gpu info FILE`: what a file is and what is in it, before anyone runs a refine.
 
 use std::fmt;
+use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::geom::{p64, Aabb};
 
 use super::error::Error;
+use super::gaussians::{detect_gaussians, read_gaussians, GaussianFormat};
 use super::input::{open_input, Input};
-use super::lines::{parse_lines, read_lines};
-use super::ply::{parse_gaussians, parse_header, read_gaussians, PlyOptions, BOM};
+use super::lines::{parse_lines_with, read_lines_with, LineFile, LineOptions};
+use super::ply::{parse_gaussians, parse_header, PlyOptions, BOM};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FileKind {
@@ -42,32 +44,68 @@ pub struct FileInfo {
     pub warnings: Vec<String>,
 }
 
-/// Reads `path` as a Gaussian model (a PLY without `edge` element) or as a line file.
+/// Reads `path` as a Gaussian model (a PLY without `edge` element, SPZ, `.splat`) or as a
+/// line file (a LIMAP `finaltracks/` folder included).
 pub fn info(path: &Path) -> Result<FileInfo, Error> {
-    // Opened once: a pipe cannot be read twice (a second open would wait for a writer).
-    let input = open_input(path)?;
-    let (bytes, head, in_memory) = match input {
-        Input::File { file, len } => {
-            let mut head = Vec::new();
-            (&file)
-                .take(len.min(1 << 20))
-                .read_to_end(&mut head)
-                .map_err(|e| Error::io(path, "read", e))?;
-            (len, head, None)
+    info_with(path, &LineOptions::default())
+}
+
+/// [`info`] with the options of the line readers (`--curves`).
+pub fn info_with(path: &Path, line_opts: &LineOptions) -> Result<FileInfo, Error> {
+    if path.is_dir() {
+        return lines_info(path, 0, read_lines_with(path, line_opts)?);
+    }
+    // A pipe is read once (a second open would wait for a writer that has gone): its
+    // bytes are looked at and parsed in memory. Devices are refused here.
+    if let Input::Bytes(b) = open_input(path)? {
+        return info_of_bytes(path, b, line_opts);
+    }
+    let bytes = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, "open", e))?
+        .len();
+    let mut head = Vec::new();
+    File::open(path)
+        .map_err(|e| Error::io(path, "open", e))?
+        .take(1 << 20)
+        .read_to_end(&mut head)
+        .map_err(|e| Error::io(path, "read", e))?;
+    // A byte-order mark is skipped by every reader, so `info` looks past it too.
+    let complete = head.len() as u64 == bytes;
+    if head.starts_with(BOM) {
+        head.drain(..BOM.len());
+    }
+    let is_ply = head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n");
+    let not_ply_gaussians = !is_ply
+        && matches!(
+            detect_gaussians(path, &head, bytes),
+            Ok(GaussianFormat::Spz | GaussianFormat::Splat)
+        );
+    if not_ply_gaussians {
+        let cloud = read_gaussians(path, &PlyOptions::default())?;
+        let mut bbox = Aabb::empty();
+        for c in &cloud.centers {
+            bbox.extend(p64(*c));
         }
-        Input::Bytes(b) => (b.len() as u64, Vec::new(), Some(b)),
-    };
-    let head_bytes = in_memory.as_deref().unwrap_or(&head);
-    let text = head_bytes.strip_prefix(BOM).unwrap_or(head_bytes);
-    let is_ply = text.starts_with(b"ply\n") || text.starts_with(b"ply\r\n");
+        return Ok(FileInfo {
+            path: path.to_path_buf(),
+            bytes,
+            kind: FileKind::Gaussians,
+            format: cloud.format,
+            count: cloud.centers.len(),
+            elements: Vec::new(),
+            properties: Vec::new(),
+            dropped_invalid: cloud.skipped_nonfinite,
+            groups: None,
+            bbox,
+            lengths: None,
+            warnings: cloud.warnings,
+        });
+    }
     if is_ply {
-        let complete = head_bytes.len() as u64 == bytes;
-        let header = parse_header(path, text, complete)?;
+        let header = parse_header(path, &head, complete)?;
         if header.element("edge").is_none() {
-            let cloud = match &in_memory {
-                Some(b) => parse_gaussians(path, b, &PlyOptions::default())?,
-                None => read_gaussians(path, &PlyOptions::default())?,
-            };
+            let cloud = read_gaussians(path, &PlyOptions::default())?;
+            let compressed = cloud.format.starts_with("SuperSplat");
             let mut bbox = Aabb::empty();
             for c in &cloud.centers {
                 bbox.extend(p64(*c));
@@ -86,7 +124,11 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
                 path: path.to_path_buf(),
                 bytes,
                 kind: FileKind::Gaussians,
-                format: format!("PLY {}", cloud.format),
+                format: if compressed {
+                    cloud.format
+                } else {
+                    format!("PLY {}", cloud.format)
+                },
                 count: cloud.centers.len(),
                 elements: header
                     .elements
@@ -102,10 +144,45 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
             });
         }
     }
-    let file = match in_memory {
-        Some(b) => parse_lines(path, b)?,
-        None => read_lines(path)?,
-    };
+    lines_info(path, bytes, read_lines_with(path, line_opts)?)
+}
+
+/// [`info_with`] of a pipe's content: a 3DGS PLY without edges, or a line file.
+fn info_of_bytes(path: &Path, b: Vec<u8>, line_opts: &LineOptions) -> Result<FileInfo, Error> {
+    let bytes = b.len() as u64;
+    let text = b.strip_prefix(BOM).unwrap_or(&b);
+    if text.starts_with(b"ply\n") || text.starts_with(b"ply\r\n") {
+        let header = parse_header(path, text, true)?;
+        if header.element("edge").is_none() {
+            let cloud = parse_gaussians(path, &b, &PlyOptions::default())?;
+            let mut bbox = Aabb::empty();
+            for c in &cloud.centers {
+                bbox.extend(p64(*c));
+            }
+            return Ok(FileInfo {
+                path: path.to_path_buf(),
+                bytes,
+                kind: FileKind::Gaussians,
+                format: format!("PLY {}", cloud.format),
+                count: cloud.centers.len(),
+                elements: header
+                    .elements
+                    .iter()
+                    .map(|e| (e.name.clone(), e.count))
+                    .collect(),
+                properties: Vec::new(),
+                dropped_invalid: cloud.skipped_nonfinite,
+                groups: None,
+                bbox,
+                lengths: None,
+                warnings: cloud.warnings,
+            });
+        }
+    }
+    lines_info(path, bytes, parse_lines_with(path, b, line_opts)?)
+}
+
+fn lines_info(path: &Path, bytes: u64, file: LineFile) -> Result<FileInfo, Error> {
     let segs = &file.lines.segments;
     let mut lens: Vec<f64> = segs.iter().map(|s| s.length()).collect();
     lens.sort_by(f64::total_cmp);

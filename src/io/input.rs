@@ -22,6 +22,22 @@ pub(crate) enum Input {
 
 /// Opens `path` for reading once (see the module comment).
 pub(crate) fn open_input(path: &Path) -> Result<Input, Error> {
+    let meta = check_readable(path)?;
+    let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
+    if meta.is_file() {
+        return Ok(Input::File {
+            file,
+            len: meta.len(),
+        });
+    }
+    // A FIFO: read once, so `info` (which looks at the head, then parses) cannot block on
+    // a second open, and bounded, so an endless writer cannot exhaust memory.
+    Ok(Input::Bytes(read_bounded(path, file, STREAM_LIMIT)?))
+}
+
+/// The metadata of `path` if it is a regular file or a FIFO; devices, folders and sockets
+/// are refused without being opened.
+pub(crate) fn check_readable(path: &Path) -> Result<std::fs::Metadata, Error> {
     let meta = std::fs::metadata(path).map_err(|e| Error::io(path, "open", e))?;
     let refuse = |what: &str| {
         Err(Error::Unsupported {
@@ -43,16 +59,7 @@ pub(crate) fn open_input(path: &Path) -> Result<Input, Error> {
             return refuse("is a socket");
         }
     }
-    let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
-    if meta.is_file() {
-        return Ok(Input::File {
-            file,
-            len: meta.len(),
-        });
-    }
-    // A FIFO: read once, so `info` (which looks at the head, then parses) cannot block on
-    // a second open, and bounded, so an endless writer cannot exhaust memory.
-    Ok(Input::Bytes(read_bounded(path, file, STREAM_LIMIT)?))
+    Ok(meta)
 }
 
 /// Reads the whole of `path` with the same bounds as the readers (devices refused,

@@ -6,8 +6,10 @@ use std::path::Path;
 
 use crate::geom::{LineSet, Segment, MIN_LENGTH};
 
+use super::edges_json::{self, Curves};
 use super::error::{Error, Position};
 use super::input::open_input;
+use super::limap;
 use super::npy;
 use super::ply::{self, PropKind};
 
@@ -26,6 +28,12 @@ pub enum LineFormat {
     PlainText,
     /// PLY with `vertex` and `edge` elements (what `write_lines` writes).
     Ply,
+    /// LIMAP `finaltracks/` folder (`track_<id>.txt`), or one such track file.
+    LimapTracks,
+    /// LIMAP `alltracks.txt` (every track in one file).
+    LimapAllTracks,
+    /// EMAP / EdgeGaussians `parametric_edges.json`.
+    EdgesJson,
 }
 
 impl LineFormat {
@@ -37,6 +45,9 @@ impl LineFormat {
             LineFormat::Npy => "NumPy .npy",
             LineFormat::PlainText => "plain text (x1 y1 z1 x2 y2 z2)",
             LineFormat::Ply => "PLY (vertex + edge)",
+            LineFormat::LimapTracks => "LIMAP line tracks (track_<id>.txt)",
+            LineFormat::LimapAllTracks => "LIMAP alltracks.txt",
+            LineFormat::EdgesJson => "EMAP/EdgeGaussians parametric edges (JSON)",
         }
     }
 }
@@ -100,13 +111,42 @@ impl Parsed {
 /// infinite coordinate is an error naming its position; a file with no valid segment is an
 /// error.
 pub fn read_lines(path: &Path) -> Result<LineFile, Error> {
+    read_lines_with(path, &LineOptions::default())
+}
+
+/// How [`read_lines_with`] treats what is not a straight segment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LineOptions {
+    /// Bézier curves of EMAP/EdgeGaussians edge files: skipped, or sampled as polylines.
+    pub curves: Curves,
+}
+
+/// [`read_lines`] with options. A folder is read as LIMAP's `finaltracks/`.
+pub fn read_lines_with(path: &Path, opts: &LineOptions) -> Result<LineFile, Error> {
+    if path.is_dir() {
+        let (segments, ids, warnings) = limap::read_folder(path)?;
+        let mut p = Parsed::new(Origin::Records("track"));
+        p.segments = segments;
+        p.groups = Some(ids);
+        p.warnings = warnings;
+        return finish(path, LineFormat::LimapTracks, &mut p);
+    }
     let bytes = open_input(path)?.into_bytes(path)?;
-    parse_lines(path, bytes)
+    parse_lines_with(path, bytes, opts)
 }
 
 /// [`read_lines`] on bytes already in memory; `path` names them in messages (and its
 /// extension tells a broken binary STL apart).
-pub fn parse_lines(path: &Path, mut bytes: Vec<u8>) -> Result<LineFile, Error> {
+pub fn parse_lines(path: &Path, bytes: Vec<u8>) -> Result<LineFile, Error> {
+    parse_lines_with(path, bytes, &LineOptions::default())
+}
+
+/// [`parse_lines`] with options.
+pub fn parse_lines_with(
+    path: &Path,
+    mut bytes: Vec<u8>,
+    opts: &LineOptions,
+) -> Result<LineFile, Error> {
     // Editors on Windows prefix text with a UTF-8 byte-order mark; no binary format starts so.
     if bytes.starts_with(ply::BOM) {
         bytes.drain(..3);
@@ -115,6 +155,7 @@ pub fn parse_lines(path: &Path, mut bytes: Vec<u8>) -> Result<LineFile, Error> {
     let mut parsed = match format {
         LineFormat::Ply => parse_ply(path, &bytes)?,
         LineFormat::Npy => {
+            limap::refuse_pickled_npy(path, &bytes)?;
             let mut p = Parsed::new(Origin::Records("row"));
             p.segments = npy::parse(path, &bytes)?;
             p
@@ -128,6 +169,27 @@ pub fn parse_lines(path: &Path, mut bytes: Vec<u8>) -> Result<LineFile, Error> {
                 LineFormat::Stl => parse_ascii_stl(path, text)?,
                 LineFormat::Obj => parse_obj(path, text)?,
                 LineFormat::PlainText => parse_plain(path, text)?,
+                LineFormat::LimapTracks => {
+                    let (line, seg) = limap::parse_track(path, text)?;
+                    let mut p = Parsed::new(Origin::Lines(vec![line]));
+                    p.segments = vec![seg];
+                    p
+                }
+                LineFormat::LimapAllTracks => {
+                    let (segments, ids, lines) = limap::parse_alltracks(path, text)?;
+                    let mut p = Parsed::new(Origin::Lines(lines));
+                    p.segments = segments;
+                    p.groups = Some(ids);
+                    p
+                }
+                LineFormat::EdgesJson => {
+                    let (segments, groups, warnings) = edges_json::parse(path, text, opts.curves)?;
+                    let mut p = Parsed::new(Origin::Records("edge"));
+                    p.segments = segments;
+                    p.groups = groups;
+                    p.warnings = warnings;
+                    p
+                }
                 _ => parse_line3dpp(path, text)?,
             }
         }
@@ -254,6 +316,15 @@ pub(crate) fn detect(path: &Path, bytes: &[u8]) -> Result<LineFormat, Error> {
         return Err(Error::Empty {
             path: path.to_path_buf(),
         });
+    }
+    if edges_json::looks_like_edges(text) {
+        return Ok(LineFormat::EdgesJson);
+    }
+    if limap::looks_like_track(text) {
+        return Ok(LineFormat::LimapTracks);
+    }
+    if limap::looks_like_alltracks(text) {
+        return Ok(LineFormat::LimapAllTracks);
     }
     let obj_record = |r: &str| matches!(r.split_whitespace().next(), Some("v" | "l"));
     if ext == "obj" || data_rows(text).any(|(_, r)| obj_record(r)) {
