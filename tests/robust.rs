@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use linegs_gpu::io::{
-    info, parse_gaussians, parse_lines, read_gaussians, read_lines, Error, FileKind, PlyOptions,
-    Position,
+    info, parse_gaussian_model, parse_gaussians, parse_lines, read_gaussians, read_lines, Error,
+    FileKind, PlyOptions, Position,
 };
 
 fn file(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
@@ -565,6 +565,16 @@ const NAMES: [&str; 6] = ["l.txt", "l.obj", "l.stl", "l.ply", "l.npy", "l"];
 /// What the fuzz targets do with one input (fuzz/src/lib.rs), as a plain function.
 fn read_any(target: &str, data: &[u8]) {
     match target {
+        "models" => {
+            if let Some((&k, rest)) = data.split_first() {
+                let name = ["m.ply", "m.spz", "m.splat"][k as usize % 3];
+                let opts = PlyOptions::default();
+                if let Ok(c) = parse_gaussian_model(Path::new(name), rest, &opts) {
+                    assert!(!c.centers.is_empty());
+                    assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+                }
+            }
+        }
         "gaussians" => {
             for strict in [false, true] {
                 let opts = PlyOptions {
@@ -618,7 +628,7 @@ fn random_mutants_of_every_format_are_read_or_refused() {
         b"element vertex 9\n",
     ];
     let mut runs = 0;
-    for target in ["gaussians", "lines", "npy"] {
+    for target in ["gaussians", "lines", "npy", "models"] {
         for e in std::fs::read_dir(seeds.join(target)).unwrap() {
             let seed = std::fs::read(e.unwrap().path()).unwrap();
             for _ in 0..150 {

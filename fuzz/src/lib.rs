@@ -43,3 +43,17 @@ pub fn check_gaussians(data: &[u8]) {
         }
     }
 }
+
+/// Every Gaussian model format (SuperSplat compressed PLY, SPZ, `.splat`, 3DGS PLY); the
+/// first byte picks the file name, whose extension tells a `.splat`.
+pub fn check_models(data: &[u8]) {
+    const NAMES: [&str; 3] = ["m.ply", "m.spz", "m.splat"];
+    let Some((&k, rest)) = data.split_first() else {
+        return;
+    };
+    let path = Path::new(NAMES[k as usize % NAMES.len()]);
+    if let Ok(c) = io::parse_gaussian_model(path, rest, &io::PlyOptions::default()) {
+        assert!(!c.centers.is_empty());
+        assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+    }
+}

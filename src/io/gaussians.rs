@@ -130,6 +130,16 @@ fn read(
     }
 }
 
+/// [`read_gaussians`] on bytes already in memory (any model format); `path` names them
+/// in messages, and its extension tells a `.splat` (which has no magic).
+pub fn parse_gaussian_model(
+    path: &Path,
+    bytes: &[u8],
+    opts: &PlyOptions,
+) -> Result<GaussianCloud, Error> {
+    Ok(read_bytes(path, bytes, opts, false)?.0)
+}
+
 /// [`read`] of a pipe's content.
 fn read_bytes(
     path: &Path,

@@ -22,8 +22,8 @@ mod write;
 pub use edges_json::{Curves, POLYLINE_PIECES};
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
-    detect_gaussians, is_gaussian_model, read_gaussians, read_gaussians_with_opacity,
-    write_gaussians_ply, GaussianFormat,
+    detect_gaussians, is_gaussian_model, parse_gaussian_model, read_gaussians,
+    read_gaussians_with_opacity, write_gaussians_ply, GaussianFormat,
 };
 pub use info::{info, info_with, FileInfo, FileKind};
 pub(crate) use input::read_input;
