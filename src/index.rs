@@ -97,12 +97,15 @@ impl Grid {
     /// open-ended: they hold every point beyond them, and queries beyond the grid visit
     /// them, so the answer stays exact while the core keeps fine cells.
     pub fn build(points: &[[f32; 3]], bounds: Aabb, cell_hint: f64) -> Grid {
-        let mut b = Aabb::empty();
+        // The working box as before when it gives cells near the hint (normal scenes get
+        // the very same grid); otherwise the points' box, then the quantile box below.
+        let mut pts_box = Aabb::empty();
+        for p in points {
+            pts_box.extend(p64(*p));
+        }
+        let mut b = bounds;
         for p in points {
             b.extend(p64(*p));
-        }
-        if b.is_empty() {
-            b = bounds;
         }
         if b.is_empty() {
             b = Aabb {
@@ -119,6 +122,12 @@ impl Grid {
         let mut cell = cell_size(&b, hint, most);
         let mut open = false;
         if let Some(h) = hint {
+            if cell > 4.0 * h && !pts_box.is_empty() {
+                let c = cell_size(&pts_box, hint, most);
+                if c < cell {
+                    (b, cell) = (pts_box, c);
+                }
+            }
             if cell > 4.0 * h && points.len() >= 1000 {
                 let core = quantile_box(points, 0.001);
                 let c = cell_size(&core, hint, most);
