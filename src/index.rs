@@ -88,9 +88,9 @@ impl Grid {
     /// Builds the grid over `points` (all inside `bounds`) with cells near `cell_hint`
     /// (the query radius), never more than 8 cells per point (and 2^24 in all).
     ///
-    /// The grid spans the points, not `bounds`: one segment endpoint flung far away grows
-    /// the working box (SPEC 2) but not the grid, so the cells stay near `r` and a query
-    /// visits only the rows that hold points (a far segment costs what a near one does).
+    /// When `bounds` would stretch the cells past `4 x` the hint, the grid spans the points
+    /// instead: one segment endpoint flung far away grows the working box (SPEC 2) but not
+    /// the grid, so the cells stay near `r` and a far segment costs what a near one does.
     ///
     /// When a few far points (floaters) would still blow the cells up past `4 x` the hint,
     /// the grid spans the 0.1% to 99.9% quantile box instead and its border cells are
