@@ -1,15 +1,23 @@
 //! The HTML viewer, rendered by headless Chromium: the screenshot shows the segments in
-//! their layer colours. Skipped (with a notice) when `/usr/bin/chromium` is missing,
-//! unless `CI=true`, where a missing browser is a failure.
+//! their layer colours. Chromium is looked up on `PATH` (`chromium`, `chromium-browser`,
+//! `google-chrome`); the test is skipped (with a notice) when none is there, unless
+//! `CI=true`, where a missing browser is a failure.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use linegs_gpu::geom::Segment;
 use linegs_gpu::render::{viewer_html, Layer};
 
-const CHROMIUM: &str = "/usr/bin/chromium";
+/// The first Chromium-family browser on `PATH`.
+fn chromium() -> Option<PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    ["chromium", "chromium-browser", "google-chrome"]
+        .iter()
+        .flat_map(|name| std::env::split_paths(&path).map(move |d| d.join(name)))
+        .find(|p| p.is_file())
+}
 const INPUT: [u8; 3] = [230, 85, 13];
 const REFINED: [u8; 3] = [33, 102, 172];
 
@@ -36,14 +44,14 @@ fn near(p: [u8; 3], c: [u8; 3]) -> bool {
 
 #[test]
 fn headless_chromium_shows_both_segment_sets() {
-    if !Path::new(CHROMIUM).exists() {
+    let Some(browser) = chromium() else {
         assert!(
             std::env::var("CI").as_deref() != Ok("true"),
-            "{CHROMIUM} is missing and CI=true"
+            "no chromium, chromium-browser or google-chrome on PATH and CI=true"
         );
-        eprintln!("skipping: {CHROMIUM} not found (apt-get install chromium)");
+        eprintln!("skipping: no Chromium on PATH (apt-get install chromium)");
         return;
-    }
+    };
     // A box outline (input, offset) and its corrected copy (refined), with points.
     let corners = |o: f64| {
         let c = |x: f64, y: f64, z: f64| glam::DVec3::new(x + o, y, z);
@@ -107,7 +115,7 @@ fn headless_chromium_shows_both_segment_sets() {
     std::fs::write(&page, &html).unwrap();
     let shot = dir.path().join("shot.png");
     let profile = dir.path().join("profile");
-    let mut child = Command::new(CHROMIUM)
+    let mut child = Command::new(&browser)
         .args([
             "--headless",
             "--no-sandbox",

@@ -1,9 +1,8 @@
-use super::{engine, metrics_table};
+use super::{engine, metrics_table, BackendArgs};
 use crate::cmd::eval::SeriesCols;
 use crate::cmd::render::{AFTER, BEFORE};
 use anyhow::{Context, Result};
 use clap::Args;
-use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::{self, gt};
 use linegs_gpu::io;
 use linegs_gpu::pipeline;
@@ -19,14 +18,14 @@ pub struct DemoArgs {
     /// Folder for the inputs, outputs, report, pictures and viewer.
     #[arg(long, default_value = "linegs-demo")]
     pub out: PathBuf,
-    #[arg(long, value_enum, default_value_t = Backend::Auto)]
-    pub backend: Backend,
+    #[command(flatten)]
+    pub engine: BackendArgs,
     /// Seed of the synthetic scene.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Gaussians in the synthetic scene.
-    #[arg(short = 'n', long, default_value_t = 20_000)]
-    pub gaussians: usize,
+    /// Number of Gaussians in the synthetic scene.
+    #[arg(short = 'n', long, value_name = "N", default_value_t = 20_000)]
+    pub num_gaussians: usize,
 }
 
 pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
@@ -35,7 +34,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         .with_context(|| format!("{}: cannot create the demo folder", a.out.display()))?;
     let scene = synth::toy_scene(&synth::ToyParams {
         seed: a.seed,
-        n_gaussians: a.gaussians,
+        n_gaussians: a.num_gaussians,
         ..Default::default()
     });
     println!(
@@ -47,7 +46,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     );
     let params = Params::default();
     let prep = pipeline::prepare(&scene.gaussians, &scene.lines.segments, &params)?;
-    let eng = engine(a.backend, prep.grid.clone(), verbose)?;
+    let eng = engine(a.engine.backend, prep.grid.clone(), verbose)?;
     let out = pipeline::run(eng.as_ref(), &scene.lines, prep.radius, &params, |_| {})?;
     println!(
         "refined {} -> {} segments on {} ({}) in {:.2} s",
@@ -82,7 +81,9 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         p
     };
     io::write_gaussians_3dgs(&file("gaussians.ply"), &scene.gaussians, None)?;
-    io::write_lines(&file("input.obj"), &scene.lines.segments)?;
+    // Line3D++ text keeps the scene's line groups, so `refine` on these files runs the
+    // collinear merge as the demo did and reproduces its numbers exactly (tests/cli.rs).
+    io::write_lines_line3dpp(&file("input.txt"), &scene.lines)?;
     io::write_lines(&file("ground_truth.obj"), &scene.gt)?;
     io::write_lines(&file("refined.obj"), &out.lines.segments)?;
     io::write_lines_ply_layers(
@@ -144,23 +145,11 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     ];
     render::render_comparison(&scene.gaussians, &panels, 1600, 900)
         .write_png(&file("before_after.png"))?;
-    let layers = [
-        Layer {
-            name: "input segments",
-            segments: &scene.lines.segments,
-            color: BEFORE,
-        },
-        Layer {
-            name: "refined segments",
-            segments: &out.lines.segments,
-            color: AFTER,
-        },
-        Layer {
-            name: "ground truth",
-            segments: &scene.gt,
-            color: [40, 170, 60],
-        },
-    ];
+    let layers = render::viewer_layers(
+        &scene.lines.segments,
+        Some(&out.lines.segments),
+        Some(&scene.gt),
+    );
     let html = render::viewer_html(
         &scene.gaussians,
         &layers,

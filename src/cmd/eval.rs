@@ -1,4 +1,4 @@
-use super::{engine, input_error, input_report, load, metrics_table, InputArgs};
+use super::{engine, input_report, load, metrics_table, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::{self, gt, Metrics};
@@ -14,6 +14,8 @@ use std::sync::Arc;
 pub struct EvalArgs {
     #[command(flatten)]
     pub input: InputArgs,
+    #[command(flatten)]
+    pub engine: BackendArgs,
     #[command(flatten)]
     pub eval: EvalParams,
     /// Profile whose R_L convention applies when --r-l is not given (default: paper's
@@ -70,13 +72,7 @@ struct EvalReport {
 
 pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
     if let Some(p) = &a.plot {
-        let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("");
-        if !matches!(ext, "png" | "svg") {
-            return Err(input_error(format!(
-                "{}: the plot is written as .png or .svg",
-                p.display()
-            )));
-        }
+        io::check_plot_output(p)?;
     }
     let loaded = load(&a.input)?;
     let mut sets = vec![(
@@ -98,7 +94,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
     let radii = a.radii.clone().unwrap_or_else(|| vec![a.eval.eval_radius]);
     let min_r = radii.iter().copied().fold(f64::INFINITY, f64::min);
     let grid = Arc::new(Grid::build(&ws.points, ws.bounds, min_r));
-    let eng = engine(a.input.backend, grid, verbose)?;
+    let eng = engine(a.engine.backend, grid, verbose)?;
     let rl = a.eval.r_l.unwrap_or(match a.profile {
         Profile::Default => RlMode::Paper,
         Profile::Reference => RlMode::Authors,
@@ -135,7 +131,8 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             "metrics against the evaluation radius ({} Gaussians)",
             ws.len()
         );
-        if p.extension().and_then(|e| e.to_str()) == Some("svg") {
+        let svg = p.extension().is_some_and(|e| e.eq_ignore_ascii_case("svg"));
+        if svg {
             io::write_bytes_atomic(p, render::sweep_plot_svg(&series, &title).as_bytes())?;
         } else {
             render::sweep_plot_png(&series, &title, 1400, 900).write_png(p)?;

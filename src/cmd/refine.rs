@@ -1,4 +1,4 @@
-use super::{engine, input_report, load, metrics_table, InputArgs, InputReport};
+use super::{engine, input_report, load, metrics_table, BackendArgs, InputArgs, InputReport};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -14,11 +14,14 @@ use std::time::Instant;
 pub struct RefineArgs {
     #[command(flatten)]
     pub input: InputArgs,
+    #[command(flatten)]
+    pub engine: BackendArgs,
     /// Where to write the refined segments; the format follows the extension: `.obj`,
     /// `.stl`, `.ply` (with an edge element), `.txt` (6 numbers a row), `.npy`.
     #[arg(short, long, value_name = "FILE")]
     pub output: PathBuf,
-    /// Write the JSON report (backend, adapter, parameters, inputs, stages, before/after).
+    /// Write the JSON report (backend, adapter, parameters, inputs, stages, before/after);
+    /// a `.json` file.
     #[arg(long, value_name = "JSON")]
     pub report: Option<PathBuf>,
     /// Also write a PLY with the input (red) and refined (blue) segments as coloured edges.
@@ -52,13 +55,19 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     let t0 = Instant::now();
     // Check the output format before any work, so a typo costs nothing.
     io::check_line_output(&a.output)?;
+    if let Some(p) = &a.report {
+        io::check_json_output(p)?;
+    }
+    if let Some(p) = &a.compare_ply {
+        io::check_ply_layers_output(p)?;
+    }
     let loaded = load(&a.input)?;
     let prep = pipeline::prepare(
         &loaded.cloud.centers,
         &loaded.lines.lines.segments,
         &a.params,
     )?;
-    let eng = engine(a.input.backend, prep.grid.clone(), verbose)?;
+    let eng = engine(a.engine.backend, prep.grid.clone(), verbose)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
         bar.set_style(style);

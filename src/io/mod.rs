@@ -15,6 +15,9 @@ pub use info::{info, FileInfo, FileKind};
 pub use lines::{read_lines, LineFile, LineFormat};
 pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
 pub use write::{
-    check_line_output, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,
-    write_lines, write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
+    check_gaussians_output, check_html_output, check_json_output, check_line_output,
+    check_output_extension, check_plot_output, check_ply_layers_output, check_png_output,
+    gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs, write_lines,
+    write_lines_line3dpp, write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT,
+    LINE_OUTPUTS,
 };
