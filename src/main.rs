@@ -218,8 +218,9 @@ mod tests {
         for c in &cmds {
             let words: Vec<&str> = c.split_whitespace().collect();
             if let Err(e) = Cli::try_parse_from(&words) {
-                // `--help` is a successful parse that prints.
-                if e.kind() != clap::error::ErrorKind::DisplayHelp {
+                // `--help` and `--version` are successful parses that print.
+                use clap::error::ErrorKind::{DisplayHelp, DisplayVersion};
+                if !matches!(e.kind(), DisplayHelp | DisplayVersion) {
                     panic!("README command does not parse: {c}\n{e}");
                 }
             }
