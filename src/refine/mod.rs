@@ -3,7 +3,7 @@
 
 pub mod params;
 
-pub use params::{EvalParams, Fixes, Params, Profile, RadiusArg, RlMode};
+pub use params::{auto_radius, EvalParams, Fixes, Params, Profile, RadiusArg, RlMode, Settings};
 
 pub mod cluster;
 pub mod crop;
@@ -28,11 +28,10 @@ pub fn density(count: u64, length: f64) -> f64 {
 pub fn run_steps(
     engine: &dyn Engine,
     input: &LineSet,
-    r: f64,
-    p: &Params,
+    s: &Settings,
     mut stage: impl FnMut(&str, usize, Instant),
 ) -> Result<LineSet, EngineError> {
-    let fixes = p.fixes();
+    let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let mut lines = input.clone();
     if fixes.order_endpoints {
         for s in &mut lines.segments {
@@ -52,20 +51,20 @@ pub fn run_steps(
 
     if p.collinear_merge && lines.groups.is_some() {
         let t = Instant::now();
-        lines = mergejoin::collinear_merge(engine, &lines, r, p, &fixes)?;
+        lines = mergejoin::collinear_merge(engine, &lines, s)?;
         stage("collinear_merge", lines.len(), t);
     }
 
     let t = Instant::now();
-    let clusters = cluster::cluster(&lines, r, p, &fixes);
+    let clusters = cluster::cluster(&lines, s);
     stage("cluster", lines.len(), t);
 
     let t = Instant::now();
-    lines = mergejoin::merge_join(engine, &lines, &clusters, r, p, &fixes)?;
+    lines = mergejoin::merge_join(engine, &lines, &clusters, s)?;
     stage("merge_join", lines.len(), t);
 
     let t = Instant::now();
-    lines.segments = crop::crop(engine, &lines.segments, r, p, &fixes)?;
+    lines.segments = crop::crop(engine, &lines.segments, s)?;
     stage("crop", lines.len(), t);
     Ok(lines)
 }
