@@ -45,9 +45,15 @@ else
   echo "Vulkan: no driver found; GPU tests will skip (or fail under CI=true)"
 fi
 
-cargo fmt --check
-cargo clippy --all-targets --locked -- -D warnings
+# Each phase says how long it took, so that a slow fresh clone shows where the time went.
+phase() {
+  local t=$SECONDS
+  "$@"
+  echo "test.sh: '$*' took $((SECONDS - t)) s"
+}
+phase cargo fmt --check
+phase cargo clippy --all-targets --locked -- -D warnings
 # Release profile: the same build as `cargo run --release -- demo`. Debug assertions are
 # off there, so the GPU engine's garbage-filled buffers are switched on by name.
 export LINEGS_GPU_GARBAGE=1
-cargo test --release --locked "$@"
+phase cargo test --release --locked "$@"
