@@ -9,9 +9,10 @@ cd "$(dirname "$0")/.."
 # Any Vulkan driver will do (a real GPU's or lavapipe): lavapipe is installed only when
 # the loader has no driver manifest at all and vulkaninfo (if present) sees no device.
 have_vulkan() {
-  if ls /usr/share/vulkan/icd.d/*.json /etc/vulkan/icd.d/*.json >/dev/null 2>&1; then
-    return 0
-  fi
+  local f
+  for f in /usr/share/vulkan/icd.d/*.json /etc/vulkan/icd.d/*.json; do
+    if [ -e "$f" ]; then return 0; fi
+  done
   command -v vulkaninfo >/dev/null 2>&1 && vulkaninfo --summary 2>/dev/null | grep -q deviceName
 }
 chromium_on_path() {
@@ -40,7 +41,7 @@ if [ ${#need[@]} -gt 0 ]; then
   done
 fi
 if have_vulkan; then
-  echo "Vulkan: driver found ($(ls /usr/share/vulkan/icd.d /etc/vulkan/icd.d 2>/dev/null | grep json | tr '\n' ' '))"
+  echo "Vulkan: driver found ($(ls /usr/share/vulkan/icd.d /etc/vulkan/icd.d 2>/dev/null | grep json | tr '\n' ' ' || true))"
 else
   echo "Vulkan: no driver found; GPU tests will skip (or fail under CI=true)"
 fi
@@ -53,6 +54,14 @@ phase() {
 }
 phase cargo fmt --check
 phase cargo clippy --all-targets --locked -- -D warnings
+# The GPU tests start Mesa's drivers inside the test processes, where the binary's private
+# XDG_RUNTIME_DIR (src/main.rs) does not reach: give them one too, or every GPU test prints
+# Wayland's "error: XDG_RUNTIME_DIR is invalid or not set" into a passing run.
+if [ ! -d "${XDG_RUNTIME_DIR:-}" ]; then
+  XDG_RUNTIME_DIR="$(mktemp -d)" # mktemp -d creates it 0700, as the XDG spec requires
+  export XDG_RUNTIME_DIR
+  trap 'rm -rf "$XDG_RUNTIME_DIR"' EXIT
+fi
 # Release profile: the same build as `cargo run --release -- demo`. Debug assertions are
 # off there, so the GPU engine's garbage-filled buffers are switched on by name.
 export LINEGS_GPU_GARBAGE=1
