@@ -1,4 +1,4 @@
-use super::{load, metrics_table, print_engine, InputArgs};
+use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::Metrics;
@@ -12,6 +12,8 @@ use std::path::PathBuf;
 pub struct EvalArgs {
     #[command(flatten)]
     pub input: InputArgs,
+    #[command(flatten)]
+    pub engine: BackendArgs,
     #[command(flatten)]
     pub eval: EvalParams,
     /// Profile whose R_L convention applies when --r-l is not given (default: paper's
@@ -63,7 +65,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             eval: a.eval.clone(),
             ..Params::default()
         },
-        backend: a.input.backend,
+        backend: a.engine.backend,
         sweep: a.radii.clone(),
         gt: match &a.gt {
             Some(p) => Some(io::read_lines(p)?.lines.segments),

@@ -71,6 +71,11 @@ pub struct InputArgs {
     /// Make Gaussians with NaN or infinite centers an error instead of a warning.
     #[arg(long)]
     pub strict: bool,
+}
+
+/// The engine choice of the commands that query the Gaussians (`render` only draws).
+#[derive(Args, Debug, Clone)]
+pub struct BackendArgs {
     /// Which engine answers the cylinder queries: `auto` (a GPU adapter when there is
     /// one, lavapipe included, else the CPU), `gpu` or `cpu`.
     #[arg(long, value_enum, default_value_t = Backend::Auto)]

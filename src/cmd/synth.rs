@@ -27,8 +27,9 @@ pub enum SynthKind {
         #[arg(long, value_name = "FILE")]
         gt_out: Option<PathBuf>,
         /// Number of Gaussians.
-        #[arg(short = 'n', long, default_value_t = 20_000)]
-        gaussians: usize,
+        #[arg(short = 'n', long, value_name = "N", default_value_t = 20_000)]
+        num_gaussians: usize,
+        /// Seed of the random scene (same seed, same files).
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
@@ -38,31 +39,38 @@ pub enum SynthKind {
         /// The mesh (`v` and `f` records).
         #[arg(long, value_name = "OBJ")]
         mesh: PathBuf,
+        /// Gaussians to write (a standard 62-property 3DGS PLY).
         #[arg(short, long, value_name = "PLY")]
         output: PathBuf,
-        #[arg(short = 'n', long, default_value_t = 100_000)]
-        gaussians: usize,
-        /// Also write the detected sharp edges.
+        /// Number of Gaussians.
+        #[arg(short = 'n', long, value_name = "N", default_value_t = 100_000)]
+        num_gaussians: usize,
+        /// Also write the detected sharp edges (format from the extension).
         #[arg(long, value_name = "FILE")]
         edges_out: Option<PathBuf>,
+        /// Seed of the random sampling (same seed, same files).
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
     /// Gaussians along given segments with noise, plus a background (for line files that
     /// come without a 3DGS model).
     Around {
+        /// The line segments to place Gaussians around (any supported line format).
         #[arg(short, long, value_name = "FILE")]
         lines: PathBuf,
+        /// Gaussians to write (a standard 62-property 3DGS PLY).
         #[arg(short, long, value_name = "PLY")]
         output: PathBuf,
-        #[arg(short = 'n', long, default_value_t = 100_000)]
-        gaussians: usize,
+        /// Number of Gaussians.
+        #[arg(short = 'n', long, value_name = "N", default_value_t = 100_000)]
+        num_gaussians: usize,
         /// Standard deviation of the noise around the segments (scene units).
         #[arg(long, default_value_t = 0.004)]
         sigma: f64,
         /// Fraction of the centers spread uniformly in the lines' bounding box.
         #[arg(long, default_value_t = 0.1)]
         background: f64,
+        /// Seed of the random placement (same seed, same files).
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
@@ -74,7 +82,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
             output,
             lines_out,
             gt_out,
-            gaussians,
+            num_gaussians,
             seed,
         } => {
             let mut outs = io::OutputSet::new();
@@ -89,7 +97,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
             outs.check()?;
             let scene = synth::toy_scene(&synth::ToyParams {
                 seed,
-                n_gaussians: gaussians,
+                n_gaussians: num_gaussians,
                 ..Default::default()
             });
             outs.write(&output, |p| {
@@ -111,7 +119,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         SynthKind::Mesh {
             mesh,
             output,
-            gaussians,
+            num_gaussians,
             edges_out,
             seed,
         } => {
@@ -124,7 +132,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
             let m = synth::mesh::read_obj_mesh(&mesh).map_err(|e| input_error(e.to_string()))?;
             let pts = synth::mesh::gaussians_from_mesh(
                 &m,
-                gaussians,
+                num_gaussians,
                 seed,
                 &synth::mesh::MeshGaussianOptions::default(),
             );
@@ -144,7 +152,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         SynthKind::Around {
             lines,
             output,
-            gaussians,
+            num_gaussians,
             sigma,
             background,
             seed,
@@ -160,7 +168,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
             let l = io::read_lines(&lines)?;
             let pts = synth::gaussians_around_segments(
                 &l.lines.segments,
-                gaussians,
+                num_gaussians,
                 sigma,
                 background,
                 seed,

@@ -36,6 +36,7 @@ pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
 pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};
 pub use write::{
-    check_line_output, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,
-    write_lines, write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
+    check_line_output, check_output_extension, gaussian_3dgs_properties, write_bytes_atomic,
+    write_gaussians_3dgs, write_lines, write_lines_line3dpp, write_lines_ply_layers,
+    DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
 };

@@ -118,10 +118,15 @@ impl OutputSet {
                 .unwrap_or_default();
             if !exts.is_empty() && !exts.contains(&ext) {
                 let list: Vec<String> = exts.iter().map(|e| format!(".{e}")).collect();
+                let got = if ext.is_empty() {
+                    "a name without an extension".to_string()
+                } else {
+                    format!("`.{ext}`")
+                };
                 return Err(refuse(
                     path,
                     format!(
-                        "{option} cannot be written as `.{ext}`; use {}",
+                        "{option} cannot be written as {got}; use {}",
                         list.join(", ")
                     ),
                 ));
