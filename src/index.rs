@@ -13,6 +13,16 @@ use rayon::prelude::*;
 /// the scene is huge compared with the radius (the cell then grows beyond `r`).
 const MAX_CELLS: f64 = (1u64 << 24) as f64;
 
+/// Cells per point at most (and at least this many cells in all), so the table is never
+/// large next to the points it indexes, whatever the scene's extent.
+const CELLS_PER_POINT: f64 = 8.0;
+const MIN_CELLS: f64 = 4096.0;
+
+/// Most cells for `n` points.
+fn max_cells(n: usize) -> f64 {
+    (n as f64 * CELLS_PER_POINT).clamp(MIN_CELLS, MAX_CELLS)
+}
+
 /// Gaussian centers inside the box of all segment endpoints grown by 0.1x its longest edge.
 #[derive(Clone, Debug)]
 pub struct WorkingSet {
@@ -63,6 +73,9 @@ pub struct Grid {
     /// Edge length of a cubic cell.
     pub cell: f64,
     pub dims: [u32; 3],
+    /// Border cells extend to infinity (the grid spans a quantile box of the points; see
+    /// [`Grid::build`]).
+    pub open: bool,
     /// `cell_start[c]..cell_start[c+1]` are the sorted points of cell `c`; length cells+1.
     pub cell_start: Vec<u32>,
     /// Centers sorted by cell (absolute coordinates, as read).
@@ -73,8 +86,23 @@ pub struct Grid {
 
 impl Grid {
     /// Builds the grid over `points` (all inside `bounds`) with cells near `cell_hint`
-    /// (the query radius), never more than 2^24 cells.
+    /// (the query radius), never more than 8 cells per point (and 2^24 in all).
+    ///
+    /// When `bounds` would stretch the cells past `4 x` the hint, the grid spans the points
+    /// instead: one segment endpoint flung far away grows the working box (SPEC 2) but not
+    /// the grid, so the cells stay near `r` and a far segment costs what a near one does.
+    ///
+    /// When a few far points (floaters) would still blow the cells up past `4 x` the hint,
+    /// the grid spans the 0.1% to 99.9% quantile box instead and its border cells are
+    /// open-ended: they hold every point beyond them, and queries beyond the grid visit
+    /// them, so the answer stays exact while the core keeps fine cells.
     pub fn build(points: &[[f32; 3]], bounds: Aabb, cell_hint: f64) -> Grid {
+        // The working box as before when it gives cells near the hint (normal scenes get
+        // the very same grid); otherwise the points' box, then the quantile box below.
+        let mut pts_box = Aabb::empty();
+        for p in points {
+            pts_box.extend(p64(*p));
+        }
         let mut b = bounds;
         for p in points {
             b.extend(p64(*p));
@@ -85,22 +113,30 @@ impl Grid {
                 max: DVec3::ZERO,
             };
         }
-        let ext = (b.max - b.min).max(DVec3::splat(1e-9));
-        let mut cell = if cell_hint.is_finite() && cell_hint > 0.0 {
-            cell_hint
+        let hint = if cell_hint.is_finite() && cell_hint > 0.0 {
+            Some(cell_hint)
         } else {
-            ext.max_element()
+            None
         };
-        let vol = ext.x * ext.y * ext.z;
-        let n_cells = |c: f64| {
-            ((ext.x / c).floor() + 1.0) * ((ext.y / c).floor() + 1.0) * ((ext.z / c).floor() + 1.0)
-        };
-        if n_cells(cell) > MAX_CELLS {
-            cell = cell.max((vol / MAX_CELLS).cbrt());
-            while n_cells(cell) > MAX_CELLS {
-                cell *= 1.1;
+        let most = max_cells(points.len());
+        let mut cell = cell_size(&b, hint, most);
+        let mut open = false;
+        if let Some(h) = hint {
+            if cell > 4.0 * h && !pts_box.is_empty() {
+                let c = cell_size(&pts_box, hint, most);
+                if c < cell {
+                    (b, cell) = (pts_box, c);
+                }
+            }
+            if cell > 4.0 * h && points.len() >= 1000 {
+                let core = quantile_box(points, 0.001);
+                let c = cell_size(&core, hint, most);
+                if c < cell {
+                    (b, cell, open) = (core, c, true);
+                }
             }
         }
+        let ext = (b.max - b.min).max(DVec3::splat(1e-9));
         let dims = [
             (ext.x / cell).floor() as u32 + 1,
             (ext.y / cell).floor() as u32 + 1,
@@ -110,6 +146,7 @@ impl Grid {
             origin: b.min,
             cell,
             dims,
+            open,
             cell_start: Vec::new(),
             points: Vec::new(),
             ids: Vec::new(),
@@ -242,7 +279,16 @@ impl Grid {
     /// Coordinate interval of cell layer `i` on `axis`, grown by `grow`.
     fn slab(&self, i: u32, axis: usize, grow: f64) -> (f64, f64) {
         let lo = self.origin[axis] + i as f64 * self.cell;
-        (lo - grow, lo + self.cell + grow)
+        let (mut a, mut b) = (lo - grow, lo + self.cell + grow);
+        if self.open {
+            if i == 0 {
+                a = f64::NEG_INFINITY;
+            }
+            if i + 1 == self.dims[axis] {
+                b = f64::INFINITY;
+            }
+        }
+        (a, b)
     }
 
     /// Cell index range covering the coordinate interval, or `None` when it misses the grid.
@@ -250,13 +296,56 @@ impl Grid {
         let lo = (span.0 - self.origin[axis]) / self.cell;
         let hi = (span.1 - self.origin[axis]) / self.cell;
         let n = self.dims[axis] as f64;
-        if lo.is_nan() || hi.is_nan() || hi < 0.0 || lo >= n || lo > hi {
+        if lo.is_nan() || hi.is_nan() || lo > hi {
+            return None;
+        }
+        if self.open {
+            // Open borders: a span beyond the grid falls in its border layer.
+            let a = lo.floor().clamp(0.0, n - 1.0) as u32;
+            let b = hi.floor().clamp(0.0, n - 1.0) as u32;
+            return Some((a, b));
+        }
+        if hi < 0.0 || lo >= n {
             return None;
         }
         let a = lo.floor().max(0.0) as u32;
         let b = (hi.floor().min(n - 1.0)) as u32;
         Some((a, b))
     }
+}
+
+/// Edge of cubic cells near `hint` over box `b`, grown until there are at most `most`.
+fn cell_size(b: &Aabb, hint: Option<f64>, most: f64) -> f64 {
+    let ext = (b.max - b.min).max(DVec3::splat(1e-9));
+    let mut cell = hint.unwrap_or(ext.max_element());
+    let n_cells = |c: f64| {
+        ((ext.x / c).floor() + 1.0) * ((ext.y / c).floor() + 1.0) * ((ext.z / c).floor() + 1.0)
+    };
+    if n_cells(cell) > most {
+        let vol = ext.x * ext.y * ext.z;
+        cell = cell.max((vol / most).cbrt());
+        while n_cells(cell) > most {
+            cell *= 1.1;
+        }
+    }
+    cell
+}
+
+/// Per axis, the `q` and `1 - q` quantiles of the points.
+fn quantile_box(points: &[[f32; 3]], q: f64) -> Aabb {
+    let n = points.len();
+    let lo_k = ((n as f64 * q) as usize).min(n - 1);
+    let hi_k = n - 1 - lo_k;
+    let mut min = DVec3::ZERO;
+    let mut max = DVec3::ZERO;
+    let mut v: Vec<f32> = Vec::with_capacity(n);
+    for axis in 0..3 {
+        v.clear();
+        v.extend(points.iter().map(|p| p[axis]));
+        min[axis] = *v.select_nth_unstable_by(lo_k, f32::total_cmp).1 as f64;
+        max[axis] = *v.select_nth_unstable_by(hi_k, f32::total_cmp).1 as f64;
+    }
+    Aabb { min, max }
 }
 
 /// Range of `p + t d` over `t` in `ts`, grown by `grow`.
@@ -392,6 +481,88 @@ mod tests {
         let g = Grid::build(&pts, b, 0.03);
         assert!(g.n_cells() as f64 <= MAX_CELLS);
         assert!(g.cell > 0.03);
+    }
+
+    /// Points visited by the queries of `segs` and the exact counts they find.
+    fn cost_and_counts(g: &Grid, segs: &[Segment], r: f64) -> (Vec<usize>, Vec<usize>) {
+        let mut cost = Vec::new();
+        let mut counts = Vec::new();
+        for seg in segs {
+            let cyl = Cylinder::new(seg, r);
+            let (mut touched, mut inside) = (0, 0);
+            g.visit_rows(seg, r, |row| {
+                for i in g.row_range(&row) {
+                    touched += 1;
+                    inside += cyl.test(p64(g.points[i])).is_some() as usize;
+                }
+            });
+            cost.push(touched);
+            counts.push(inside);
+        }
+        (cost, counts)
+    }
+
+    #[test]
+    fn a_far_flung_endpoint_and_floaters_cost_no_more_than_near_segments() {
+        // A unit scene with 20,000 points, 30 segments in it, and a few floaters far away.
+        let mut s = 5u64;
+        let mut pts: Vec<[f32; 3]> = (0..20000)
+            .map(|_| [lcg(&mut s) as f32, lcg(&mut s) as f32, lcg(&mut s) as f32])
+            .collect();
+        let near: Vec<Segment> = (0..30)
+            .map(|_| {
+                let a = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s));
+                let b = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s));
+                Segment::new(a, b)
+            })
+            .collect();
+        let r = 0.03;
+        let ws = WorkingSet::new(&pts, &near);
+        let g = Grid::build(&ws.points, ws.bounds, r);
+        let (cost, counts) = cost_and_counts(&g, &near, r);
+        // Now one endpoint flies to (1000, 1000, 1000), and floaters join the working set.
+        for k in 0..10 {
+            pts.push([900.0 + k as f32, 950.0, 990.0 - k as f32]);
+        }
+        let mut far = near.clone();
+        far[0] = Segment::new(far[0].p1, DVec3::splat(1000.0));
+        let ws_far = WorkingSet::new(&pts, &far);
+        assert_eq!(ws_far.len(), ws.len() + 10);
+        let gf = Grid::build(&ws_far.points, ws_far.bounds, r);
+        assert!(gf.n_cells() <= 8 * ws_far.len(), "{} cells", gf.n_cells());
+        assert!(gf.cell <= 4.0 * r, "cells stay near r: {}", gf.cell);
+        let (cost_f, counts_f) = cost_and_counts(&gf, &far, r);
+        // Same answers for the other segments, at no more than about the same cost.
+        assert_eq!(&counts_f[1..], &counts[1..]);
+        for i in 1..near.len() {
+            assert!(
+                cost_f[i] <= 2 * cost[i] + 100,
+                "segment {i}: {} points visited, {} before",
+                cost_f[i],
+                cost[i]
+            );
+        }
+        // The far segment is exact (every point checked by brute force) and cheap.
+        let cyl = Cylinder::new(&far[0], r);
+        let brute = ws_far
+            .points
+            .iter()
+            .filter(|p| cyl.test(p64(**p)).is_some())
+            .count();
+        assert_eq!(counts_f[0], brute);
+        let longest = *cost.iter().max().unwrap();
+        assert!(
+            cost_f[0] <= 2 * longest + 100,
+            "far segment visits {}",
+            cost_f[0]
+        );
+        // Queries entirely among the floaters, beyond the core grid, still find them.
+        let out = Segment::new(
+            DVec3::new(899.0, 950.0, 991.0),
+            DVec3::new(910.0, 950.0, 980.0),
+        );
+        let (_, c) = cost_and_counts(&gf, &[out], 0.5);
+        assert_eq!(c[0], 10);
     }
 
     #[test]

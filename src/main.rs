@@ -48,8 +48,32 @@ enum Command {
     Bench(cmd::bench::BenchArgs),
 }
 
+/// Mesa's Vulkan drivers (lavapipe included) probe for a Wayland display while the loader
+/// starts them, and libwayland prints `error: XDG_RUNTIME_DIR is invalid or not set in the
+/// environment.` when the variable is missing (containers, ssh sessions, CI) — on runs that
+/// then succeed, so a new user's first sight is an "error". When it is unset or names no
+/// folder, we point it at a private folder of our own (created 0700, as the XDG base
+/// directory spec requires, and removed at exit): the probe then finds no display and
+/// says nothing, and no real error is hidden. Done at the start of `main`, before any
+/// thread exists, since changing the environment races with threads that read it.
+fn private_runtime_dir() -> Option<tempfile::TempDir> {
+    let current = std::env::var_os("XDG_RUNTIME_DIR");
+    if current.is_some_and(|d| std::path::Path::new(&d).is_dir()) {
+        return None;
+    }
+    let dir = tempfile::Builder::new()
+        .prefix("linegs-gpu-runtime-")
+        .tempdir()
+        .ok()?;
+    std::env::set_var("XDG_RUNTIME_DIR", dir.path());
+    Some(dir)
+}
+
 fn main() -> ExitCode {
+    // After parsing: clap exits the process on `--help` and usage errors, which would
+    // leave the folder behind.
     let cli = Cli::parse();
+    let _runtime_dir = private_runtime_dir();
     let verbose = cli.verbose;
     let result = match cli.command {
         Command::Refine(a) => cmd::refine::run(a, verbose),
@@ -66,6 +90,144 @@ fn main() -> ExitCode {
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::from(cmd::exit_code(&e))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::CommandFactory;
+    use std::collections::HashMap;
+
+    /// Every subcommand below `cmd`, with its path (`synth toy`).
+    fn walk(cmd: &clap::Command, path: String, out: &mut Vec<(String, clap::Command)>) {
+        for sub in cmd.get_subcommands() {
+            let p = format!("{path} {}", sub.get_name()).trim().to_string();
+            out.push((p.clone(), sub.clone()));
+            walk(sub, p, out);
+        }
+    }
+
+    fn commands() -> Vec<(String, clap::Command)> {
+        let mut cmd = Cli::command();
+        cmd.build();
+        let mut out = vec![("linegs-gpu".to_string(), cmd.clone())];
+        walk(&cmd, String::new(), &mut out);
+        out
+    }
+
+    #[test]
+    fn the_command_line_is_well_formed() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn every_option_of_every_command_has_help() {
+        let mut missing = Vec::new();
+        for (path, cmd) in commands() {
+            for arg in cmd.get_arguments() {
+                let id = arg.get_id().as_str();
+                if matches!(id, "help" | "version") {
+                    continue;
+                }
+                if arg.get_help().is_none() && arg.get_long_help().is_none() {
+                    missing.push(format!("{path}: --{}", arg.get_long().unwrap_or(id)));
+                }
+            }
+        }
+        assert!(missing.is_empty(), "options without help: {missing:?}");
+    }
+
+    /// A flag name means one thing everywhere: `--gaussians` is always a file, a count is
+    /// `--num-gaussians`; the same long name has the same short name and value type.
+    #[test]
+    fn one_meaning_per_flag_name() {
+        type Seen = (String, Option<char>, clap::builder::ValueParser);
+        let mut seen: HashMap<String, Seen> = HashMap::new();
+        let mut clashes = Vec::new();
+        for (path, cmd) in commands() {
+            for arg in cmd.get_arguments() {
+                let Some(long) = arg.get_long() else { continue };
+                let this = (
+                    path.clone(),
+                    arg.get_short(),
+                    arg.get_value_parser().clone(),
+                );
+                match seen.get(long) {
+                    Some(first) if first.1 != this.1 || first.2.type_id() != this.2.type_id() => {
+                        clashes.push(format!(
+                            "--{long}: {} {:?} {:?} vs {} {:?} {:?}",
+                            first.0,
+                            first.1,
+                            first.2.type_id(),
+                            this.0,
+                            this.1,
+                            this.2.type_id()
+                        ))
+                    }
+                    Some(_) => {}
+                    None => {
+                        seen.insert(long.to_string(), this);
+                    }
+                }
+            }
+        }
+        assert!(clashes.is_empty(), "{clashes:#?}");
+        // The counts are not the files.
+        assert!(seen.contains_key("num-gaussians") && seen.contains_key("gaussians"));
+    }
+
+    /// The `linegs-gpu ...` commands of the README, continuation lines joined, comments cut.
+    fn readme_commands() -> Vec<String> {
+        let readme = include_str!("../README.md");
+        let mut out = Vec::new();
+        let mut in_code = false;
+        let mut pending = String::new();
+        for line in readme.lines() {
+            if line.trim_start().starts_with("```") {
+                in_code = !in_code;
+                continue;
+            }
+            // Commands quoted inline in the text count too.
+            if !in_code {
+                for (i, part) in line.split('`').enumerate() {
+                    // (`linegs-gpu <command> --help` is a pattern, not a command.)
+                    if i % 2 == 1 && part.starts_with("linegs-gpu ") && !part.contains('<') {
+                        out.push(part.to_string());
+                    }
+                }
+                continue;
+            }
+            let code = line.split(" #").next().unwrap_or("").trim();
+            if pending.is_empty() && !code.starts_with("linegs-gpu") {
+                continue;
+            }
+            if let Some(head) = code.strip_suffix('\\') {
+                pending.push_str(head);
+                pending.push(' ');
+            } else {
+                pending.push_str(code);
+                out.push(std::mem::take(&mut pending));
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn every_readme_command_parses() {
+        use clap::Parser;
+        let cmds = readme_commands();
+        assert!(cmds.len() >= 8, "{cmds:#?}");
+        for c in &cmds {
+            let words: Vec<&str> = c.split_whitespace().collect();
+            if let Err(e) = Cli::try_parse_from(&words) {
+                // `--help` and `--version` are successful parses that print.
+                use clap::error::ErrorKind::{DisplayHelp, DisplayVersion};
+                if !matches!(e.kind(), DisplayHelp | DisplayVersion) {
+                    panic!("README command does not parse: {c}\n{e}");
+                }
+            }
         }
     }
 }

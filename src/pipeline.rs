@@ -548,9 +548,22 @@ pub const BEFORE_COLOR: [u8; 3] = [220, 50, 40];
 pub const AFTER_COLOR: [u8; 3] = [30, 90, 220];
 
 impl Outputs {
-    /// Checks every output path before any work, so a typo costs nothing.
-    pub fn check(&self) -> Result<(), RunError> {
-        io::check_line_output(&self.lines)?;
+    /// Checks every output path before any work, so a typo or a collision costs nothing:
+    /// extensions, folders, and that no output is one of `inputs` or another output
+    /// ([`io::OutputSet::check`]).
+    pub fn check(&self, inputs: &[&Path]) -> Result<(), RunError> {
+        let mut set = io::OutputSet::new();
+        for p in inputs {
+            set.input(p);
+        }
+        set.output("-o", &self.lines, &io::LINE_OUTPUTS);
+        if let Some(p) = &self.report {
+            set.output("--report", p, &["json"]);
+        }
+        if let Some(p) = &self.compare_ply {
+            set.output("--compare-ply", p, &["ply"]);
+        }
+        set.check()?;
         Ok(())
     }
 
@@ -558,23 +571,29 @@ impl Outputs {
     /// report last and with the `write` stage and the output path in it.
     pub fn write(&self, input: &LineSet, out: &mut Outcome) -> Result<(), RunError> {
         let t = Instant::now();
-        io::write_lines(&self.lines, &out.lines.segments)?;
-        if let Some(p) = &self.compare_ply {
-            io::write_lines_ply_layers(
-                p,
-                &[
-                    (&input.segments[..], BEFORE_COLOR),
-                    (&out.lines.segments[..], AFTER_COLOR),
-                ],
-            )?;
+        // All of them land together or none does: a failure leaves earlier files as they were.
+        let mut set = io::OutputSet::new();
+        set.write(&self.lines, |p| io::write_lines(p, &out.lines.segments))?;
+        if let Some(cp) = &self.compare_ply {
+            set.write(cp, |p| {
+                io::write_lines_ply_layers(
+                    p,
+                    &[
+                        (&input.segments[..], BEFORE_COLOR),
+                        (&out.lines.segments[..], AFTER_COLOR),
+                    ],
+                )
+            })?;
         }
         let write = Stage::since("write", out.lines.len(), t);
         out.report.total_seconds += write.seconds;
         out.report.stages.push(write);
         out.report.output = Some(self.lines.display().to_string());
-        if let Some(p) = &self.report {
-            io::write_bytes_atomic(p, out.report.to_json().as_bytes())?;
+        if let Some(rp) = &self.report {
+            let json = out.report.to_json();
+            set.write(rp, |p| io::write_bytes_atomic(p, json.as_bytes()))?;
         }
+        set.commit()?;
         Ok(())
     }
 }

@@ -332,7 +332,7 @@ fn demo_writes_every_promised_file() {
     assert!(o.status.success(), "{}", stderr(&o));
     for f in [
         "gaussians.ply",
-        "input.obj",
+        "input.txt",
         "ground_truth.obj",
         "refined.obj",
         "before_after.ply",
@@ -448,4 +448,192 @@ fn render_and_synth_mesh_run_on_real_files() {
     assert_eq!(&bytes[1..4], b"PNG");
     let page = std::fs::read_to_string(&html).unwrap();
     assert!(!page.contains("http://") && !page.contains("https://"));
+}
+
+/// The README's command on the demo's own files gives the demo's result: the input is
+/// Line3D++ text, so its line groups (and the collinear merge) survive the round trip.
+#[test]
+fn refine_on_the_demo_files_reproduces_the_demo_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let demo = dir.path().join("linegs-demo");
+    let o = run(&[
+        "demo",
+        "--out",
+        demo.to_str().unwrap(),
+        "--backend",
+        "cpu",
+        "-n",
+        "8000",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = dir.path().join("refined.obj");
+    let rep = dir.path().join("report.json");
+    let o = run(&[
+        "refine",
+        "-g",
+        demo.join("gaussians.ply").to_str().unwrap(),
+        "-l",
+        demo.join("input.txt").to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--report",
+        rep.to_str().unwrap(),
+        "--backend",
+        "cpu",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read(&out).unwrap(),
+        std::fs::read(demo.join("refined.obj")).unwrap(),
+        "refine on the demo's files gives other segments than the demo"
+    );
+    let json = |p: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+    };
+    let (d, r) = (json(&demo.join("report.json")), json(&rep));
+    for k in ["score", "segments", "e_rms_cm", "coverage_pct", "r_l"] {
+        assert_eq!(d["after"][k], r["after"][k], "after.{k}");
+        assert_eq!(d["before"][k], r["before"][k], "before.{k}");
+    }
+    assert!(
+        r["input"]["input_lines"].as_u64().unwrap() < r["input"]["segments_read"].as_u64().unwrap()
+    );
+}
+
+/// Every output is checked by its extension before any work: exit 2, the file named, the
+/// expected extension said, nothing written.
+#[test]
+fn outputs_with_the_wrong_extension_are_refused_up_front() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let p = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let (gs, ls) = (g.to_str().unwrap(), l.to_str().unwrap());
+    let cases: Vec<(Vec<String>, &str, &str)> = vec![
+        (
+            vec![
+                "render".into(),
+                "-g".into(),
+                gs.into(),
+                "-l".into(),
+                ls.into(),
+                "-o".into(),
+                p("r.jpg"),
+            ],
+            "r.jpg",
+            ".png",
+        ),
+        (
+            vec![
+                "render".into(),
+                "-g".into(),
+                gs.into(),
+                "-l".into(),
+                ls.into(),
+                "-o".into(),
+                p("r.png"),
+                "--viewer".into(),
+                p("v.png"),
+            ],
+            "v.png",
+            ".html",
+        ),
+        (
+            vec![
+                "synth".into(),
+                "toy".into(),
+                "-o".into(),
+                p("t.obj"),
+                "--lines-out".into(),
+                p("t_l.obj"),
+            ],
+            "t.obj",
+            ".ply",
+        ),
+        (
+            vec![
+                "refine".into(),
+                "-g".into(),
+                gs.into(),
+                "-l".into(),
+                ls.into(),
+                "-o".into(),
+                p("o.obj"),
+                "--report".into(),
+                p("rep.txt"),
+                "--backend".into(),
+                "cpu".into(),
+            ],
+            "rep.txt",
+            ".json",
+        ),
+        (
+            vec![
+                "eval".into(),
+                "-g".into(),
+                gs.into(),
+                "-l".into(),
+                ls.into(),
+                "--radii".into(),
+                "0.1".into(),
+                "--plot".into(),
+                p("s.pdf"),
+                "--backend".into(),
+                "cpu".into(),
+            ],
+            "s.pdf",
+            ".png or .svg",
+        ),
+    ];
+    for (args, name, ext) in &cases {
+        let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+        let o = run(&args);
+        assert_input_error(&o, name);
+        assert!(stderr(&o).contains(ext), "{}", stderr(&o));
+    }
+    let mut names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["g.ply", "l.obj"], "an output was written");
+}
+
+/// A successful GPU run says nothing on stderr that looks like a failure, even without
+/// `XDG_RUNTIME_DIR` (Mesa's Wayland probe complains then; main gives it a folder).
+#[test]
+fn a_gpu_run_without_xdg_runtime_dir_prints_no_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let out = dir.path().join("r.obj");
+    // Its own temp folder, to see that the private runtime folder is removed at exit.
+    let tmp = dir.path().join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
+    let o = bin()
+        .args([
+            "refine",
+            "-g",
+            g.to_str().unwrap(),
+            "-l",
+            l.to_str().unwrap(),
+        ])
+        .args(["-o", out.to_str().unwrap(), "--backend", "gpu"])
+        .env_remove("XDG_RUNTIME_DIR")
+        .env("TMPDIR", &tmp)
+        .output()
+        .unwrap();
+    let e = stderr(&o);
+    if !o.status.success()
+        && e.contains("adapter")
+        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
+    {
+        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({e})");
+        return;
+    }
+    assert!(o.status.success(), "{e}");
+    assert!(
+        !e.to_lowercase().contains("error"),
+        "stderr of a successful run: {e}"
+    );
+    let left: Vec<_> = std::fs::read_dir(&tmp).unwrap().collect();
+    assert!(left.is_empty(), "left in the temp folder: {left:?}");
 }

@@ -231,10 +231,15 @@ fn ascii_ply_with_shuffled_and_extra_properties() {
         ],
         "",
     );
-    let text = format!("{h}0.5 3 255 1 2\n-1 6 0 4 5\n  9 9.5 7\n 7 8\n");
+    // A record split over two lines is refused (#14): one record per line is what catches
+    // a header that drops a property, whose values would otherwise shift silently.
+    let split = format!("{h}0.5 3 255 1 2\n-1 6 0 4 5\n  9 9.5 7\n 7 8\n");
+    let (_d, p) = file("a.ply", split.as_bytes());
+    let e = read_gaussians(&p, &PlyOptions::default()).unwrap_err();
+    assert_eq!(e.position(), Some(&Position::Line(13)), "{e}");
+    let text = format!("{h}0.5 3 255 1 2\n-1 6 0 4 5\n  9 9.5 7 7 8\n");
     let (_d, p) = file("a.ply", text.as_bytes());
     let g = read_gaussians(&p, &PlyOptions::default()).unwrap();
-    // The third record spans two lines: PLY ASCII only asks for whitespace between values.
     assert_eq!(
         g.centers,
         vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.5]]
@@ -595,7 +600,7 @@ fn a_lying_count_after_a_list_element_is_caught_while_streaming() {
 }
 
 #[test]
-fn trailing_bytes_after_the_data_give_a_warning() {
+fn trailing_bytes_after_the_data_are_an_error() {
     let mut bytes = ply_header(
         "binary_little_endian",
         "",
@@ -606,13 +611,12 @@ fn trailing_bytes_after_the_data_give_a_warning() {
     .into_bytes();
     le32(&mut bytes, &[1.0, 2.0, 3.0, 4.0]);
     let (_d, p) = file("long.ply", &bytes);
-    let g = read_gaussians(&p, &PlyOptions::default()).unwrap();
-    assert_eq!(g.centers, vec![[1.0, 2.0, 3.0]]);
-    assert_eq!(g.warnings.len(), 1);
+    // #14: a header that drops a property leaves bytes over; they were only a warning.
+    let e = read_gaussians(&p, &PlyOptions::default()).unwrap_err();
+    assert!(matches!(e, Error::Parse { .. }), "{e}");
     assert!(
-        g.warnings[0].contains("4 bytes after the last PLY element"),
-        "{:?}",
-        g.warnings
+        e.to_string().contains("4 bytes after the last element"),
+        "{e}"
     );
 }
 
@@ -649,9 +653,15 @@ fn broken_ply_headers_and_ascii_bodies_name_the_line() {
 
     let (_d3, p) = file("short.ply", format!("{h}1 2 3\n4 5 6\n7 8\n").as_bytes());
     let e = read_gaussians(&p, &PlyOptions::default()).unwrap_err();
-    assert!(matches!(e, Error::Truncated { .. }), "{e}");
-    assert_names(&e, &p, "vertex 2: file ends early");
-    assert!(e.to_string().contains("property `z`"), "{e}");
+    // One record per line (#14): a short row is a row without a property.
+    assert_names(
+        &e,
+        &p,
+        &format!(
+            "line {}: vertex 2: property `z` is value 3, but the row has 2 values",
+            n + 3
+        ),
+    );
 
     let mut bytes = h.clone().into_bytes();
     bytes.extend_from_slice(&[0x80, 0xff, 0x00, 0x3f, b'\n']);

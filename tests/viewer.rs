@@ -1,17 +1,25 @@
 //! The HTML viewer, rendered by headless Chromium: the screenshot shows the segments in
-//! their layer colours. Skipped (with a notice) when `/usr/bin/chromium` is missing,
-//! unless `CI=true`, where a missing browser is a failure.
+//! their layer colours. Chromium is looked up on `PATH` (`chromium`, `chromium-browser`,
+//! `google-chrome`); the test is skipped (with a notice) when none is there, unless
+//! `CI=true`, where a missing browser is a failure.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use linegs_gpu::geom::Segment;
-use linegs_gpu::render::{viewer_html, Layer};
+use linegs_gpu::render::{viewer_html, viewer_layers, GT_COLOR, INPUT_COLOR, REFINED_COLOR};
 
-const CHROMIUM: &str = "/usr/bin/chromium";
-const INPUT: [u8; 3] = [230, 85, 13];
-const REFINED: [u8; 3] = [33, 102, 172];
+/// The first Chromium-family browser on `PATH`.
+fn chromium() -> Option<PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    ["chromium", "chromium-browser", "google-chrome"]
+        .iter()
+        .flat_map(|name| std::env::split_paths(&path).map(move |d| d.join(name)))
+        .find(|p| p.is_file())
+}
+const INPUT: [u8; 3] = INPUT_COLOR;
+const REFINED: [u8; 3] = REFINED_COLOR;
 
 fn read_png(path: &Path) -> (u32, u32, Vec<[u8; 3]>) {
     let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
@@ -36,14 +44,14 @@ fn near(p: [u8; 3], c: [u8; 3]) -> bool {
 
 #[test]
 fn headless_chromium_shows_both_segment_sets() {
-    if !Path::new(CHROMIUM).exists() {
+    let Some(browser) = chromium() else {
         assert!(
             std::env::var("CI").as_deref() != Ok("true"),
-            "{CHROMIUM} is missing and CI=true"
+            "no chromium, chromium-browser or google-chrome on PATH and CI=true"
         );
-        eprintln!("skipping: {CHROMIUM} not found (apt-get install chromium)");
+        eprintln!("skipping: no Chromium on PATH (apt-get install chromium)");
         return;
-    }
+    };
     // A box outline (input, offset) and its corrected copy (refined), with points.
     let corners = |o: f64| {
         let c = |x: f64, y: f64, z: f64| glam::DVec3::new(x + o, y, z);
@@ -87,18 +95,10 @@ fn headless_chromium_shows_both_segment_sets() {
             ]
         })
         .collect();
-    let layers = [
-        Layer {
-            name: "input",
-            segments: &input,
-            color: INPUT,
-        },
-        Layer {
-            name: "refined",
-            segments: &refined,
-            color: REFINED,
-        },
-    ];
+    // The ground truth coincides with the refined box: stacked as the demo stacks them,
+    // the refined lines cover it.
+    let gt = refined.clone();
+    let layers = viewer_layers(&input, Some(&refined), Some(&gt));
     let html = viewer_html(&points, &layers, "viewer test", 10_000);
     assert!(html.contains("showing 10000 of 30000"));
 
@@ -107,7 +107,7 @@ fn headless_chromium_shows_both_segment_sets() {
     std::fs::write(&page, &html).unwrap();
     let shot = dir.path().join("shot.png");
     let profile = dir.path().join("profile");
-    let mut child = Command::new(CHROMIUM)
+    let mut child = Command::new(&browser)
         .args([
             "--headless",
             "--no-sandbox",
@@ -148,9 +148,26 @@ fn headless_chromium_shows_both_segment_sets() {
     assert_eq!((w, h), (1200, 800));
     let input_px = px.iter().filter(|&&p| near(p, INPUT)).count();
     let refined_px = px.iter().filter(|&&p| near(p, REFINED)).count();
+    let gt_px = px.iter().filter(|&&p| near(p, GT_COLOR)).count();
     // Twelve edges of a box spanning most of the window: thousands of pixels each.
     assert!(input_px > 1000, "input-coloured pixels: {input_px}");
     assert!(refined_px > 1000, "refined-coloured pixels: {refined_px}");
+    // The refined lines are on top of the identical ground truth.
+    assert!(
+        gt_px * 10 < refined_px,
+        "ground truth drawn over the refined lines: {gt_px} vs {refined_px}"
+    );
+    // The first view frames the segments: they span most of the window's height. Only
+    // the right of the legend panel (at most 40 % of the width) is looked at, so that the
+    // legend's swatch does not count.
+    let rows: Vec<u32> = (0..h)
+        .filter(|&y| (w * 45 / 100..w).any(|x| near(px[(y * w + x) as usize], REFINED)))
+        .collect();
+    let span = rows.last().unwrap() - rows.first().unwrap();
+    assert!(
+        span as f64 > 0.75 * h as f64,
+        "segments span {span} of {h} rows"
+    );
     // And the points: grey pixels darker than the white background.
     let grey = px
         .iter()

@@ -11,33 +11,40 @@ use std::time::Instant;
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
-    /// Gaussian counts of the synthetic scenes.
-    #[arg(long, value_delimiter = ',', default_value = "100000,1000000")]
-    pub gaussians: Vec<usize>,
-    /// Segment counts of the synthetic scenes.
-    #[arg(long, value_delimiter = ',', default_value = "1000,10000")]
-    pub segments: Vec<usize>,
-    /// Engines to time, in one run so that their ratio is fair on a noisy machine.
-    #[arg(long, value_delimiter = ',', default_value = "cpu,gpu")]
-    pub backend: Vec<BenchBackend>,
+    /// Gaussian counts of the synthetic scenes (a comma list; every count is run with
+    /// every segment count).
+    #[arg(
+        short = 'n',
+        long,
+        value_name = "N,N,...",
+        value_delimiter = ',',
+        default_value = "100000,1000000"
+    )]
+    pub num_gaussians: Vec<usize>,
+    /// Segment counts of the synthetic scenes (a comma list).
+    #[arg(
+        long,
+        value_name = "M,M,...",
+        value_delimiter = ',',
+        default_value = "1000,10000"
+    )]
+    pub num_segments: Vec<usize>,
+    /// Engines to time (a comma list of `cpu`, `gpu`, `auto`), in one run so that their
+    /// ratio is fair on a noisy machine.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu,gpu")]
+    pub backend: Vec<Backend>,
     /// Refinement profile.
     #[arg(long, value_enum, default_value_t = linegs_gpu::refine::Profile::Default)]
     pub profile: linegs_gpu::refine::Profile,
     /// Repetitions per case; the fastest total is kept.
     #[arg(long, default_value_t = 1)]
     pub repeat: usize,
+    /// Seed of the synthetic scenes.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum BenchBackend {
-    Cpu,
-    Gpu,
 }
 
 #[derive(Serialize)]
@@ -67,7 +74,7 @@ struct RunTiming {
 }
 
 pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
-    if a.gaussians.is_empty() || a.segments.is_empty() || a.repeat == 0 {
+    if a.num_gaussians.is_empty() || a.num_segments.is_empty() || a.repeat == 0 {
         return Err(input_error(
             "bench needs at least one size and --repeat >= 1",
         ));
@@ -77,19 +84,15 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
         ..Params::default()
     };
     let mut cases = Vec::new();
-    for &n in &a.gaussians {
-        for &m in &a.segments {
+    for &n in &a.num_gaussians {
+        for &m in &a.num_segments {
             let t = Instant::now();
             let synth = synth::scaled_scene(n, m, a.seed);
             let scene = Scene::from_arrays(synth.gaussians, synth.lines)?;
             let synth_seconds = t.elapsed().as_secs_f64();
             let mut runs = Vec::new();
             for &b in &a.backend {
-                let backend = match b {
-                    BenchBackend::Cpu => Backend::Cpu,
-                    BenchBackend::Gpu => Backend::Gpu,
-                };
-                let job = Job::new(params.clone(), backend);
+                let job = Job::new(params.clone(), b);
                 let mut best: Option<RunTiming> = None;
                 for _ in 0..a.repeat {
                     mem::reset_peak_rss();

@@ -1,9 +1,8 @@
-use super::{metrics_table, print_engine};
+use super::{metrics_table, print_engine, BackendArgs};
 use crate::cmd::eval::SeriesCols;
 use crate::cmd::render::{AFTER, BEFORE};
 use anyhow::{Context, Result};
 use clap::Args;
-use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::{self, gt};
 use linegs_gpu::io;
 use linegs_gpu::pipeline::{Job, Outputs, Scene};
@@ -18,14 +17,14 @@ pub struct DemoArgs {
     /// Folder for the inputs, outputs, report, pictures and viewer.
     #[arg(long, default_value = "linegs-demo")]
     pub out: PathBuf,
-    #[arg(long, value_enum, default_value_t = Backend::Auto)]
-    pub backend: Backend,
+    #[command(flatten)]
+    pub engine: BackendArgs,
     /// Seed of the synthetic scene.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Gaussians in the synthetic scene.
-    #[arg(short = 'n', long, default_value_t = 20_000)]
-    pub gaussians: usize,
+    /// Number of Gaussians in the synthetic scene.
+    #[arg(short = 'n', long, value_name = "N", default_value_t = 20_000)]
+    pub num_gaussians: usize,
 }
 
 pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
@@ -34,7 +33,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         .with_context(|| format!("{}: cannot create the demo folder", a.out.display()))?;
     let scene = synth::toy_scene(&synth::ToyParams {
         seed: a.seed,
-        n_gaussians: a.gaussians,
+        n_gaussians: a.num_gaussians,
         ..Default::default()
     });
     println!(
@@ -52,7 +51,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     let job = Job {
         sweep: Some(radii.clone()),
         gt: Some(toy_gt.clone()),
-        ..Job::new(Params::default(), a.backend)
+        ..Job::new(Params::default(), a.engine.backend)
     };
     let mut out = job.refine(&input, |_| {})?;
     print_engine(&out.report, verbose);
@@ -97,7 +96,9 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         p
     };
     io::write_gaussians_3dgs(&file("gaussians.ply"), &scene.gaussians, None)?;
-    io::write_lines(&file("input.obj"), &scene.lines.segments)?;
+    // Line3D++ text keeps the scene's line groups, so `refine` on these files runs the
+    // collinear merge as the demo did and reproduces its numbers exactly (tests/cli.rs).
+    io::write_lines_line3dpp(&file("input.txt"), &scene.lines)?;
     io::write_lines(&file("ground_truth.obj"), gt_edges)?;
     let outputs = Outputs {
         lines: file("refined.obj"),
@@ -151,23 +152,11 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     ];
     render::render_comparison(&scene.gaussians, &panels, 1600, 900)
         .write_png(&file("before_after.png"))?;
-    let layers = [
-        Layer {
-            name: "input segments",
-            segments: &scene.lines.segments,
-            color: BEFORE,
-        },
-        Layer {
-            name: "refined segments",
-            segments: &out.lines.segments,
-            color: AFTER,
-        },
-        Layer {
-            name: "ground truth",
-            segments: gt_edges,
-            color: [40, 170, 60],
-        },
-    ];
+    let layers = render::viewer_layers(
+        &scene.lines.segments,
+        Some(&out.lines.segments),
+        Some(gt_edges),
+    );
     let html = render::viewer_html(
         &scene.gaussians,
         &layers,

@@ -1,4 +1,4 @@
-use super::{input_error, load, metrics_table, print_engine, InputArgs};
+use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::Metrics;
@@ -12,6 +12,8 @@ use std::path::PathBuf;
 pub struct EvalArgs {
     #[command(flatten)]
     pub input: InputArgs,
+    #[command(flatten)]
+    pub engine: BackendArgs,
     #[command(flatten)]
     pub eval: EvalParams,
     /// Profile whose R_L convention applies when --r-l is not given (default: paper's
@@ -38,15 +40,14 @@ pub struct EvalArgs {
 }
 
 pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
-    if let Some(p) = &a.plot {
-        let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("");
-        if !matches!(ext, "png" | "svg") {
-            return Err(input_error(format!(
-                "{}: the plot is written as .png or .svg",
-                p.display()
-            )));
-        }
+    let mut outs = super::outputs(&a.input);
+    for p in a.compare.iter().chain(&a.gt) {
+        outs.input(p);
     }
+    if let Some(p) = &a.plot {
+        outs.output("--plot", p, &["png", "svg"]);
+    }
+    outs.check()?;
     let scene = load(&a.input)?;
     let compare = match &a.compare {
         Some(c) => {
@@ -64,7 +65,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             eval: a.eval.clone(),
             ..Params::default()
         },
-        backend: a.input.backend,
+        backend: a.engine.backend,
         sweep: a.radii.clone(),
         gt: match &a.gt {
             Some(p) => Some(io::read_lines(p)?.lines.segments),
@@ -92,11 +93,15 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             "metrics against the evaluation radius ({} Gaussians)",
             report.input.n_box
         );
-        if p.extension().and_then(|e| e.to_str()) == Some("svg") {
-            io::write_bytes_atomic(p, render::sweep_plot_svg(&series, &title).as_bytes())?;
-        } else {
-            render::sweep_plot_png(&series, &title, 1400, 900).write_png(p)?;
-        }
+        let svg = p.extension().is_some_and(|e| e.eq_ignore_ascii_case("svg"));
+        outs.write(p, |tmp| {
+            if svg {
+                io::write_bytes_atomic(tmp, render::sweep_plot_svg(&series, &title).as_bytes())
+            } else {
+                render::sweep_plot_png(&series, &title, 1400, 900).write_png(tmp)
+            }
+        })?;
+        outs.commit()?;
         if !a.json {
             println!("wrote {}", p.display());
         }

@@ -71,6 +71,11 @@ pub struct InputArgs {
     /// Make Gaussians with NaN or infinite centers an error instead of a warning.
     #[arg(long)]
     pub strict: bool,
+}
+
+/// The engine choice of the commands that query the Gaussians (`render` only draws).
+#[derive(Args, Debug, Clone)]
+pub struct BackendArgs {
     /// Which engine answers the cylinder queries: `auto` (a GPU adapter when there is
     /// one, lavapipe included, else the CPU), `gpu` or `cpu`.
     #[arg(long, value_enum, default_value_t = Backend::Auto)]
@@ -130,6 +135,13 @@ impl FrameArgs {
 }
 
 /// Reads the scene and prints what loading it found.
+/// An output set whose outputs may not replace the two inputs every command reads.
+pub fn outputs(a: &InputArgs) -> io::OutputSet {
+    let mut outs = io::OutputSet::new();
+    outs.input(&a.gaussians).input(&a.lines);
+    outs
+}
+
 pub fn load(a: &InputArgs) -> Result<Scene> {
     let scene = Scene::load(&a.gaussians, &a.lines, &a.load_options()?)?;
     for w in &scene.warnings {

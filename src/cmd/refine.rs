@@ -1,4 +1,4 @@
-use super::{load, metrics_table, print_engine, InputArgs};
+use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -10,11 +10,14 @@ use std::path::PathBuf;
 pub struct RefineArgs {
     #[command(flatten)]
     pub input: InputArgs,
+    #[command(flatten)]
+    pub engine: BackendArgs,
     /// Where to write the refined segments; the format follows the extension: `.obj`,
     /// `.stl`, `.ply` (with an edge element), `.txt` (6 numbers a row), `.npy`.
     #[arg(short, long, value_name = "FILE")]
     pub output: PathBuf,
-    /// Write the JSON report (backend, adapter, parameters, inputs, stages, before/after).
+    /// Write the JSON report (backend, adapter, parameters, inputs, stages, before/after);
+    /// a `.json` file.
     #[arg(long, value_name = "JSON")]
     pub report: Option<PathBuf>,
     /// Also write a PLY with the input (red) and refined (blue) segments as coloured edges.
@@ -34,7 +37,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         report: a.report.clone(),
         compare_ply: a.compare_ply.clone(),
     };
-    outputs.check()?;
+    outputs.check(&[&a.input.gaussians, &a.input.lines])?;
     let scene = load(&a.input)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
@@ -44,7 +47,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     bar.set_message("indexing the Gaussians");
     let job = Job {
         check_frames: !a.no_frame_check,
-        ..Job::new(a.params, a.input.backend)
+        ..Job::new(a.params, a.engine.backend)
     };
     let refined = job.refine(&scene, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));

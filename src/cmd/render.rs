@@ -12,22 +12,33 @@ pub struct RenderArgs {
     /// A second segment set (e.g. the refined lines), drawn in its own panel.
     #[arg(long, value_name = "FILE")]
     pub lines_after: Option<PathBuf>,
-    /// The PNG to write.
+    /// The picture to write (`.png`).
     #[arg(short, long, value_name = "PNG")]
     pub output: PathBuf,
-    /// Also write a self-contained HTML viewer (orbit, zoom, toggle layers).
+    /// Also write a self-contained HTML viewer (`.html`: orbit, zoom, toggle layers).
     #[arg(long, value_name = "HTML")]
     pub viewer: Option<PathBuf>,
-    #[arg(long, default_value_t = 1600)]
+    /// Width of the picture in pixels (64 to 16384).
+    #[arg(long, default_value_t = 1600, value_parser = clap::value_parser!(u32).range(64..=16384))]
     pub width: u32,
-    #[arg(long, default_value_t = 900)]
+    /// Height of the picture in pixels (64 to 16384).
+    #[arg(long, default_value_t = 900, value_parser = clap::value_parser!(u32).range(64..=16384))]
     pub height: u32,
 }
 
-pub const BEFORE: [u8; 3] = [220, 60, 40];
-pub const AFTER: [u8; 3] = [30, 100, 230];
+pub const BEFORE: [u8; 3] = render::INPUT_COLOR;
+pub const AFTER: [u8; 3] = render::REFINED_COLOR;
 
 pub fn run(a: RenderArgs) -> Result<()> {
+    let mut outs = super::outputs(&a.input);
+    if let Some(p) = &a.lines_after {
+        outs.input(p);
+    }
+    outs.output("-o", &a.output, &["png"]);
+    if let Some(v) = &a.viewer {
+        outs.output("--viewer", v, &["html", "htm"]);
+    }
+    outs.check()?;
     let scene = load(&a.input)?;
     let after = match &a.lines_after {
         Some(p) => Some(io::read_lines(p)?.lines),
@@ -55,23 +66,15 @@ pub fn run(a: RenderArgs) -> Result<()> {
         });
     }
     let img = render::render_comparison(&scene.gaussians, &panels, a.width, a.height);
-    img.write_png(&a.output)?;
+    outs.write(&a.output, |p| img.write_png(p))?;
+    if let Some(v) = &a.viewer {
+        let layers = render::viewer_layers(before, after.as_ref().map(|a| &a.segments[..]), None);
+        let html = render::viewer_html(&scene.gaussians, &layers, "linegs-gpu", 200_000);
+        outs.write(v, |p| io::write_bytes_atomic(p, html.as_bytes()))?;
+    }
+    outs.commit()?;
     println!("wrote {}", a.output.display());
     if let Some(v) = &a.viewer {
-        let mut layers = vec![Layer {
-            name: "input segments",
-            segments: before,
-            color: BEFORE,
-        }];
-        if let Some(af) = &after {
-            layers.push(Layer {
-                name: "refined segments",
-                segments: &af.segments,
-                color: AFTER,
-            });
-        }
-        let html = render::viewer_html(&scene.gaussians, &layers, "linegs-gpu", 200_000);
-        io::write_bytes_atomic(v, html.as_bytes())?;
         println!("wrote {}", v.display());
     }
     Ok(())

@@ -27,8 +27,9 @@ pub enum SynthKind {
         #[arg(long, value_name = "FILE")]
         gt_out: Option<PathBuf>,
         /// Number of Gaussians.
-        #[arg(short = 'n', long, default_value_t = 20_000)]
-        gaussians: usize,
+        #[arg(short = 'n', long, value_name = "N", default_value_t = 20_000)]
+        num_gaussians: usize,
+        /// Seed of the random scene (same seed, same files).
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
@@ -38,31 +39,38 @@ pub enum SynthKind {
         /// The mesh (`v` and `f` records).
         #[arg(long, value_name = "OBJ")]
         mesh: PathBuf,
+        /// Gaussians to write (a standard 62-property 3DGS PLY).
         #[arg(short, long, value_name = "PLY")]
         output: PathBuf,
-        #[arg(short = 'n', long, default_value_t = 100_000)]
-        gaussians: usize,
-        /// Also write the detected sharp edges.
+        /// Number of Gaussians.
+        #[arg(short = 'n', long, value_name = "N", default_value_t = 100_000)]
+        num_gaussians: usize,
+        /// Also write the detected sharp edges (format from the extension).
         #[arg(long, value_name = "FILE")]
         edges_out: Option<PathBuf>,
+        /// Seed of the random sampling (same seed, same files).
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
     /// Gaussians along given segments with noise, plus a background (for line files that
     /// come without a 3DGS model).
     Around {
+        /// The line segments to place Gaussians around (any supported line format).
         #[arg(short, long, value_name = "FILE")]
         lines: PathBuf,
+        /// Gaussians to write (a standard 62-property 3DGS PLY).
         #[arg(short, long, value_name = "PLY")]
         output: PathBuf,
-        #[arg(short = 'n', long, default_value_t = 100_000)]
-        gaussians: usize,
+        /// Number of Gaussians.
+        #[arg(short = 'n', long, value_name = "N", default_value_t = 100_000)]
+        num_gaussians: usize,
         /// Standard deviation of the noise around the segments (scene units).
         #[arg(long, default_value_t = 0.004)]
         sigma: f64,
         /// Fraction of the centers spread uniformly in the lines' bounding box.
         #[arg(long, default_value_t = 0.1)]
         background: f64,
+        /// Seed of the random placement (same seed, same files).
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
@@ -74,23 +82,32 @@ pub fn run(a: SynthArgs) -> Result<()> {
             output,
             lines_out,
             gt_out,
-            gaussians,
+            num_gaussians,
             seed,
         } => {
-            io::check_line_output(&lines_out)?;
+            let mut outs = io::OutputSet::new();
+            outs.output("-o", &output, &["ply"]).output(
+                "--lines-out",
+                &lines_out,
+                &io::LINE_OUTPUTS,
+            );
             if let Some(g) = &gt_out {
-                io::check_line_output(g)?;
+                outs.output("--gt-out", g, &io::LINE_OUTPUTS);
             }
+            outs.check()?;
             let scene = synth::toy_scene(&synth::ToyParams {
                 seed,
-                n_gaussians: gaussians,
+                n_gaussians: num_gaussians,
                 ..Default::default()
             });
-            io::write_gaussians_3dgs(&output, &scene.gaussians, None)?;
-            io::write_lines(&lines_out, &scene.lines.segments)?;
+            outs.write(&output, |p| {
+                io::write_gaussians_3dgs(p, &scene.gaussians, None)
+            })?;
+            outs.write(&lines_out, |p| io::write_lines(p, &scene.lines.segments))?;
             if let Some(g) = &gt_out {
-                io::write_lines(g, &scene.gt)?;
+                outs.write(g, |p| io::write_lines(p, &scene.gt))?;
             }
+            outs.commit()?;
             println!(
                 "synthetic toy scene: {} Gaussians -> {}, {} input segments -> {}",
                 scene.gaussians.len(),
@@ -102,25 +119,29 @@ pub fn run(a: SynthArgs) -> Result<()> {
         SynthKind::Mesh {
             mesh,
             output,
-            gaussians,
+            num_gaussians,
             edges_out,
             seed,
         } => {
+            let mut outs = io::OutputSet::new();
+            outs.input(&mesh).output("-o", &output, &["ply"]);
             if let Some(e) = &edges_out {
-                io::check_line_output(e)?;
+                outs.output("--edges-out", e, &io::LINE_OUTPUTS);
             }
+            outs.check()?;
             let m = synth::mesh::read_obj_mesh(&mesh).map_err(|e| input_error(e.to_string()))?;
             let pts = synth::mesh::gaussians_from_mesh(
                 &m,
-                gaussians,
+                num_gaussians,
                 seed,
                 &synth::mesh::MeshGaussianOptions::default(),
             );
-            io::write_gaussians_3dgs(&output, &pts, None)?;
+            outs.write(&output, |p| io::write_gaussians_3dgs(p, &pts, None))?;
             if let Some(e) = &edges_out {
                 let edges = synth::mesh::sharp_edges(&m.welded(1e-9), 30.0);
-                io::write_lines(e, &edges)?;
+                outs.write(e, |p| io::write_lines(p, &edges))?;
             }
+            outs.commit()?;
             println!(
                 "synthetic: {} Gaussians from {} -> {}",
                 pts.len(),
@@ -131,7 +152,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         SynthKind::Around {
             lines,
             output,
-            gaussians,
+            num_gaussians,
             sigma,
             background,
             seed,
@@ -141,15 +162,19 @@ pub fn run(a: SynthArgs) -> Result<()> {
                     "--background must be in [0, 1] and --sigma >= 0",
                 ));
             }
+            let mut outs = io::OutputSet::new();
+            outs.input(&lines).output("-o", &output, &["ply"]);
+            outs.check()?;
             let l = io::read_lines(&lines)?;
             let pts = synth::gaussians_around_segments(
                 &l.lines.segments,
-                gaussians,
+                num_gaussians,
                 sigma,
                 background,
                 seed,
             );
-            io::write_gaussians_3dgs(&output, &pts, None)?;
+            outs.write(&output, |p| io::write_gaussians_3dgs(p, &pts, None))?;
+            outs.commit()?;
             println!(
                 "synthetic: {} Gaussians around {} segments of {} -> {}",
                 pts.len(),

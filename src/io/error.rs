@@ -70,13 +70,14 @@ plain text with 6 numbers per row";
 /// where it helps by what to do.
 #[derive(thiserror::Error, Debug)]
 pub enum Error {
-    /// The operating system refused (missing file, permissions, full disk, ...).
-    #[error("{}: cannot {action}: {source}", .path.display())]
+    /// The operating system refused (missing file, permissions, full disk, ...). The OS
+    /// message is part of the text and deliberately not a `source`, so that a printed
+    /// chain (`{:#}`) says it once.
+    #[error("{}: cannot {action}: {cause}", .path.display())]
     Io {
         path: PathBuf,
         action: &'static str,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
 
     /// Zero bytes, or nothing but whitespace and comments.
@@ -123,9 +124,15 @@ pub enum Error {
     #[error("{}: {msg}", .path.display())]
     NoData { path: PathBuf, msg: String },
 
-    /// A writer was asked for something it cannot produce.
+    /// A writer was asked for something it cannot produce, or a path is not a file we can
+    /// read (a device, a folder).
     #[error("{}: {msg}", .path.display())]
     Unsupported { path: PathBuf, msg: String },
+
+    /// An output path that cannot be used: its folder is missing or read-only, or it is
+    /// the same file as an input or as another output. Found before any work.
+    #[error("{}: {msg}", .path.display())]
+    Output { path: PathBuf, msg: String },
 }
 
 impl Error {
@@ -140,7 +147,8 @@ impl Error {
             | Error::NonFinite { path, .. }
             | Error::Missing { path, .. }
             | Error::NoData { path, .. }
-            | Error::Unsupported { path, .. } => path,
+            | Error::Unsupported { path, .. }
+            | Error::Output { path, .. } => path,
         }
     }
 
@@ -154,12 +162,30 @@ impl Error {
         }
     }
 
-    pub(crate) fn io(path: &Path, action: &'static str, source: std::io::Error) -> Self {
+    pub(crate) fn io(path: &Path, action: &'static str, cause: std::io::Error) -> Self {
         Error::Io {
             path: path.to_path_buf(),
             action,
-            source,
+            cause: without_temp_path(cause),
         }
+    }
+
+    /// The same error about `path` instead (an output written under a temporary name is
+    /// reported under its real one).
+    pub(crate) fn with_path(mut self, new: &Path) -> Self {
+        match &mut self {
+            Error::Io { path, .. }
+            | Error::Empty { path }
+            | Error::UnknownFormat { path, .. }
+            | Error::Parse { path, .. }
+            | Error::Truncated { path, .. }
+            | Error::NonFinite { path, .. }
+            | Error::Missing { path, .. }
+            | Error::NoData { path, .. }
+            | Error::Unsupported { path, .. }
+            | Error::Output { path, .. } => *path = new.to_path_buf(),
+        }
+        self
     }
 
     pub(crate) fn parse(path: &Path, pos: Position, msg: impl Into<String>) -> Self {
@@ -207,6 +233,19 @@ impl Error {
             path: path.to_path_buf(),
             msg: msg.into(),
         }
+    }
+}
+
+/// `tempfile` wraps OS errors as "<message> at path \"/dir/.linegs-Xy12.tmp\""; the
+/// temporary name means nothing to a user, so only the OS error is kept.
+pub(crate) fn without_temp_path(e: std::io::Error) -> std::io::Error {
+    let kind = e.kind();
+    match e.get_ref().and_then(|inner| inner.source()) {
+        Some(os) if e.raw_os_error().is_none() => {
+            let text = os.to_string();
+            std::io::Error::new(kind, text)
+        }
+        _ => e,
     }
 }
 

@@ -9,7 +9,8 @@ use std::io::{Read, Write};
 use std::path::Path;
 
 use super::error::{Error, Position};
-use super::ply::{self, GaussianCloud, PlyOptions, PropKind};
+use super::input::{check_readable, open_input, read_input, Input};
+use super::ply::{self, GaussianCloud, PlyOptions, PropKind, BOM};
 use super::write::write_atomic;
 use super::{ply_compressed, splat, spz};
 
@@ -105,6 +106,10 @@ fn read(
     opts: &PlyOptions,
     keep_opacity: bool,
 ) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
+    // A pipe is read once, into memory, and parsed there; devices are refused.
+    if let Input::Bytes(b) = open_input(path)? {
+        return read_bytes(path, &b, opts, keep_opacity);
+    }
     let (head, len) = head_of(path)?;
     match detect_gaussians(path, &head, len)? {
         // The 3DGS reader streams and has a fast path; it only lacks the opacity output.
@@ -125,8 +130,48 @@ fn read(
     }
 }
 
-/// The first MiB of a file and its length.
+/// [`read_gaussians`] on bytes already in memory (any model format); `path` names them
+/// in messages, and its extension tells a `.splat` (which has no magic).
+pub fn parse_gaussian_model(
+    path: &Path,
+    bytes: &[u8],
+    opts: &PlyOptions,
+) -> Result<GaussianCloud, Error> {
+    Ok(read_bytes(path, bytes, opts, false)?.0)
+}
+
+/// [`read`] of a pipe's content.
+fn read_bytes(
+    path: &Path,
+    b: &[u8],
+    opts: &PlyOptions,
+    keep_opacity: bool,
+) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
+    let head = b.strip_prefix(BOM).unwrap_or(b);
+    let head = &head[..head.len().min(1 << 20)];
+    match detect_gaussians(path, head, b.len() as u64)? {
+        GaussianFormat::Ply if !keep_opacity => Ok((ply::parse_gaussians(path, b, opts)?, None)),
+        GaussianFormat::Ply => Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: "the opacities of a PLY are read from a file, not a pipe; save it first".into(),
+        }),
+        GaussianFormat::CompressedPly => {
+            ply_compressed::read(path, b, Sink::new(path, opts, keep_opacity))
+        }
+        GaussianFormat::Spz => spz::read(path, b, Sink::new(path, opts, keep_opacity)),
+        GaussianFormat::Splat => splat::read(path, b, Sink::new(path, opts, keep_opacity)),
+    }
+}
+
+/// The first MiB of a file (after a byte-order mark, which every reader skips) and the
+/// length of the rest. Devices are refused, not read.
 pub(crate) fn head_of(path: &Path) -> Result<(Vec<u8>, u64), Error> {
+    if !check_readable(path)?.is_file() {
+        return Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: "a pipe can be read only once; give a regular file here".into(),
+        });
+    }
     let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
     let len = file
         .metadata()
@@ -136,11 +181,16 @@ pub(crate) fn head_of(path: &Path) -> Result<(Vec<u8>, u64), Error> {
     file.take(1 << 20)
         .read_to_end(&mut head)
         .map_err(|e| Error::io(path, "read", e))?;
+    if head.starts_with(BOM) {
+        head.drain(..BOM.len());
+        return Ok((head, len - BOM.len() as u64));
+    }
     Ok((head, len))
 }
 
+/// The whole file, bounded like every reader (see `input.rs`).
 fn read_all(path: &Path) -> Result<Vec<u8>, Error> {
-    std::fs::read(path).map_err(|e| Error::io(path, "read", e))
+    read_input(path)
 }
 
 /// A plain PLY read through the generic record walker, keeping the opacity logits.

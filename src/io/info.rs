@@ -9,8 +9,9 @@ use crate::geom::{p64, Aabb};
 
 use super::error::Error;
 use super::gaussians::{detect_gaussians, read_gaussians, GaussianFormat};
-use super::lines::{read_lines_with, LineOptions};
-use super::ply::{parse_header, PlyOptions};
+use super::input::{open_input, Input};
+use super::lines::{parse_lines_with, read_lines_with, LineFile, LineOptions};
+use super::ply::{parse_gaussians, parse_header, PlyOptions, BOM};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FileKind {
@@ -52,7 +53,12 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
 /// [`info`] with the options of the line readers (`--curves`).
 pub fn info_with(path: &Path, line_opts: &LineOptions) -> Result<FileInfo, Error> {
     if path.is_dir() {
-        return lines_info(path, 0, line_opts);
+        return lines_info(path, 0, read_lines_with(path, line_opts)?);
+    }
+    // A pipe is read once (a second open would wait for a writer that has gone): its
+    // bytes are looked at and parsed in memory. Devices are refused here.
+    if let Input::Bytes(b) = open_input(path)? {
+        return info_of_bytes(path, b, line_opts);
     }
     let bytes = std::fs::metadata(path)
         .map_err(|e| Error::io(path, "open", e))?
@@ -63,6 +69,11 @@ pub fn info_with(path: &Path, line_opts: &LineOptions) -> Result<FileInfo, Error
         .take(1 << 20)
         .read_to_end(&mut head)
         .map_err(|e| Error::io(path, "read", e))?;
+    // A byte-order mark is skipped by every reader, so `info` looks past it too.
+    let complete = head.len() as u64 == bytes;
+    if head.starts_with(BOM) {
+        head.drain(..BOM.len());
+    }
     let is_ply = head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n");
     let not_ply_gaussians = !is_ply
         && matches!(
@@ -91,7 +102,7 @@ pub fn info_with(path: &Path, line_opts: &LineOptions) -> Result<FileInfo, Error
         });
     }
     if is_ply {
-        let header = parse_header(path, &head, head.len() as u64 == bytes)?;
+        let header = parse_header(path, &head, complete)?;
         if header.element("edge").is_none() {
             let cloud = read_gaussians(path, &PlyOptions::default())?;
             let compressed = cloud.format.starts_with("SuperSplat");
@@ -133,11 +144,45 @@ pub fn info_with(path: &Path, line_opts: &LineOptions) -> Result<FileInfo, Error
             });
         }
     }
-    lines_info(path, bytes, line_opts)
+    lines_info(path, bytes, read_lines_with(path, line_opts)?)
 }
 
-fn lines_info(path: &Path, bytes: u64, opts: &LineOptions) -> Result<FileInfo, Error> {
-    let file = read_lines_with(path, opts)?;
+/// [`info_with`] of a pipe's content: a 3DGS PLY without edges, or a line file.
+fn info_of_bytes(path: &Path, b: Vec<u8>, line_opts: &LineOptions) -> Result<FileInfo, Error> {
+    let bytes = b.len() as u64;
+    let text = b.strip_prefix(BOM).unwrap_or(&b);
+    if text.starts_with(b"ply\n") || text.starts_with(b"ply\r\n") {
+        let header = parse_header(path, text, true)?;
+        if header.element("edge").is_none() {
+            let cloud = parse_gaussians(path, &b, &PlyOptions::default())?;
+            let mut bbox = Aabb::empty();
+            for c in &cloud.centers {
+                bbox.extend(p64(*c));
+            }
+            return Ok(FileInfo {
+                path: path.to_path_buf(),
+                bytes,
+                kind: FileKind::Gaussians,
+                format: format!("PLY {}", cloud.format),
+                count: cloud.centers.len(),
+                elements: header
+                    .elements
+                    .iter()
+                    .map(|e| (e.name.clone(), e.count))
+                    .collect(),
+                properties: Vec::new(),
+                dropped_invalid: cloud.skipped_nonfinite,
+                groups: None,
+                bbox,
+                lengths: None,
+                warnings: cloud.warnings,
+            });
+        }
+    }
+    lines_info(path, bytes, parse_lines_with(path, b, line_opts)?)
+}
+
+fn lines_info(path: &Path, bytes: u64, file: LineFile) -> Result<FileInfo, Error> {
     let segs = &file.lines.segments;
     let mut lens: Vec<f64> = segs.iter().map(|s| s.length()).collect();
     lens.sort_by(f64::total_cmp);

@@ -8,6 +8,7 @@ use crate::geom::{LineSet, Segment, MIN_LENGTH};
 
 use super::edges_json::{self, Curves};
 use super::error::{Error, Position};
+use super::input::open_input;
 use super::limap;
 use super::npy;
 use super::ply::{self, PropKind};
@@ -130,9 +131,24 @@ pub fn read_lines_with(path: &Path, opts: &LineOptions) -> Result<LineFile, Erro
         p.warnings = warnings;
         return finish(path, LineFormat::LimapTracks, &mut p);
     }
-    let mut bytes = std::fs::read(path).map_err(|e| Error::io(path, "read", e))?;
+    let bytes = open_input(path)?.into_bytes(path)?;
+    parse_lines_with(path, bytes, opts)
+}
+
+/// [`read_lines`] on bytes already in memory; `path` names them in messages (and its
+/// extension tells a broken binary STL apart).
+pub fn parse_lines(path: &Path, bytes: Vec<u8>) -> Result<LineFile, Error> {
+    parse_lines_with(path, bytes, &LineOptions::default())
+}
+
+/// [`parse_lines`] with options.
+pub fn parse_lines_with(
+    path: &Path,
+    mut bytes: Vec<u8>,
+    opts: &LineOptions,
+) -> Result<LineFile, Error> {
     // Editors on Windows prefix text with a UTF-8 byte-order mark; no binary format starts so.
-    if bytes.starts_with(b"\xEF\xBB\xBF") {
+    if bytes.starts_with(ply::BOM) {
         bytes.drain(..3);
     }
     let format = detect(path, &bytes)?;
@@ -758,8 +774,12 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Parsed, Error> {
     };
     let xyz = [scalar(vi, "x")?, scalar(vi, "y")?, scalar(vi, "z")?];
     let ends = [scalar(ei, "vertex1")?, scalar(ei, "vertex2")?];
-    let mut points: Vec<[f64; 3]> = Vec::with_capacity(header.elements[vi].count);
-    let mut edges: Vec<([f64; 2], ply::Loc)> = Vec::with_capacity(header.elements[ei].count);
+    // Reserved by what the data can hold, never by the header's word alone.
+    let have = (bytes.len() - header.len) as u64;
+    let (v, e) = (&header.elements[vi], &header.elements[ei]);
+    let mut points: Vec<[f64; 3]> = Vec::with_capacity(v.max_records(header.encoding, have));
+    let mut edges: Vec<([f64; 2], ply::Loc)> =
+        Vec::with_capacity(e.max_records(header.encoding, have));
     for (i, elem) in header.elements.iter().enumerate() {
         if i == vi {
             body.for_each(path, elem, &xyz, |loc, v| {
@@ -779,10 +799,11 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Parsed, Error> {
                 edges.push(([v[0], v[1]], loc));
                 Ok(())
             })?;
-        } else if i < vi.max(ei) {
+        } else {
             body.skip(path, elem)?;
         }
     }
+    body.finish(path, Some(bytes.len() as u64))?;
     let mut p = Parsed::new(Origin::Records("edge"));
     for (k, (e, loc)) in edges.iter().enumerate() {
         let mut end = [0usize; 2];

@@ -7,9 +7,11 @@ mod edges_json;
 mod error;
 mod gaussians;
 mod info;
+mod input;
 mod limap;
 mod lines;
 mod npy;
+mod output;
 mod ply;
 mod ply_compressed;
 mod splat;
@@ -20,15 +22,21 @@ mod write;
 pub use edges_json::{Curves, POLYLINE_PIECES};
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
-    detect_gaussians, is_gaussian_model, read_gaussians, read_gaussians_with_opacity,
-    write_gaussians_ply, GaussianFormat,
+    detect_gaussians, is_gaussian_model, parse_gaussian_model, read_gaussians,
+    read_gaussians_with_opacity, write_gaussians_ply, GaussianFormat,
 };
 pub use info::{info, info_with, FileInfo, FileKind};
-pub use lines::{read_lines, read_lines_with, LineFile, LineFormat, LineOptions};
-pub use ply::{GaussianCloud, PlyOptions};
+pub(crate) use input::read_input;
+pub use input::STREAM_LIMIT;
+pub use lines::{
+    parse_lines, parse_lines_with, read_lines, read_lines_with, LineFile, LineFormat, LineOptions,
+};
+pub use output::OutputSet;
+pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
 pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};
 pub use write::{
-    check_line_output, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,
-    write_lines, write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
+    check_line_output, check_output_extension, gaussian_3dgs_properties, write_bytes_atomic,
+    write_gaussians_3dgs, write_lines, write_lines_line3dpp, write_lines_ply_layers,
+    DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
 };

@@ -50,8 +50,28 @@ pub(crate) fn parse(path: &Path, bytes: &[u8]) -> Result<Vec<Segment>, Error> {
             format!("the .npy header needs {hlen} bytes from byte {hstart}"),
         ));
     }
-    let header = String::from_utf8_lossy(&bytes[hstart..data_start]);
+    let raw = &bytes[hstart..data_start];
+    // The format ends the header with a newline after the padding: a length field that is
+    // off by even one byte would otherwise shift every value (coordinates near 1e38).
+    if raw.last() != Some(&b'\n') {
+        return Err(Error::parse(
+            path,
+            Position::Byte(8),
+            format!(
+                "the header length field says {hlen} bytes, but byte {} is not the newline that ends a .npy header (corrupt header length?)",
+                data_start.saturating_sub(1)
+            ),
+        ));
+    }
+    let header = String::from_utf8_lossy(raw);
     let bad = |msg: String| Error::parse(path, Position::Byte(hstart as u64), msg);
+    let dict = header.trim_end_matches([' ', '\n', '\x00']);
+    if !(dict.trim_start().starts_with('{') && dict.ends_with('}')) {
+        return Err(bad(format!(
+            "the header `{}` is not a Python dict literal {{...}} padded with spaces",
+            header.trim().chars().take(80).collect::<String>()
+        )));
+    }
     let descr = dict_value(&header, "descr")
         .map(|v| v.trim_matches(|c| c == '\'' || c == '"').to_string())
         .ok_or_else(|| bad(format!("the header `{}` has no 'descr'", header.trim())))?;
@@ -115,6 +135,15 @@ pub(crate) fn parse(path: &Path, bytes: &[u8]) -> Result<Vec<Segment>, Error> {
             pos,
             format!(
                 "shape {shape_text} of {descr} needs {need} data bytes from byte {data_start}, the file has {have}"
+            ),
+        ));
+    }
+    if have > need {
+        return Err(Error::parse(
+            path,
+            Position::Byte(data_start as u64 + need as u64),
+            format!(
+                "shape {shape_text} of {descr} needs {need} data bytes from byte {data_start}, but the file has {have} (wrong shape in the header?)"
             ),
         ));
     }

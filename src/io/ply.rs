@@ -1,12 +1,15 @@
 //! PLY: the header, a record walker shared by every element and encoding, and the
 //! Gaussian reader with its fast path for 3DGS `point_cloud.ply` files (SPEC 6).
 
-use std::fs::File;
 use std::io::{self, BufRead, BufReader, Read};
 use std::path::Path;
 
 use super::chunked::{Chunked, CHUNK};
 use super::error::{Error, Position};
+use super::input::{open_input, Input};
+
+/// The UTF-8 byte-order mark some Windows editors put before text.
+pub(crate) const BOM: &[u8] = b"\xEF\xBB\xBF";
 
 /// Headers longer than this are not PLY headers (a 3DGS header is about 1.5 KB).
 const MAX_HEADER: usize = 1 << 20;
@@ -261,6 +264,13 @@ pub(crate) fn parse_header(path: &Path, bytes: &[u8], at_eof: bool) -> Result<He
                         toks[2]
                     ))
                 })?;
+                if let Some(prev) = elements.iter().find(|e| e.name == toks[1]) {
+                    return Err(bad(format!(
+                        "a second `{}` element (the first is on line {}); which one holds the data?",
+                        toks[1], prev.line
+                    )));
+                }
+                check_has_props(path, elements.last())?;
                 elements.push(Element {
                     name: toks[1].to_string(),
                     count,
@@ -299,12 +309,19 @@ pub(crate) fn parse_header(path: &Path, bytes: &[u8], at_eof: bool) -> Result<He
                         )))
                     }
                 };
+                if elem.props.iter().any(|p| p.name == prop.name) {
+                    return Err(bad(format!(
+                        "property `{}` of `{}` is declared twice",
+                        prop.name, elem.name
+                    )));
+                }
                 elem.props.push(prop);
             }
             Some("end_header") => {
                 let Some((encoding, version)) = encoding else {
                     return Err(bad("`end_header` without a `format` line".to_string()));
                 };
+                check_has_props(path, elements.last())?;
                 return Ok(Header {
                     encoding,
                     version,
@@ -321,6 +338,48 @@ pub(crate) fn parse_header(path: &Path, bytes: &[u8], at_eof: bool) -> Result<He
                 format!("no `end_header` in the first {MAX_HEADER} bytes"),
             ));
         }
+    }
+}
+
+/// An element with records but no properties has no data to read (and a walk over its
+/// `2^64 - 1` empty records would never end).
+fn check_has_props(path: &Path, elem: Option<&Element>) -> Result<(), Error> {
+    match elem {
+        Some(e) if e.props.is_empty() && e.count > 0 => Err(Error::parse(
+            path,
+            Position::Line(e.line),
+            format!(
+                "element `{}` has {} records but no properties",
+                e.name, e.count
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+impl Element {
+    /// The fewest bytes one record can take: binary, its scalars and list counts (a list
+    /// may be empty); ASCII, one character and one separator per value.
+    fn min_record_len(&self, encoding: Encoding) -> u64 {
+        self.props
+            .iter()
+            .map(|p| match (encoding, p.kind) {
+                (Encoding::Ascii, _) => 2,
+                (_, PropKind::Scalar(s)) => s.size() as u64,
+                (_, PropKind::List { count, .. }) => count.size() as u64,
+            })
+            .sum()
+    }
+}
+
+impl Element {
+    /// The most records of this element that `data_len` bytes can hold: what a reader may
+    /// reserve, so a count of 2^64 - 1 costs nothing until the data runs out (and the walk
+    /// then stops with a truncation error naming the record).
+    pub(crate) fn max_records(&self, encoding: Encoding, data_len: u64) -> usize {
+        // +1: the last ASCII value needs no separator after it.
+        let most = (data_len + 1) / self.min_record_len(encoding).max(1);
+        self.count.min(most.try_into().unwrap_or(usize::MAX))
     }
 }
 
@@ -341,47 +400,35 @@ impl Loc {
     }
 }
 
-/// ASCII body: a token stream (records are usually one per line, but the PLY spec only
-/// asks for whitespace between values).
-pub(crate) struct Tokens<R> {
+/// ASCII body, one record per line. The PLY spec only asks for whitespace between
+/// values, but every writer puts one record on a line, and holding each record to its line
+/// is what catches a header that drops a property (the values would shift silently).
+pub(crate) struct Rows<R> {
     inner: R,
     line: String,
     line_no: usize,
-    cursor: usize,
 }
 
-impl<R: BufRead> Tokens<R> {
+impl<R: BufRead> Rows<R> {
     fn new(inner: R, first_line: usize) -> Self {
-        Tokens {
+        Rows {
             inner,
             line: String::new(),
             line_no: first_line - 1,
-            cursor: 0,
         }
     }
 
-    /// Next token as a byte range of `self.line`, reading lines as needed.
-    fn next(&mut self) -> io::Result<Option<(usize, usize)>> {
+    /// Reads the next line that is not blank into `self.line`; `Ok(false)` at the end.
+    fn next(&mut self) -> io::Result<bool> {
         loop {
-            let bytes = self.line.as_bytes();
-            let mut i = self.cursor;
-            while i < bytes.len() && bytes[i].is_ascii_whitespace() {
-                i += 1;
-            }
-            if i < bytes.len() {
-                let s = i;
-                while i < bytes.len() && !bytes[i].is_ascii_whitespace() {
-                    i += 1;
-                }
-                self.cursor = i;
-                return Ok(Some((s, i)));
-            }
             self.line.clear();
-            self.cursor = 0;
             if self.inner.read_line(&mut self.line)? == 0 {
-                return Ok(None);
+                return Ok(false);
             }
             self.line_no += 1;
+            if !self.line.trim_ascii().is_empty() {
+                return Ok(true);
+            }
         }
     }
 }
@@ -389,7 +436,7 @@ impl<R: BufRead> Tokens<R> {
 /// The data section of a PLY file, in either encoding.
 pub(crate) enum Body<R: Read> {
     Binary { ch: Chunked<R>, big: bool },
-    Ascii(Tokens<BufReader<io::Chain<io::Cursor<Vec<u8>>, R>>>),
+    Ascii(Rows<BufReader<io::Chain<io::Cursor<Vec<u8>>, R>>>),
 }
 
 impl<R: Read> Body<R> {
@@ -398,7 +445,7 @@ impl<R: Read> Body<R> {
         match header.encoding {
             Encoding::BinaryLe => Body::Binary { ch, big: false },
             Encoding::BinaryBe => Body::Binary { ch, big: true },
-            Encoding::Ascii => Body::Ascii(Tokens::new(
+            Encoding::Ascii => Body::Ascii(Rows::new(
                 BufReader::with_capacity(1 << 16, ch.into_rest()),
                 header_lines + 1,
             )),
@@ -504,50 +551,111 @@ impl<R: Read> Body<R> {
                 }
                 Ok(())
             }
-            Body::Ascii(toks) => {
+            Body::Ascii(rows) => {
                 for index in 0..elem.count {
-                    let mut at = AsciiAt {
+                    let more = rows.next().map_err(|e| {
+                        ascii_read_error(path, rows, &format!("{} {index}: ", elem.name), e)
+                    })?;
+                    let line = rows.line_no;
+                    if !more {
+                        return Err(Error::truncated(
+                            path,
+                            Position::Line(line + 1),
+                            format!(
+                                "the header promises {} `{}` records but the data ends after {index}",
+                                elem.count, elem.name
+                            ),
+                        ));
+                    }
+                    let row = Row {
                         path,
                         elem,
                         index,
-                        line: None,
+                        line,
+                        text: &rows.line,
                     };
+                    let mut toks = rows.line.split_ascii_whitespace();
+                    let mut used = 0usize;
                     for (p, s) in elem.props.iter().zip(&slot) {
                         match p.kind {
                             PropKind::Scalar(_) => {
-                                let v = at.value(toks, "", &p.name, s.is_some())?;
+                                let tok = row.next(&mut toks, &mut used, "property", p)?;
                                 if let Some(k) = s {
-                                    vals[*k] = v;
+                                    vals[*k] = row.number(tok, "property", p)?;
                                 }
                             }
                             PropKind::List { .. } => {
-                                let n = at.value(toks, "the length of list", &p.name, true)?;
+                                let label = "the length of list";
+                                let tok = row.next(&mut toks, &mut used, label, p)?;
+                                let n = row.number(tok, label, p)?;
                                 if n < 0.0 || n.fract() != 0.0 {
                                     return Err(Error::parse(
                                         path,
-                                        Position::Line(toks.line_no),
+                                        Position::LineValue { line, value: used },
                                         format!(
                                             "{} {index}: list `{}` has length {n}",
                                             elem.name, p.name
                                         ),
                                     ));
                                 }
+                                // Bounded by the values on the line: a missing one stops it.
                                 for _ in 0..n as u64 {
-                                    at.value(toks, "an item of list", &p.name, false)?;
+                                    row.next(&mut toks, &mut used, "an item of list", p)?;
                                 }
                             }
                         }
                     }
+                    if toks.next().is_some() {
+                        return Err(
+                            row.mismatch(format!("the header's properties take {used} values"))
+                        );
+                    }
                     let loc = Loc {
                         index,
                         byte: None,
-                        line: at.line,
+                        line: Some(line),
                     };
                     f(loc, &vals)?;
                 }
                 Ok(())
             }
         }
+    }
+
+    /// After the last element: the data must end here. Bytes or rows left over mean the
+    /// header's counts (or its layout) do not match the data.
+    pub(crate) fn finish(&mut self, path: &Path, total: Option<u64>) -> Result<(), Error> {
+        match self {
+            Body::Binary { ch, .. } => {
+                if ch.ensure(1).map_err(|e| Error::io(path, "read", e))? {
+                    let at = ch.offset();
+                    let extra = match total {
+                        Some(t) => format!("{} bytes", t.saturating_sub(at)),
+                        None => "data".to_string(),
+                    };
+                    return Err(Error::parse(
+                        path,
+                        Position::Byte(at),
+                        format!(
+                            "{extra} after the last element the header declares (a wrong count in the header, or a property missing from it)"
+                        ),
+                    ));
+                }
+            }
+            Body::Ascii(rows) => {
+                if rows
+                    .next()
+                    .map_err(|e| ascii_read_error(path, rows, "", e))?
+                {
+                    return Err(Error::parse(
+                        path,
+                        Position::Line(rows.line_no),
+                        "a row after the last element the header declares (a count in the header is smaller than the data)",
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Skips every record of `elem` (an element we do not need, before the one we do).
@@ -585,67 +693,65 @@ fn short_record(path: &Path, elem: &Element, index: usize, byte: u64) -> Error {
     )
 }
 
-/// The record an ASCII value belongs to, for messages.
-struct AsciiAt<'a> {
+/// One ASCII record (a line), for reading its values and naming them in messages.
+struct Row<'a> {
     path: &'a Path,
     elem: &'a Element,
     index: usize,
-    /// Line of the record's first value.
-    line: Option<usize>,
+    line: usize,
+    text: &'a str,
 }
 
-impl AsciiAt<'_> {
-    /// Next token; parsed only when the caller needs the number (unused properties of a
-    /// 62-property record are just counted).
-    fn value<R: BufRead>(
-        &mut self,
-        toks: &mut Tokens<R>,
-        what: &str,
-        prop: &str,
-        parse: bool,
-    ) -> Result<f64, Error> {
-        let e = self.elem;
-        let label = if what.is_empty() { "property" } else { what };
-        let next = toks.next().map_err(|err| {
-            if err.kind() == io::ErrorKind::InvalidData {
-                // `read_line` refuses bytes that are not UTF-8: binary data in an ASCII body.
-                Error::parse(
-                    self.path,
-                    Position::Line(toks.line_no + 1),
-                    format!(
-                        "{} {}: the ASCII PLY body holds bytes that are not text (binary data with an `ascii` header?)",
-                        e.name, self.index
-                    ),
-                )
-            } else {
-                Error::io(self.path, "read", err)
-            }
-        })?;
-        let Some((a, b)) = next else {
-            return Err(Error::truncated(
-                self.path,
-                Position::record(&e.name, self.index, None),
-                format!(
-                    "the header promises {} {} records but the data stops before {label} `{prop}` of {} {}",
-                    e.count, e.name, e.name, self.index
-                ),
-            ));
-        };
-        self.line.get_or_insert(toks.line_no);
-        if !parse {
-            return Ok(0.0);
-        }
-        let tok = &toks.line[a..b];
+impl<'a> Row<'a> {
+    fn mismatch(&self, what: String) -> Error {
+        let found = self.text.split_ascii_whitespace().count();
+        Error::parse(
+            self.path,
+            Position::Line(self.line),
+            format!(
+                "{} {}: {what}, but the row has {found} values (the header's properties and the rows disagree)",
+                self.elem.name, self.index
+            ),
+        )
+    }
+
+    fn next<'t>(
+        &self,
+        toks: &mut impl Iterator<Item = &'t str>,
+        used: &mut usize,
+        label: &str,
+        p: &Property,
+    ) -> Result<&'t str, Error> {
+        *used += 1;
+        toks.next()
+            .ok_or_else(|| self.mismatch(format!("{label} `{}` is value {used}", p.name)))
+    }
+
+    fn number(&self, tok: &str, label: &str, p: &Property) -> Result<f64, Error> {
         tok.parse::<f64>().map_err(|_| {
             Error::parse(
                 self.path,
-                Position::Line(toks.line_no),
+                Position::Line(self.line),
                 format!(
-                    "{} {}, {label} `{prop}`: `{tok}` is not a number",
-                    e.name, self.index
+                    "{} {}, {label} `{}`: `{tok}` is not a number",
+                    self.elem.name, self.index, p.name
                 ),
             )
         })
+    }
+}
+
+/// `read_line` refuses bytes that are not UTF-8: binary data in an ASCII body.
+/// `record` names the record being read (`"vertex 0: "`), or is empty.
+fn ascii_read_error<R>(path: &Path, rows: &Rows<R>, record: &str, err: io::Error) -> Error {
+    if err.kind() == io::ErrorKind::InvalidData {
+        Error::parse(
+            path,
+            Position::Line(rows.line_no + 1),
+            format!("{record}the ASCII PLY body holds bytes that are not text (binary data with an `ascii` header?)"),
+        )
+    } else {
+        Error::io(path, "read", err)
     }
 }
 
@@ -772,18 +878,43 @@ fn f32_le(rec: &[u8], o: usize) -> f32 {
 /// decoded straight out of the buffer. NaN/Inf centers are skipped and counted with one
 /// warning (an error with `strict`); a file with no usable Gaussian is an error.
 pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, Error> {
-    let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
-    let file_len = file
-        .metadata()
-        .map_err(|e| Error::io(path, "read metadata of", e))?
-        .len();
+    match open_input(path)? {
+        Input::File { file, len } => gaussians_from(path, file.take(len), len, opts),
+        Input::Bytes(b) => gaussians_from(path, &b[..], b.len() as u64, opts),
+    }
+}
+
+/// [`read_gaussians`] on bytes already in memory; `path` names them in messages.
+pub fn parse_gaussians(
+    path: &Path,
+    bytes: &[u8],
+    opts: &PlyOptions,
+) -> Result<GaussianCloud, Error> {
+    gaussians_from(path, bytes, bytes.len() as u64, opts)
+}
+
+/// The Gaussian reader over a stream of exactly `file_len` bytes.
+fn gaussians_from<R: Read>(
+    path: &Path,
+    input: R,
+    file_len: u64,
+    opts: &PlyOptions,
+) -> Result<GaussianCloud, Error> {
     if file_len == 0 {
         return Err(Error::Empty {
             path: path.to_path_buf(),
         });
     }
-    let mut ch = Chunked::new(file, CHUNK.min(file_len as usize + 1), 0);
+    let mut ch = Chunked::new(input, CHUNK.min(file_len as usize + 1), 0);
     ch.fill().map_err(|e| Error::io(path, "read", e))?;
+    // A byte-order mark from a Windows editor: skipped here as in the line reader, so
+    // `info` and `eval` agree about such a file.
+    let bom = if ch.available().starts_with(BOM) {
+        ch.consume(BOM.len());
+        BOM.len()
+    } else {
+        0
+    };
     let head = ch.available();
     if !head.starts_with(b"ply") {
         return Err(Error::unknown(
@@ -791,7 +922,7 @@ pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, E
             "Gaussians are read from PLY files, and this file does not start with `ply`",
         ));
     }
-    let header = parse_header(path, head, head.len() as u64 == file_len)?;
+    let header = parse_header(path, head, (bom + head.len()) as u64 == file_len)?;
     let header_lines = head[..header.len].iter().filter(|&&b| b == b'\n').count();
     ch.consume(header.len);
 
@@ -844,31 +975,28 @@ pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, E
     }
 
     let mut warnings = Vec::new();
-    let data_start = header.len as u64;
+    let data_start = (bom + header.len) as u64;
+    let have = file_len.saturating_sub(data_start);
     let binary = header.encoding != Encoding::Ascii;
     // A lying header is caught before anything is allocated for it.
     if binary {
         if let Some(data_len) = header.fixed_data_len() {
-            let have = (file_len - data_start) as u128;
-            if have < data_len {
-                return Err(short_file(path, &header, file_len));
+            if (have as u128) < data_len {
+                return Err(short_file(path, &header, data_start, file_len));
             }
-            if have > data_len {
-                warnings.push(format!(
-                    "{}: {} bytes after the last PLY element were ignored (wrong element count in the header?)",
-                    path.display(),
-                    have - data_len
+            if have as u128 > data_len {
+                return Err(Error::parse(
+                    path,
+                    Position::Byte(data_start + data_len as u64),
+                    format!(
+                        "{} bytes after the last element: the header's elements take {data_len} bytes, the file has {have} after the header (a property or a count missing from the header?)",
+                        have as u128 - data_len
+                    ),
                 ));
             }
         }
     }
-    let capacity = match vertex.stride() {
-        Some(s) if binary => vertex
-            .count
-            .min(((file_len - data_start) / s as u64) as usize),
-        // At least "0 0 0\n" per ASCII record.
-        _ => vertex.count.min((file_len / 6) as usize),
-    };
+    let capacity = vertex.max_records(header.encoding, have);
     let mut col = Collect {
         path,
         centers: Vec::with_capacity(capacity),
@@ -907,6 +1035,10 @@ pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, E
             })?;
         }
     }
+    for elem in &header.elements[vi + 1..] {
+        body.skip(path, elem)?;
+    }
+    body.finish(path, Some(file_len))?;
 
     if col.nonfinite > 0 {
         let first = col
@@ -993,9 +1125,10 @@ fn read_fast_le<R: Read>(
     Ok(())
 }
 
-/// The truncation error for a binary file shorter than its header's fixed-size elements.
-fn short_file(path: &Path, header: &Header, file_len: u64) -> Error {
-    let mut at = header.len as u64;
+/// The truncation error for a binary file shorter than its header's fixed-size elements
+/// (whose data starts at byte `data_start`).
+fn short_file(path: &Path, header: &Header, data_start: u64, file_len: u64) -> Error {
+    let mut at = data_start;
     for e in &header.elements {
         let stride = e.stride().unwrap_or(0) as u64;
         let len = stride.saturating_mul(e.count as u64);
@@ -1026,10 +1159,16 @@ pub(crate) fn open_in_memory<'a>(
 ) -> Result<(Header, Body<&'a [u8]>), Error> {
     let header = parse_header(path, bytes, true)?;
     let header_lines = bytes[..header.len].iter().filter(|&&b| b == b'\n').count();
+    let have = (bytes.len() - header.len) as u64;
     if header.encoding != Encoding::Ascii {
         if let Some(data_len) = header.fixed_data_len() {
-            if ((bytes.len() - header.len) as u128) < data_len {
-                return Err(short_file(path, &header, bytes.len() as u64));
+            if (have as u128) < data_len {
+                return Err(short_file(
+                    path,
+                    &header,
+                    header.len as u64,
+                    bytes.len() as u64,
+                ));
             }
         }
     }

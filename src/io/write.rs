@@ -6,7 +6,7 @@ use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::Path;
 
-use crate::geom::Segment;
+use crate::geom::{LineSet, Segment};
 
 use super::error::{Error, Position};
 use super::npy;
@@ -73,6 +73,32 @@ pub fn check_line_output(path: &Path) -> Result<String, Error> {
             ),
         })
     }
+}
+
+/// Checks that `path` ends in one of `allowed` (lower case, without the dot), so that a
+/// command refuses a misnamed output before doing any work instead of writing, say, a PNG
+/// into `r.jpg`. `what` names the output in the message ("the picture").
+pub fn check_output_extension(path: &Path, what: &str, allowed: &[&str]) -> Result<(), Error> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    if allowed.contains(&ext.as_str()) {
+        return Ok(());
+    }
+    let list: Vec<String> = allowed.iter().map(|e| format!(".{e}")).collect();
+    let got = if ext.is_empty() {
+        "no extension".to_string()
+    } else {
+        format!("the extension `.{ext}`")
+    };
+    Err(Error::Unsupported {
+        path: path.to_path_buf(),
+        msg: format!(
+            "{what} is written as {}; the name has {got}",
+            list.join(" or ")
+        ),
+    })
 }
 
 /// Shortest text that reads back to the same f64, without the 300-digit expansions that
@@ -163,6 +189,43 @@ pub fn write_lines(path: &Path, lines: &[Segment]) -> Result<(), Error> {
             write_atomic(path, |w| w.write_all(&bytes))
         }
     }
+}
+
+/// Writes a Line3D++ `saveTXT` file: one row per input line, `n` then its `n` segments
+/// (`P1 P2`), then `m = 0` (no 2D residuals), so that the reader gets the line groups back
+/// and the collinear merge (SPEC 3.6) runs on them. Rows follow the groups' first
+/// appearance, so a set whose groups are contiguous (as every reader and `synth` make
+/// them) reads back in the same segment order; without groups every segment is its own row.
+pub fn write_lines_line3dpp(path: &Path, lines: &LineSet) -> Result<(), Error> {
+    check_output_extension(path, "a Line3D++ file", &["txt"])?;
+    check_finite(path, &lines.segments, 0)?;
+    let mut rows: Vec<Vec<usize>> = Vec::new();
+    match &lines.groups {
+        Some(g) => {
+            let mut row_of = std::collections::HashMap::new();
+            for (i, &id) in g.iter().enumerate() {
+                let r = *row_of.entry(id).or_insert_with(|| {
+                    rows.push(Vec::new());
+                    rows.len() - 1
+                });
+                rows[r].push(i);
+            }
+        }
+        None => rows.extend((0..lines.len()).map(|i| vec![i])),
+    }
+    write_atomic(path, |w| {
+        for row in &rows {
+            write!(w, "{}", row.len())?;
+            for &i in row {
+                let s = &lines.segments[i];
+                for v in s.p1.to_array().into_iter().chain(s.p2.to_array()) {
+                    write!(w, " {}", num(v))?;
+                }
+            }
+            writeln!(w, " 0")?;
+        }
+        Ok(())
+    })
 }
 
 /// Writes several coloured sets of segments into one binary PLY: a `vertex` element
@@ -310,6 +373,30 @@ mod tests {
             assert!(s.len() < 25, "{s}");
             assert_eq!(s.parse::<f64>().unwrap(), x);
         }
+    }
+
+    #[test]
+    fn line3dpp_text_keeps_the_groups_and_the_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("l.txt");
+        let s = |x: f64| Segment::from_arrays([x, 0.0, 0.0], [x + 1.0, 0.5, 1e-7]);
+        let set = LineSet {
+            segments: vec![s(0.0), s(2.0), s(4.0), s(6.0)],
+            groups: Some(vec![0, 0, 1, 2]),
+        };
+        write_lines_line3dpp(&p, &set).unwrap();
+        let text = std::fs::read_to_string(&p).unwrap();
+        assert_eq!(text.lines().count(), 3, "{text}");
+        assert!(
+            text.starts_with("2 0 0 0 1 0.5 1e-7 2 0 0 3 0.5 1e-7 0\n"),
+            "{text}"
+        );
+        let back = super::super::read_lines(&p).unwrap();
+        assert_eq!(back.format, super::super::LineFormat::Line3dppTxt);
+        assert_eq!(back.lines.segments, set.segments);
+        assert_eq!(back.lines.groups, set.groups);
+        let err = write_lines_line3dpp(&dir.path().join("l.obj"), &set).unwrap_err();
+        assert!(err.to_string().contains(".txt"), "{err}");
     }
 
     #[test]

@@ -61,7 +61,11 @@ pub fn crop(
         let active: Vec<usize> = (0..searches.len())
             .filter(|&j| {
                 let s = &searches[j];
-                !s.done && s.probes < p.crop_max_probes && (s.b - s.a) >= p.crop_min_interval
+                // At most 64 probes whatever the options say: beyond 53 halvings an f64
+                // interval stops shrinking, and a tiny `crop_min_interval` would spin.
+                !s.done
+                    && s.probes < p.crop_max_probes.min(64)
+                    && (s.b - s.a) >= p.crop_min_interval
             })
             .collect();
         if active.is_empty() {

@@ -130,9 +130,9 @@ pub struct Params {
     /// quirks included).
     #[arg(long, value_enum, default_value_t = Profile::Default)]
     pub profile: Profile,
-    /// Cylinder radius r for refinement (scene units), or `auto` (0.02 x the 95th
-    /// percentile distance of the working set from its centroid). Also the clustering
-    /// distance scale r_c.
+    /// Cylinder radius r for refinement (scene units; the paper uses 0.03 for ABC-NEF and
+    /// 0.05 for real scenes), or `auto`: 0.02 x the 95th-percentile distance of the working
+    /// set's Gaussian centers from their centroid. Also the clustering distance scale r_c.
     #[arg(long, default_value = "0.03")]
     pub radius: RadiusArg,
 
@@ -205,10 +205,12 @@ pub struct Params {
     /// holding the end out past the corner.
     #[arg(long, value_parser = positive)]
     pub crop_probe_half: Option<f64>,
-    /// Crop: most probes of the binary search.
-    #[arg(long, default_value_t = 10)]
+    /// Crop: most probes of the binary search, 1 to 64 (after 53 halvings an f64
+    /// interval cannot shrink further, so more would only spin).
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub crop_max_probes: u32,
-    /// Crop: the binary search stops when its interval is shorter than this.
+    /// Crop: the binary search stops when its interval is shorter than this (a positive
+    /// number; the probe limit bounds the search whatever its value).
     #[arg(long, default_value_t = 1e-4, value_parser = positive)]
     pub crop_min_interval: f64,
 

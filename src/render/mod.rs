@@ -16,7 +16,7 @@ use crate::geom::Segment;
 
 pub use plot::{sweep_plot_png, sweep_plot_svg, SweepSeries};
 pub use raster::{view_project, Image, View};
-pub use viewer::viewer_html;
+pub use viewer::{viewer_html, viewer_layers, GT_COLOR, INPUT_COLOR, REFINED_COLOR};
 
 /// One set of segments drawn in one colour.
 #[derive(Clone, Copy, Debug)]

@@ -1,7 +1,10 @@
 //! A self-contained HTML viewer: one file, no network access. The Gaussian centres
 //! (subsampled beyond a limit, with a note) and each segment set are layers that can be
-//! toggled; drag orbits, shift-drag pans, the wheel zooms. Canvas 2D rather than WebGL,
-//! so it works where WebGL is off (remote desktops, headless browsers without a GPU).
+//! toggled from a legend that gives their counts; drag orbits, shift-drag pans, the wheel
+//! zooms, and the first view (and double-click) frames the segments. Layers are drawn in
+//! the order given, the last on top ([`viewer_layers`] puts the refined lines there).
+//! Canvas 2D rather than WebGL, so it works where WebGL is off (remote desktops, headless
+//! browsers without a GPU).
 
 use std::fmt::Write as _;
 
@@ -9,6 +12,44 @@ use glam::DVec3;
 
 use super::plot::xml_escape;
 use super::{framing_box, Layer, Panel};
+use crate::geom::Segment;
+
+/// Colour of the input segments in every picture and viewer.
+pub const INPUT_COLOR: [u8; 3] = [220, 60, 40];
+/// Colour of the refined segments.
+pub const REFINED_COLOR: [u8; 3] = [30, 100, 230];
+/// Colour of ground-truth edges.
+pub const GT_COLOR: [u8; 3] = [40, 170, 60];
+
+/// The viewer's segment layers in drawing order, the last on top: the input at the
+/// bottom, then the ground truth, then the refined lines, so that the result is never
+/// hidden under the sets it is compared with.
+pub fn viewer_layers<'a>(
+    input: &'a [Segment],
+    refined: Option<&'a [Segment]>,
+    ground_truth: Option<&'a [Segment]>,
+) -> Vec<Layer<'a>> {
+    let mut layers = vec![Layer {
+        name: "input segments",
+        segments: input,
+        color: INPUT_COLOR,
+    }];
+    if let Some(g) = ground_truth {
+        layers.push(Layer {
+            name: "ground truth",
+            segments: g,
+            color: GT_COLOR,
+        });
+    }
+    if let Some(r) = refined {
+        layers.push(Layer {
+            name: "refined segments",
+            segments: r,
+            color: REFINED_COLOR,
+        });
+    }
+    layers
+}
 
 /// Standard base64 (RFC 4648, with padding); the browser decodes it with `atob`.
 pub fn base64(bytes: &[u8]) -> String {
@@ -182,8 +223,9 @@ function addToggle(label, color, state) {
   l.append(c, s, document.createTextNode(label));
   box.append(l);
 }
-addToggle("Gaussian centers (" + D.pointCount + ")", "#888", showPoints);
-for (const l of layers) addToggle(l.name + " (" + l.count + ")", l.color, l);
+// The legend lists the layers top first, as they are stacked; the points lie below all.
+for (const l of layers.slice().reverse()) addToggle(l.name + " (" + l.count + ")", l.color, l);
+addToggle("Gaussian centers (" + (D.pointCount < D.totalPoints ? D.pointCount + " of " + D.totalPoints : D.pointCount) + ")", "#888", showPoints);
 
 function camera() {
   const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
@@ -197,10 +239,42 @@ function camera() {
   return { back, right, up, dist, f, cx: W / 2 + panX, cy: H / 2 + panY, near: 1e-3 * dist };
 }
 
-function draw() {
+function size() {
   const dpr = window.devicePixelRatio || 1;
   const W = Math.max(1, Math.round(canvas.clientWidth * dpr)), H = Math.max(1, Math.round(canvas.clientHeight * dpr));
   if (canvas.width !== W || canvas.height !== H) { canvas.width = W; canvas.height = H; }
+}
+
+// Frames the segments of every layer (the points when there are none) in 90 % of the
+// window: screen offsets from the centre scale linearly with the zoom, so one projection
+// at zoom 1 gives the zoom and pan that fit.
+function fit() {
+  size();
+  zoom = 1; panX = 0; panY = 0;
+  const c = camera();
+  let x0 = Infinity, x1 = -Infinity, y0 = Infinity, y1 = -Infinity;
+  const visit = (x, y, z) => {
+    const d = c.dist - (x * c.back[0] + y * c.back[1] + z * c.back[2]);
+    if (!(d > c.near)) return;
+    const s = c.f / d;
+    const sx = (x * c.right[0] + y * c.right[1] + z * c.right[2]) * s;
+    const sy = -(x * c.up[0] + y * c.up[1] + z * c.up[2]) * s;
+    x0 = Math.min(x0, sx); x1 = Math.max(x1, sx); y0 = Math.min(y0, sy); y1 = Math.max(y1, sy);
+  };
+  for (const l of layers) for (let i = 0; i < l.seg.length; i += 3) visit(l.seg[i], l.seg[i + 1], l.seg[i + 2]);
+  if (!(x1 >= x0)) {
+    const step = 3 * Math.max(1, Math.floor(P.length / 3 / 20000));
+    for (let i = 0; i + 2 < P.length; i += step) visit(P[i], P[i + 1], P[i + 2]);
+  }
+  if (!(x1 >= x0)) return;
+  const k = 0.9 * Math.min(canvas.width / Math.max(x1 - x0, 1e-9), canvas.height / Math.max(y1 - y0, 1e-9));
+  zoom = Math.min(k, 1e6); panX = -0.5 * (x0 + x1) * zoom; panY = -0.5 * (y0 + y1) * zoom;
+}
+
+function draw() {
+  size();
+  const dpr = window.devicePixelRatio || 1;
+  const W = canvas.width, H = canvas.height;
   const c = camera();
   const [r0, r1, r2] = c.right, [u0, u1, u2] = c.up, [b0, b1, b2] = c.back;
   const img = ctx.createImageData(W, H), px = img.data;
@@ -262,15 +336,35 @@ window.addEventListener("mousemove", e => {
 });
 canvas.addEventListener("wheel", e => { e.preventDefault(); zoom *= Math.exp(-e.deltaY * 0.001); redraw(); }, { passive: false });
 canvas.addEventListener("contextmenu", e => e.preventDefault());
-canvas.addEventListener("dblclick", () => { yaw = -Math.PI / 3; pitch = 0.5; zoom = 1; panX = panY = 0; redraw(); });
+canvas.addEventListener("dblclick", () => { yaw = -Math.PI / 3; pitch = 0.5; fit(); redraw(); });
 window.addEventListener("resize", redraw);
+fit();
 draw();
 "##;
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geom::Segment;
+
+    #[test]
+    fn the_refined_lines_are_drawn_last_and_listed_first() {
+        let s = [Segment::from_arrays([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])];
+        let names = |l: Vec<Layer>| l.iter().map(|l| l.name.to_string()).collect::<Vec<_>>();
+        assert_eq!(
+            names(viewer_layers(&s, Some(&s), Some(&s))),
+            ["input segments", "ground truth", "refined segments"]
+        );
+        assert_eq!(
+            names(viewer_layers(&s, Some(&s), None)),
+            ["input segments", "refined segments"]
+        );
+        // The page keeps that order (the script draws in it) and says so in the legend.
+        let html = viewer_html(&[], &viewer_layers(&s, Some(&s), Some(&s)), "t", 10);
+        let at = |n: &str| html.find(&format!("\"name\":\"{n}\"")).unwrap();
+        assert!(at("input segments") < at("ground truth"));
+        assert!(at("ground truth") < at("refined segments"));
+        assert!(html.contains("layers.slice().reverse()"));
+    }
 
     #[test]
     fn base64_matches_rfc_4648_vectors() {

@@ -43,9 +43,20 @@ pub enum MeshError {
 /// last vertex defined so far, and polygons are split into triangle fans.
 pub fn read_obj_mesh(path: impl AsRef<Path>) -> Result<TriMesh, MeshError> {
     let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| MeshError::Io {
-        path: path.to_path_buf(),
-        source,
+    // Bounded like every reader: a device is refused, a pipe read at most 1 GiB.
+    let bytes = crate::io::read_input(path).map_err(|e| match e {
+        crate::io::Error::Io { cause, .. } => MeshError::Io {
+            path: path.to_path_buf(),
+            source: cause,
+        },
+        crate::io::Error::Unsupported { msg, .. } => MeshError::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::other(msg),
+        },
+        other => MeshError::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::other(other.to_string()),
+        },
     })?;
     // Comments and names may hold any bytes; the records we read are ASCII.
     parse_obj_mesh(&String::from_utf8_lossy(&bytes), path)
@@ -566,6 +577,11 @@ f 3 2 8 9
         let e = read_obj_mesh("/nonexistent/mesh.obj").unwrap_err();
         assert!(matches!(e, MeshError::Io { .. }));
         assert!(e.to_string().contains("/nonexistent/mesh.obj"));
+        #[cfg(unix)]
+        {
+            let e = read_obj_mesh("/dev/zero").unwrap_err();
+            assert!(e.to_string().contains("is a device"), "{e}");
+        }
     }
 
     #[test]

@@ -1,0 +1,59 @@
+//! The readers of linegs-gpu, compiled from the package's own sources (`src/geom.rs` and
+//! `src/io/`) without the GPU stack: an instrumented build of wgpu and naga takes longer
+//! than a fuzz run on a small machine, and the readers need none of it. The modules are
+//! the same files the package builds, so what is fuzzed is what ships.
+
+#[allow(unused)]
+#[path = "../../src/geom.rs"]
+pub mod geom;
+
+#[allow(unused)]
+#[path = "../../src/io/mod.rs"]
+pub mod io;
+
+use std::path::Path;
+
+/// What every accepted line file must hold: finite, non-degenerate segments.
+pub fn check_lines(name: &str, data: &[u8]) {
+    if let Ok(f) = io::parse_lines(Path::new(name), data.to_vec()) {
+        assert!(!f.lines.segments.is_empty());
+        for s in &f.lines.segments {
+            assert!(s.p1.is_finite() && s.p2.is_finite());
+            assert!(s.length() > geom::MIN_LENGTH);
+        }
+        if let Some(g) = &f.lines.groups {
+            assert_eq!(g.len(), f.lines.segments.len());
+        }
+    }
+}
+
+/// What every accepted Gaussian model must hold: finite centers, no more than declared.
+pub fn check_gaussians(data: &[u8]) {
+    for opts in [
+        io::PlyOptions::default(),
+        io::PlyOptions {
+            min_opacity: Some(0.5),
+            strict: true,
+        },
+    ] {
+        if let Ok(c) = io::parse_gaussians(Path::new("fuzz.ply"), data, &opts) {
+            assert!(!c.centers.is_empty());
+            assert!(c.centers.len() <= c.vertex_count);
+            assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+        }
+    }
+}
+
+/// Every Gaussian model format (SuperSplat compressed PLY, SPZ, `.splat`, 3DGS PLY); the
+/// first byte picks the file name, whose extension tells a `.splat`.
+pub fn check_models(data: &[u8]) {
+    const NAMES: [&str; 3] = ["m.ply", "m.spz", "m.splat"];
+    let Some((&k, rest)) = data.split_first() else {
+        return;
+    };
+    let path = Path::new(NAMES[k as usize % NAMES.len()]);
+    if let Ok(c) = io::parse_gaussian_model(path, rest, &io::PlyOptions::default()) {
+        assert!(!c.centers.is_empty());
+        assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+    }
+}

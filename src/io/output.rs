@@ -1,0 +1,344 @@
+//! All the outputs of one run as one transaction: every path is checked before any work
+//! (extension, folder, not an input, not another output), each file is written under a
+//! temporary name beside its target, and only when all of them are written are they
+//! renamed into place. A run that fails at any point leaves every earlier file as it was.
+//!
+//! ```no_run
+//! # use linegs_gpu::io::{self, OutputSet, LINE_OUTPUTS};
+//! # use std::path::Path;
+//! # fn main() -> Result<(), io::Error> {
+//! let mut outs = OutputSet::new();
+//! outs.input(Path::new("point_cloud.ply"))
+//!     .input(Path::new("lines.obj"))
+//!     .output("-o", Path::new("refined.obj"), &LINE_OUTPUTS)
+//!     .output("--report", Path::new("report.json"), &["json"]);
+//! outs.check()?; // before any work
+//! // ... the work ...
+//! outs.write(Path::new("refined.obj"), |p| io::write_lines(p, &[]))?;
+//! outs.write(Path::new("report.json"), |p| io::write_bytes_atomic(p, b"{}"))?;
+//! outs.commit()?; // all or nothing
+//! # Ok(()) }
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use tempfile::TempPath;
+
+use super::error::Error;
+
+/// The outputs of one run; see the module comment.
+#[derive(Default)]
+pub struct OutputSet {
+    inputs: Vec<PathBuf>,
+    outputs: Vec<(&'static str, PathBuf, Vec<String>)>,
+    staged: Vec<(PathBuf, TempPath)>,
+}
+
+/// What makes two paths the same file: the canonical path (symlinks, `..`) and, for a
+/// file that exists, its device and inode (hard links).
+#[derive(Debug, PartialEq)]
+struct FileId {
+    canonical: Option<PathBuf>,
+    inode: Option<(u64, u64)>,
+}
+
+impl FileId {
+    fn of(path: &Path) -> FileId {
+        let canonical = std::fs::canonicalize(path).ok().or_else(|| {
+            let name = path.file_name()?;
+            Some(std::fs::canonicalize(folder(path)).ok()?.join(name))
+        });
+        #[cfg(unix)]
+        let inode = {
+            use std::os::unix::fs::MetadataExt;
+            std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
+        };
+        #[cfg(not(unix))]
+        let inode = None;
+        FileId { canonical, inode }
+    }
+
+    fn same(&self, other: &FileId) -> bool {
+        (self.canonical.is_some() && self.canonical == other.canonical)
+            || (self.inode.is_some() && self.inode == other.inode)
+    }
+}
+
+/// The folder a path is written in (`.` for a bare name).
+fn folder(path: &Path) -> &Path {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    }
+}
+
+fn refuse(path: &Path, msg: impl Into<String>) -> Error {
+    Error::Output {
+        path: path.to_path_buf(),
+        msg: msg.into(),
+    }
+}
+
+impl OutputSet {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// A file the run reads, which no output may replace.
+    pub fn input(&mut self, path: &Path) -> &mut Self {
+        self.inputs.push(path.to_path_buf());
+        self
+    }
+
+    /// A file the run will write, named in messages by its option (`-o`, `--report`), with
+    /// the extensions it may have (none: any).
+    pub fn output(&mut self, option: &'static str, path: &Path, extensions: &[&str]) -> &mut Self {
+        self.outputs.push((
+            option,
+            path.to_path_buf(),
+            extensions.iter().map(|e| e.to_string()).collect(),
+        ));
+        self
+    }
+
+    /// Checks every output: its extension, that its folder exists and takes new files,
+    /// that it is not a folder or a device, and that it is neither an input nor another
+    /// output. Call it before any work.
+    pub fn check(&self) -> Result<(), Error> {
+        let inputs: Vec<(PathBuf, FileId)> = self
+            .inputs
+            .iter()
+            .map(|p| (p.clone(), FileId::of(p)))
+            .collect();
+        let mut seen: Vec<(&str, &Path, FileId)> = Vec::new();
+        for (option, path, exts) in &self.outputs {
+            let ext = path
+                .extension()
+                .map(|e| e.to_string_lossy().to_ascii_lowercase())
+                .unwrap_or_default();
+            if !exts.is_empty() && !exts.contains(&ext) {
+                let list: Vec<String> = exts.iter().map(|e| format!(".{e}")).collect();
+                let got = if ext.is_empty() {
+                    "a name without an extension".to_string()
+                } else {
+                    format!("`.{ext}`")
+                };
+                return Err(refuse(
+                    path,
+                    format!(
+                        "{option} cannot be written as {got}; use {}",
+                        list.join(", ")
+                    ),
+                ));
+            }
+            if let Ok(m) = std::fs::metadata(path) {
+                if m.is_dir() {
+                    return Err(refuse(path, format!("{option} is a folder, not a file")));
+                }
+                if !m.is_file() {
+                    return Err(refuse(
+                        path,
+                        format!(
+                            "{option} is a device or pipe; outputs are written to regular files"
+                        ),
+                    ));
+                }
+            }
+            let dir = folder(path);
+            match std::fs::metadata(dir) {
+                Ok(m) if m.is_dir() => {}
+                Ok(_) => {
+                    return Err(refuse(
+                        path,
+                        format!("{option}: `{}` is not a folder", dir.display()),
+                    ))
+                }
+                Err(_) => {
+                    return Err(refuse(
+                        path,
+                        format!(
+                            "{option}: the folder `{}` does not exist; create it first",
+                            dir.display()
+                        ),
+                    ))
+                }
+            }
+            // The real test of "writable" (permissions, read-only mounts, ACLs): make a file.
+            if let Err(e) = tempfile::Builder::new().prefix(".linegs-").tempfile_in(dir) {
+                let cause = super::error::without_temp_path(e);
+                return Err(refuse(
+                    path,
+                    format!(
+                        "{option}: cannot create files in the folder `{}`: {cause}",
+                        dir.display()
+                    ),
+                ));
+            }
+            let id = FileId::of(path);
+            if let Some((input, _)) = inputs.iter().find(|(_, i)| i.same(&id)) {
+                return Err(refuse(
+                    path,
+                    format!(
+                        "{option} is the input `{}`; writing it would destroy the input",
+                        input.display()
+                    ),
+                ));
+            }
+            if let Some((other, p, _)) = seen.iter().find(|(_, _, i)| i.same(&id)) {
+                return Err(refuse(
+                    path,
+                    format!(
+                        "{option} is the same file as {other} `{}`; give each output its own name",
+                        p.display()
+                    ),
+                ));
+            }
+            seen.push((option, path, id));
+        }
+        Ok(())
+    }
+
+    /// Writes one output: `write` is handed a temporary path beside `path` (with the same
+    /// extension, so format-by-extension writers work), and errors are reported under
+    /// `path`. Nothing replaces `path` until [`OutputSet::commit`].
+    pub fn write(
+        &mut self,
+        path: &Path,
+        write: impl FnOnce(&Path) -> Result<(), Error>,
+    ) -> Result<(), Error> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let staged = tempfile::Builder::new()
+            .prefix(".linegs-")
+            .suffix(&format!(".{name}"))
+            .tempfile_in(folder(path))
+            .map_err(|e| Error::io(path, "create a temporary file beside", e))?
+            .into_temp_path();
+        write(&staged).map_err(|e| e.with_path(path))?;
+        self.staged.push((path.to_path_buf(), staged));
+        Ok(())
+    }
+
+    /// Renames every written output into place (each a rename within its own folder).
+    /// Dropping the set without a commit removes the temporary files and leaves the
+    /// targets as they were.
+    pub fn commit(mut self) -> Result<(), Error> {
+        for (path, staged) in self.staged.drain(..) {
+            staged
+                .persist(&path)
+                .map_err(|e| Error::io(&path, "rename the finished file onto", e.error))?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn a_failing_last_output_leaves_every_earlier_file_as_it_was() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = dir.path().join("a.txt");
+        let b = dir.path().join("b.json");
+        std::fs::write(&a, "old a").unwrap();
+        std::fs::write(&b, "old b").unwrap();
+        let mut outs = OutputSet::new();
+        outs.output("-o", &a, &["txt"])
+            .output("--report", &b, &["json"]);
+        outs.check().unwrap();
+        outs.write(&a, |p| super::super::write_bytes_atomic(p, b"new a"))
+            .unwrap();
+        let e = outs
+            .write(&b, |p| {
+                Err(Error::Unsupported {
+                    path: p.to_path_buf(),
+                    msg: "disk full".into(),
+                })
+            })
+            .unwrap_err();
+        // Reported under the real name, not the temporary one.
+        assert_eq!(e.to_string(), format!("{}: disk full", b.display()));
+        drop(outs);
+        assert_eq!(std::fs::read_to_string(&a).unwrap(), "old a");
+        assert_eq!(std::fs::read_to_string(&b).unwrap(), "old b");
+        assert_eq!(names(dir.path()), ["a.txt", "b.json"], "no temporary left");
+    }
+
+    #[test]
+    fn outputs_land_together_on_commit() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = dir.path().join("a.obj");
+        let b = dir.path().join("b.json");
+        let mut outs = OutputSet::new();
+        outs.output("-o", &a, &["obj"])
+            .output("--report", &b, &["json"]);
+        outs.check().unwrap();
+        outs.write(&a, |p| {
+            assert_eq!(p.extension().unwrap(), "obj");
+            super::super::write_bytes_atomic(p, b"a")
+        })
+        .unwrap();
+        outs.write(&b, |p| super::super::write_bytes_atomic(p, b"b"))
+            .unwrap();
+        assert!(
+            !a.exists() && !b.exists(),
+            "nothing lands before the commit"
+        );
+        outs.commit().unwrap();
+        assert_eq!(std::fs::read(&a).unwrap(), b"a");
+        assert_eq!(std::fs::read(&b).unwrap(), b"b");
+        assert_eq!(names(dir.path()), ["a.obj", "b.json"]);
+    }
+
+    #[test]
+    fn collisions_missing_folders_and_extensions_are_found_before_any_work() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("in.ply");
+        std::fs::write(&input, "ply").unwrap();
+        let check = |outs: &[(&'static str, PathBuf, &[&str])]| {
+            let mut set = OutputSet::new();
+            set.input(&input);
+            for (o, p, e) in outs {
+                set.output(o, p, e);
+            }
+            set.check().map(|_| ()).map_err(|e| e.to_string())
+        };
+        let e = check(&[("-o", input.clone(), &["ply"])]).unwrap_err();
+        assert!(e.contains("-o is the input"), "{e}");
+        // Another spelling of the same path, and a hard link, are the same file.
+        let dotted = dir.path().join(".").join("in.ply");
+        assert!(check(&[("-o", dotted, &["ply"])]).is_err());
+        let link = dir.path().join("link.ply");
+        std::fs::hard_link(&input, &link).unwrap();
+        let e = check(&[("-o", link, &["ply"])]).unwrap_err();
+        assert!(e.contains("is the input"), "{e}");
+        let o = dir.path().join("o.ply");
+        let e = check(&[("-o", o.clone(), &["ply"]), ("--compare-ply", o, &["ply"])]).unwrap_err();
+        assert!(e.contains("--compare-ply is the same file as -o"), "{e}");
+        let e = check(&[("--report", dir.path().join("no/r.json"), &["json"])]).unwrap_err();
+        assert!(
+            e.contains("the folder") && e.contains("does not exist"),
+            "{e}"
+        );
+        let e = check(&[("-o", dir.path().join("o.dwg"), &["obj", "ply"])]).unwrap_err();
+        assert!(
+            e.contains("-o cannot be written as `.dwg`; use .obj, .ply"),
+            "{e}"
+        );
+        let e = check(&[("-o", dir.path().to_path_buf(), &[])]).unwrap_err();
+        assert!(e.contains("is a folder"), "{e}");
+        assert!(check(&[("-o", dir.path().join("fine.ply"), &["ply"])]).is_ok());
+    }
+}

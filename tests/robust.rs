@@ -1,0 +1,705 @@
+//! Issue #14: no hostile file, geometry or option can crash, hang, exhaust memory, be
+//! accepted as garbage, or destroy a file. One test per finding, with the exact expected
+//! behaviour; then the crash corpus of the fuzz targets and a bounded random-mutation
+//! run of every reader.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use linegs_gpu::io::{
+    info, parse_gaussian_model, parse_gaussians, parse_lines, read_gaussians, read_lines, Error,
+    FileKind, PlyOptions, Position,
+};
+
+fn file(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, bytes).unwrap();
+    p
+}
+
+fn lines_err(name: &str, bytes: &[u8]) -> Error {
+    parse_lines(Path::new(name), bytes.to_vec()).expect_err("must be refused")
+}
+
+fn gauss_err(bytes: &[u8]) -> Error {
+    parse_gaussians(Path::new("g.ply"), bytes, &PlyOptions::default()).expect_err("refused")
+}
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Exit 2, one line naming `file` and `needle`, no panic.
+fn assert_exit_2(o: &Output, file: &str, needle: &str) {
+    let e = stderr(o);
+    assert_eq!(o.status.code(), Some(2), "stderr: {e}");
+    assert!(
+        e.contains(file) && e.contains(needle),
+        "`{file}`/`{needle}` not in: {e}"
+    );
+    assert_eq!(e.trim_end().lines().count(), 1, "one line: {e}");
+    assert!(!e.contains("panicked") && !e.contains(".linegs-"), "{e}");
+}
+
+fn edge_ply(format: &str, nv: &str, ne: &str, extra: &str) -> String {
+    format!(
+        "ply\nformat {format} 1.0\nelement vertex {nv}\nproperty float x\nproperty float y\nproperty float z\n{extra}element edge {ne}\nproperty int vertex1\nproperty int vertex2\nend_header\n"
+    )
+}
+
+const GOOD_EDGES: &str = "0 0 0\n1 0 0\n1 1 0\n0 1 0\n";
+
+// ---------------------------------------------------------------- readers: huge counts
+
+#[test]
+fn huge_counts_are_a_clean_error_not_an_abort() {
+    for (nv, ne) in [
+        ("4", "1000000000000"),        // 24e12 bytes of edges claimed
+        ("1000000000000", "2"),        // the same for vertices
+        ("18446744073709551615", "2"), // 2^64 - 1: used to panic with "capacity overflow"
+        ("4", "18446744073709551615"),
+    ] {
+        for format in ["ascii", "binary_little_endian"] {
+            let mut b = edge_ply(format, nv, ne, "").into_bytes();
+            b.extend_from_slice(GOOD_EDGES.as_bytes());
+            let e = lines_err("l.ply", &b);
+            assert!(matches!(e, Error::Truncated { .. }), "{e}");
+            assert!(e.to_string().contains("the header promises"), "{e}");
+        }
+    }
+    // With a list property the record size is not fixed: nothing is reserved beyond what
+    // the data holds, and the walk stops where the data does (64 one-byte empty lists).
+    let h = "ply\nformat binary_little_endian 1.0\nelement face 18446744073709551615\nproperty list uchar int vertex_indices\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+    let mut b = h.as_bytes().to_vec();
+    b.extend_from_slice(&[0u8; 64]);
+    let e = gauss_err(&b);
+    assert!(matches!(e, Error::Truncated { .. }), "{e}");
+    assert!(
+        e.to_string().contains(
+            "promises 18446744073709551615 face records but the data stops inside face 64"
+        ),
+        "{e}"
+    );
+}
+
+#[test]
+fn huge_counts_exit_2_on_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut b = edge_ply("ascii", "18446744073709551615", "1", "").into_bytes();
+    b.extend_from_slice(b"0 0 0\n1 1 1\n");
+    let l = file(dir.path(), "huge.ply", &b);
+    let o = run(&["info", l.to_str().unwrap()]);
+    assert_exit_2(
+        &o,
+        "huge.ply",
+        "promises 18446744073709551615 `vertex` records but the data ends after 2",
+    );
+}
+
+// ------------------------------------------------- readers: counts and layouts that lie
+
+#[test]
+fn an_ascii_count_larger_than_its_rows_is_an_error() {
+    let h = "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+    let e = gauss_err(format!("{h}0.0000 0.0000 0.0000\n1.0000 1.0000 1.0000\n").as_bytes());
+    assert!(matches!(e, Error::Truncated { .. }), "{e}");
+    assert!(
+        e.to_string()
+            .contains("promises 4 `vertex` records but the data ends after 2"),
+        "{e}"
+    );
+}
+
+#[test]
+fn an_ascii_row_without_a_property_is_an_error_not_shifted_values() {
+    // The header declares x y z nx, the rows hold three values: before, the values shifted
+    // from row to row and the box became nonsense.
+    let h = "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nend_header\n";
+    let rows = "0 0 0\n1 1 1\n2 2 2\n3 3 3\n4 4 4\n5 5 5\n";
+    let e = gauss_err(format!("{h}{rows}").as_bytes());
+    assert_eq!(e.position(), Some(&Position::Line(9)), "{e}");
+    assert!(
+        e.to_string()
+            .contains("vertex 0: property `nx` is value 4, but the row has 3 values"),
+        "{e}"
+    );
+    // And a row with a value too many.
+    let h3 = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+    let e = gauss_err(format!("{h3}0 0 0 7\n").as_bytes());
+    assert!(
+        e.to_string()
+            .contains("the header's properties take 3 values, but the row has 4"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_second_element_of_the_same_name_is_an_error() {
+    let h = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 1 1\n";
+    let e = gauss_err(h.as_bytes());
+    assert_eq!(e.position(), Some(&Position::Line(7)));
+    assert!(
+        e.to_string()
+            .contains("a second `vertex` element (the first is on line 3)"),
+        "{e}"
+    );
+    let e = gauss_err(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\nend_header\n0 0\n");
+    assert!(
+        e.to_string().contains("`x` of `vertex` is declared twice"),
+        "{e}"
+    );
+}
+
+#[test]
+fn an_edge_count_smaller_than_its_records_is_an_error() {
+    // ASCII: 1 edge declared, 3 written.
+    let mut b = edge_ply("ascii", "4", "1", "").into_bytes();
+    b.extend_from_slice(format!("{GOOD_EDGES}0 1\n1 2\n2 3\n").as_bytes());
+    let e = lines_err("l.ply", &b);
+    assert_eq!(e.position(), Some(&Position::Line(16)), "{e}");
+    assert!(
+        e.to_string().contains("a row after the last element"),
+        "{e}"
+    );
+    // Binary: the same with 8-byte edge records.
+    let mut b = edge_ply("binary_little_endian", "2", "1", "").into_bytes();
+    let start = b.len() as u64;
+    for v in [0f32, 0.0, 0.0, 1.0, 1.0, 1.0] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    for i in [0i32, 1, 1, 0, 0, 1] {
+        b.extend_from_slice(&i.to_le_bytes());
+    }
+    let e = lines_err("l.ply", &b);
+    assert_eq!(e.position(), Some(&Position::Byte(start + 24 + 8)), "{e}");
+    assert!(
+        e.to_string().contains("16 bytes after the last element"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_binary_header_that_drops_a_property_is_an_error_not_a_warning() {
+    // The data has x y z opacity per record, the header only x y z.
+    let h = "ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+    let mut b = h.as_bytes().to_vec();
+    for i in 0..4 {
+        for v in [i as f32, 1.0, 2.0, 0.5] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    let e = gauss_err(&b);
+    assert!(matches!(e, Error::Parse { .. }), "{e}");
+    assert_eq!(e.position(), Some(&Position::Byte((h.len() + 48) as u64)));
+    assert!(
+        e.to_string().contains("16 bytes after the last element"),
+        "{e}"
+    );
+}
+
+/// A `.npy` of `n x 2 x 3` f64 with the header length field moved by `delta`.
+fn npy(n: usize, rows: usize, delta: i32) -> Vec<u8> {
+    let dict = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({n}, 2, 3), }}");
+    let pad = (64 - (10 + dict.len() + 1) % 64) % 64;
+    let hlen = dict.len() + pad + 1;
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend_from_slice(&((hlen as i32 + delta) as u16).to_le_bytes());
+    b.extend_from_slice(dict.as_bytes());
+    b.extend(std::iter::repeat_n(b' ', pad));
+    b.push(b'\n');
+    for i in 0..rows * 6 {
+        b.extend_from_slice(&(i as f64).to_le_bytes());
+    }
+    b
+}
+
+#[test]
+fn a_npy_header_length_off_by_one_is_an_error() {
+    assert_eq!(
+        parse_lines(Path::new("a.npy"), npy(4, 4, 0))
+            .unwrap()
+            .lines
+            .len(),
+        4
+    );
+    for delta in [1, -1] {
+        let e = lines_err("a.npy", &npy(4, 4, delta));
+        assert_eq!(e.position(), Some(&Position::Byte(8)), "{e}");
+        assert!(
+            e.to_string()
+                .contains("is not the newline that ends a .npy header"),
+            "{e}"
+        );
+    }
+}
+
+#[test]
+fn npy_data_longer_than_its_shape_is_an_error() {
+    let e = lines_err("a.npy", &npy(16, 32, 0));
+    assert!(matches!(e, Error::Parse { .. }), "{e}");
+    assert!(
+        e.to_string()
+            .contains("needs 768 data bytes from byte 128, but the file has 1536"),
+        "{e}"
+    );
+}
+
+// ------------------------------------------------------- readers: devices, pipes, BOM
+
+#[cfg(unix)]
+#[test]
+fn devices_are_refused_without_reading_them() {
+    for dev in ["/dev/zero", "/dev/urandom"] {
+        let p = Path::new(dev);
+        for e in [
+            read_lines(p).unwrap_err(),
+            read_gaussians(p, &PlyOptions::default()).unwrap_err(),
+            info(p).unwrap_err(),
+        ] {
+            assert!(
+                e.to_string().starts_with(&format!("{dev}: is a device")),
+                "{e}"
+            );
+        }
+        let o = run(&["info", dev]);
+        assert_exit_2(&o, dev, "is a device");
+    }
+}
+
+/// A FIFO at `path` fed once with `bytes` by a thread (which waits for a reader).
+#[cfg(unix)]
+fn fifo(path: &Path, bytes: Vec<u8>) -> std::thread::JoinHandle<()> {
+    let ok = Command::new("mkfifo").arg(path).status().unwrap();
+    assert!(ok.success());
+    let p = path.to_path_buf();
+    std::thread::spawn(move || {
+        use std::io::Write;
+        if let Ok(mut f) = std::fs::OpenOptions::new().write(true).open(&p) {
+            let _ = f.write_all(&bytes);
+        }
+    })
+}
+
+/// Runs the CLI and fails (instead of hanging) if it takes more than a minute.
+#[cfg(unix)]
+fn run_bounded(args: &[&str]) -> Output {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    for _ in 0..600 {
+        if child.try_wait().unwrap().is_some() {
+            return child.wait_with_output().unwrap();
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    child.kill().unwrap();
+    panic!("`{}` hangs", args.join(" "));
+}
+
+#[cfg(unix)]
+#[test]
+fn a_fifo_is_read_once_by_info_and_by_the_readers() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = b"0 0 0 1 1 1\n0 0 0 2 0 0\n".to_vec();
+    let f = dir.path().join("lines.fifo");
+    let writer = fifo(&f, text.clone());
+    let o = run_bounded(&["info", f.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("segments:    2"));
+    // Only now: the writer waits for a reader, so joining before the asserts could hang.
+    writer.join().unwrap();
+    std::fs::remove_file(&f).unwrap();
+    let writer = fifo(&f, text);
+    assert_eq!(read_lines(&f).unwrap().lines.len(), 2);
+    writer.join().unwrap();
+}
+
+#[test]
+fn a_ply_with_a_byte_order_mark_is_the_same_model_to_info_and_to_eval() {
+    let dir = tempfile::tempdir().unwrap();
+    let body = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 2 3\n";
+    let p = file(dir.path(), "bom.ply", format!("\u{feff}{body}").as_bytes());
+    let i = info(&p).unwrap();
+    assert_eq!((i.kind, i.count), (FileKind::Gaussians, 2));
+    let g = read_gaussians(&p, &PlyOptions::default()).unwrap();
+    assert_eq!(g.centers, vec![[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]);
+}
+
+// ----------------------------------------------------------------------------- options
+
+#[test]
+fn loop_bounding_options_are_validated_with_their_range_in_help() {
+    let o = run(&[
+        "refine",
+        "-g",
+        "g.ply",
+        "-l",
+        "l.obj",
+        "-o",
+        "o.obj",
+        "--crop-max-probes",
+        "1000000",
+        "--crop-min-interval",
+        "1e-30",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("1000000 is not in 1..=64"),
+        "{}",
+        stderr(&o)
+    );
+    let help = run(&["refine", "--help"]);
+    let text = String::from_utf8_lossy(&help.stdout);
+    assert!(text.contains("1 to 64"), "{text}");
+    let o = run(&[
+        "render",
+        "-g",
+        "g",
+        "-l",
+        "l",
+        "-o",
+        "o.png",
+        "--width",
+        "4000000000",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+}
+
+// ----------------------------------------------------------------------------- outputs
+
+/// A tiny scene on disk: Gaussians along two edges, and the two edges as lines.
+fn scene(dir: &Path) -> (PathBuf, PathBuf) {
+    let mut g = String::from("ply\nformat ascii 1.0\nelement vertex 400\nproperty float x\nproperty float y\nproperty float z\nend_header\n");
+    for i in 0..200 {
+        let t = i as f32 / 200.0;
+        g.push_str(&format!("{t} 0 0\n0 {t} 0\n"));
+    }
+    let g = file(dir, "g.ply", g.as_bytes());
+    let l = file(dir, "l.txt", b"0 0 0 1 0 0\n0 0 0 0 1 0\n");
+    (g, l)
+}
+
+fn refine(g: &Path, l: &Path, extra: &[&Path], flags: &[&str]) -> Output {
+    let mut args: Vec<String> = ["refine", "--backend", "cpu", "-g"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    args.push(g.display().to_string());
+    args.push("-l".into());
+    args.push(l.display().to_string());
+    for (f, p) in flags.iter().zip(extra) {
+        args.push(f.to_string());
+        args.push(p.display().to_string());
+    }
+    let refs: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    run(&refs)
+}
+
+fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| {
+            let e = e.unwrap();
+            let bytes = std::fs::read(e.path()).unwrap_or_default();
+            (e.file_name().to_string_lossy().into_owned(), bytes)
+        })
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn no_output_may_replace_an_input_or_another_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let o_obj = dir.path().join("o.obj");
+    let report = dir.path().join("r.json");
+    let before = snapshot(dir.path());
+    let cases: [(&[&Path], &[&str], &str, &str); 5] = [
+        (&[&g], &["-o"], "g.ply", "-o is the input"),
+        (&[&l], &["-o"], "l.txt", "-o is the input"),
+        (
+            &[&o_obj, &g],
+            &["-o", "--report"],
+            "g.ply",
+            "--report cannot be written as `.ply`",
+        ),
+        (
+            &[&o_obj, &o_obj],
+            &["-o", "--compare-ply"],
+            "o.obj",
+            "--compare-ply cannot be written",
+        ),
+        (
+            &[&o_obj, &report, &report],
+            &["-o", "--report", "--compare-ply"],
+            "r.json",
+            "cannot be written",
+        ),
+    ];
+    for (paths, flags, name, needle) in cases {
+        let o = refine(&g, &l, paths, flags);
+        assert_exit_2(&o, name, needle);
+    }
+    // Same-file outputs of the same kind: -o and --compare-ply both PLY.
+    let o_ply = dir.path().join("o.ply");
+    let o = refine(&g, &l, &[&o_ply, &o_ply], &["-o", "--compare-ply"]);
+    assert_exit_2(&o, "o.ply", "--compare-ply is the same file as -o");
+    // --report naming an input (spelled differently) is caught too.
+    let sneaky = dir.path().join(".").join("l.txt");
+    let renamed = file(dir.path(), "in.json", b"{}");
+    let o = refine(&g, &renamed, &[&o_obj, &renamed], &["-o", "--report"]);
+    assert_exit_2(&o, "in.json", "--report is the input");
+    let o = refine(&g, &l, &[&sneaky], &["-o"]);
+    assert_exit_2(&o, "l.txt", "-o is the input");
+    let mut after = snapshot(dir.path());
+    after.retain(|(n, _)| n != "in.json");
+    assert_eq!(after, before, "every file as it was, nothing added");
+}
+
+#[test]
+fn a_run_whose_last_output_cannot_be_written_fails_before_any_work_and_keeps_every_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let out = file(dir.path(), "out.obj", b"# the user's earlier result\n");
+    let cmp = file(dir.path(), "cmp.ply", b"earlier comparison");
+    let before = snapshot(dir.path());
+    let missing = dir.path().join("no-such-folder/r.json");
+    let o = refine(
+        &g,
+        &l,
+        &[&out, &cmp, &missing],
+        &["-o", "--compare-ply", "--report"],
+    );
+    assert_exit_2(&o, "r.json", "does not exist");
+    assert!(
+        String::from_utf8_lossy(&o.stdout).is_empty(),
+        "no work was done"
+    );
+    assert_eq!(snapshot(dir.path()), before);
+    // A folder that exists but takes no new files (skipped as root, who may write anyway).
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let ro = dir.path().join("ro");
+        std::fs::create_dir(&ro).unwrap();
+        std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o555)).unwrap();
+        if tempfile::tempfile_in(&ro).is_err() {
+            let o = refine(&g, &l, &[&out, &ro.join("r.json")], &["-o", "--report"]);
+            assert_exit_2(&o, "r.json", "cannot create files in the folder");
+            assert_eq!(
+                std::fs::read(&out).unwrap(),
+                b"# the user's earlier result\n"
+            );
+        }
+        std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o755)).unwrap();
+    }
+    // And the same run with good paths writes all three.
+    let report = dir.path().join("r.json");
+    let o = refine(
+        &g,
+        &l,
+        &[&out, &cmp, &report],
+        &["-o", "--compare-ply", "--report"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::fs::read_to_string(&out).unwrap().starts_with("# "));
+    assert!(std::fs::read(&cmp).unwrap().starts_with(b"ply\n"));
+    assert!(std::fs::read_to_string(&report)
+        .unwrap()
+        .contains("\"after\""));
+    let names: Vec<String> = snapshot(dir.path()).into_iter().map(|(n, _)| n).collect();
+    assert!(
+        !names.iter().any(|n| n.starts_with(".linegs-")),
+        "{names:?}"
+    );
+}
+
+// ------------------------------------------------------------------------------ errors
+
+#[test]
+fn an_io_error_says_its_cause_once() {
+    let o = run(&["info", "/no/such/file.ply"]);
+    assert_exit_2(&o, "/no/such/file.ply", "cannot open");
+    assert_eq!(
+        stderr(&o).matches("No such file or directory").count(),
+        1,
+        "{}",
+        stderr(&o)
+    );
+}
+
+// --------------------------------------------------------------------------- fuzzing
+
+/// Inputs the fuzz targets found (and plain mutants that once misbehaved): each must be
+/// read or refused, never panic. `tests/fuzz-corpus/<target>/`; see the README.
+#[test]
+fn the_fuzz_regression_corpus_is_read_or_refused() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz-corpus");
+    let mut n = 0;
+    for target in ["gaussians", "lines", "npy"] {
+        let Ok(dir) = std::fs::read_dir(root.join(target)) else {
+            continue;
+        };
+        for e in dir {
+            let bytes = std::fs::read(e.unwrap().path()).unwrap();
+            read_any(target, &bytes);
+            n += 1;
+        }
+    }
+    assert!(n > 0, "the corpus is empty");
+}
+
+const NAMES: [&str; 6] = ["l.txt", "l.obj", "l.stl", "l.ply", "l.npy", "l"];
+
+/// What the fuzz targets do with one input (fuzz/src/lib.rs), as a plain function.
+fn read_any(target: &str, data: &[u8]) {
+    match target {
+        "models" => {
+            if let Some((&k, rest)) = data.split_first() {
+                let name = ["m.ply", "m.spz", "m.splat"][k as usize % 3];
+                let opts = PlyOptions::default();
+                if let Ok(c) = parse_gaussian_model(Path::new(name), rest, &opts) {
+                    assert!(!c.centers.is_empty());
+                    assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+                }
+            }
+        }
+        "gaussians" => {
+            for strict in [false, true] {
+                let opts = PlyOptions {
+                    min_opacity: strict.then_some(0.5),
+                    strict,
+                };
+                if let Ok(c) = parse_gaussians(Path::new("f.ply"), data, &opts) {
+                    assert!(c.centers.len() <= c.vertex_count && !c.centers.is_empty());
+                    assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+                }
+            }
+        }
+        _ => {
+            let (name, rest) = match (target, data.split_first()) {
+                ("npy", _) => ("l.npy", data),
+                (_, Some((&k, rest))) => (NAMES[k as usize % NAMES.len()], rest),
+                _ => return,
+            };
+            if let Ok(f) = parse_lines(Path::new(name), rest.to_vec()) {
+                assert!(!f.lines.segments.is_empty());
+                assert!(f
+                    .lines
+                    .segments
+                    .iter()
+                    .all(|s| s.p1.is_finite() && s.p2.is_finite() && s.length() > 1e-12));
+            }
+        }
+    }
+}
+
+/// A few thousand random mutations (flips, inserts, deletes, splices of numbers that
+/// matter: counts, lengths) of one valid file of every format, each read or refused.
+#[test]
+fn random_mutants_of_every_format_are_read_or_refused() {
+    let seeds = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds");
+    let mut rng = 0x9e3779b97f4a7c15u64;
+    let mut next = move || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    const SPLICE: [&[u8]; 8] = [
+        b"18446744073709551615",
+        b"4294967295",
+        b"-1",
+        b"nan",
+        b"1e308",
+        b"\n",
+        b"0",
+        b"element vertex 9\n",
+    ];
+    let mut runs = 0;
+    for target in ["gaussians", "lines", "npy", "models"] {
+        for e in std::fs::read_dir(seeds.join(target)).unwrap() {
+            let seed = std::fs::read(e.unwrap().path()).unwrap();
+            for _ in 0..150 {
+                let mut m = seed.clone();
+                for _ in 0..1 + next() % 4 {
+                    let at = (next() as usize) % (m.len() + 1);
+                    match next() % 5 {
+                        0 if at < m.len() => m[at] ^= 1 << (next() % 8),
+                        1 if at < m.len() => {
+                            m.remove(at);
+                        }
+                        2 => m.insert(at, next() as u8),
+                        3 => {
+                            let s = SPLICE[next() as usize % SPLICE.len()];
+                            m.splice(at..at, s.iter().copied());
+                        }
+                        _ => m.truncate(at),
+                    }
+                }
+                read_any(target, &m);
+                runs += 1;
+            }
+        }
+    }
+    assert!(runs >= 2000, "{runs}");
+}
+
+// ------------------------------------------------------------------ hostile geometry
+
+#[test]
+fn a_segment_flung_to_1000_1000_1000_leaves_the_others_results_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = (dir.path().join("g.ply"), dir.path().join("l.obj"));
+    let o = run(&[
+        "synth",
+        "toy",
+        "-o",
+        g.to_str().unwrap(),
+        "--lines-out",
+        l.to_str().unwrap(),
+        "-n",
+        "20000",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // Move the first endpoint of the first segment far away (the grid used to grow with it).
+    let text = std::fs::read_to_string(&l).unwrap();
+    let mut moved = false;
+    let far: Vec<String> = text
+        .lines()
+        .map(|row| {
+            if !moved && row.starts_with("v ") {
+                moved = true;
+                "v 1000 1000 1000".to_string()
+            } else {
+                row.to_string()
+            }
+        })
+        .collect();
+    let lf = file(dir.path(), "far.obj", far.join("\n").as_bytes());
+    let refined = |lines: &Path, out: &str| -> Vec<String> {
+        let out = dir.path().join(out);
+        let o = refine(&g, lines, &[&out], &["-o"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let text = std::fs::read_to_string(&out).unwrap();
+        let v: Vec<&str> = text.lines().filter(|r| r.starts_with("v ")).collect();
+        let mut segs: Vec<String> = v.chunks(2).map(|p| p.join(" | ")).collect();
+        segs.sort();
+        segs
+    };
+    let near = refined(&l, "near.obj");
+    let with_far = refined(&lf, "with_far.obj");
+    let changed = near.iter().filter(|s| !with_far.contains(s)).count();
+    assert!(changed <= 1, "{changed} of {} segments changed", near.len());
+}
