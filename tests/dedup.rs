@@ -40,7 +40,10 @@ fn check_engine(bare: &dyn Engine, wrapped: &Dedup) {
             bare.stats(&q, want).unwrap()
         );
     }
-    assert_eq!(wrapped.nearest(&q, &k).unwrap(), bare.nearest(&q, &k).unwrap());
+    assert_eq!(
+        wrapped.nearest(&q, &k).unwrap(),
+        bare.nearest(&q, &k).unwrap()
+    );
     assert_eq!(wrapped.coverage(&q).unwrap(), bare.coverage(&q).unwrap());
     // 4 stats and 1 coverage batch of <= 30 queries, 1 nearest batch of <= 60.
     let answered = wrapped.counters().queries - before;

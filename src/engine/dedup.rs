@@ -199,10 +199,13 @@ mod tests {
     use glam::DVec3;
     use std::sync::{Arc, Mutex};
 
+    /// Every batch asked, each query with its `k` (0 outside `nearest`).
+    type Log = Arc<Mutex<Vec<Vec<(Query, u64)>>>>;
+
     /// The CPU engine, recording every batch it is asked.
     struct Recording {
         cpu: CpuEngine,
-        seen: Arc<Mutex<Vec<Vec<(Query, u64)>>>>,
+        seen: Log,
     }
 
     impl Engine for Recording {
@@ -344,13 +347,20 @@ mod tests {
         let once = distinct(&q, &zeros);
         assert!(once.len() < q.len() / 3, "{} distinct", once.len());
         for (b, batch) in seen.iter().enumerate() {
-            let want = if b == 4 { distinct(&q, &k) } else { once.clone() };
+            let want = if b == 4 {
+                distinct(&q, &k)
+            } else {
+                once.clone()
+            };
             // Same queries, bit for bit, in first-occurrence order.
             let bits = |v: &[(Query, u64)]| v.iter().map(|(q, k)| key(q, *k)).collect::<Vec<_>>();
             assert_eq!(bits(batch), bits(&want), "batch {b}");
         }
         assert_eq!(d.asked(), 6 * q.len() as u64);
-        assert_eq!(d.counters().queries, seen.iter().map(|b| b.len() as u64).sum::<u64>());
+        assert_eq!(
+            d.counters().queries,
+            seen.iter().map(|b| b.len() as u64).sum::<u64>()
+        );
     }
 
     #[test]
