@@ -32,6 +32,8 @@ pub struct RunOutput {
     pub backend: String,
     pub adapter: String,
     pub warnings: Vec<String>,
+    /// Shifts of step 4 and segment length per stage.
+    pub refine: refine::StepNotes,
 }
 
 #[derive(thiserror::Error, Debug)]
@@ -110,6 +112,19 @@ pub fn run(
     lines: &LineSet,
     radius: f64,
     params: &Params,
+    on_stage: impl FnMut(&Stage),
+) -> Result<RunOutput, RunError> {
+    let attrs = refine::fit::Attributes::default();
+    run_with(engine, lines, &attrs, radius, params, on_stage)
+}
+
+/// [`run`] with the Gaussians' attributes (working-set order) for the edge fit.
+pub fn run_with(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    attrs: &refine::fit::Attributes,
+    radius: f64,
+    params: &Params,
     mut on_stage: impl FnMut(&Stage),
 ) -> Result<RunOutput, RunError> {
     let fixes = params.fixes();
@@ -126,9 +141,10 @@ pub fn run(
     let t = Instant::now();
     let before = evaluate(engine, &lines.segments, &params.eval, fixes.r_l, None)?;
     push("evaluate_before", lines.len(), t, &mut stages);
-    let refined = refine::run_steps(engine, lines, radius, params, |name, n, t| {
-        push(name, n, t, &mut stages)
-    })?;
+    let (refined, notes) =
+        refine::run_steps_noted(engine, lines, attrs, radius, params, |name, n, t| {
+            push(name, n, t, &mut stages)
+        })?;
     let t = Instant::now();
     let after = evaluate(engine, &refined.segments, &params.eval, fixes.r_l, None)?;
     push("evaluate_after", refined.len(), t, &mut stages);
@@ -141,7 +157,8 @@ pub fn run(
         stages,
         backend: engine.backend().to_string(),
         adapter: engine.adapter(),
-        warnings: Vec::new(),
+        warnings: notes.warnings.clone(),
+        refine: notes,
     })
 }
 

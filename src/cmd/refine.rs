@@ -45,6 +45,8 @@ pub struct Report<'a> {
     pub total_seconds: f64,
     pub before: &'a Metrics,
     pub after: &'a Metrics,
+    /// Step 4's shifts (units of r) and segment length per stage.
+    pub refine: &'a linegs_gpu::refine::StepNotes,
     pub warnings: Vec<String>,
 }
 
@@ -86,6 +88,9 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         },
     )?;
     bar.finish_and_clear();
+    for w in &out.warnings {
+        eprintln!("warning: {w}");
+    }
     let t = Instant::now();
     io::write_lines(&a.output, &out.lines.segments)?;
     if let Some(p) = &a.compare_ply {
@@ -118,6 +123,16 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         "{}",
         metrics_table(&[("before", &out.before), ("after", &out.after)])
     );
+    if let Some(sh) = &out.refine.shifts {
+        println!(
+            "step 4 (--fit {}) moved {} of {} segments: median {:.3} r, 90th percentile {:.3} r",
+            out.refine.fit.name(),
+            sh.moved,
+            loaded.lines.lines.len(),
+            sh.median_r,
+            sh.p90_r
+        );
+    }
     println!("wrote {} in {total:.2} s", a.output.display());
     if let Some(rp) = &a.report {
         let mut warnings = loaded.cloud.warnings.clone();
@@ -139,6 +154,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             total_seconds: total,
             before: &out.before,
             after: &out.after,
+            refine: &out.refine,
             warnings,
         };
         io::write_bytes_atomic(rp, serde_json::to_string_pretty(&report)?.as_bytes())?;

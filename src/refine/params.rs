@@ -16,6 +16,31 @@ pub enum Profile {
     Reference,
 }
 
+/// Where step 4 moves each line (`--fit`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Fit {
+    /// The published step: the mean offset of the nearest `translate_keep` of the points.
+    /// It follows the Gaussians: use it to reproduce the paper, or to represent the
+    /// Gaussians themselves.
+    Paper,
+    /// Onto the edge the Gaussians describe (two faces' intersection where normals exist,
+    /// else the dense ridge; no move where neither is clear), iterated to convergence.
+    Edge,
+    /// No move.
+    None,
+}
+
+impl Fit {
+    pub fn name(self) -> &'static str {
+        match self {
+            Fit::Paper => "paper",
+            Fit::Edge => "edge",
+            Fit::None => "none",
+        }
+    }
+}
+
 /// Denominator of `R_L` (SPEC 5).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -139,6 +164,26 @@ pub struct Params {
     /// Translate: fraction of the points nearest to the line whose mean offset moves it.
     #[arg(long, default_value_t = 0.4, value_parser = fraction)]
     pub translate_keep: f64,
+    /// Step 4: `paper` (mean offset of the nearest translate-keep, the published step),
+    /// `edge` (fit the edge: two faces' corner or the dense ridge, iterated) or `none`.
+    /// Default: the profile's (`paper` for both).
+    #[arg(long, value_enum)]
+    pub fit: Option<Fit>,
+    /// Edge fit: most iterations (one engine batch each).
+    #[arg(long, default_value_t = 12)]
+    pub fit_iterations: u32,
+    /// Edge fit: largest turn of a line per iteration (degrees).
+    #[arg(long, default_value_t = 3.0, value_parser = positive)]
+    pub fit_max_turn_deg: f64,
+    /// Edge fit: largest total move of an endpoint, in units of r.
+    #[arg(long, default_value_t = 1.0, value_parser = positive)]
+    pub fit_max_move: f64,
+    /// Edge fit: final width of the ridge kernel, in units of r.
+    #[arg(long, default_value_t = 0.25, value_parser = positive)]
+    pub fit_bandwidth: f64,
+    /// Edge fit: fewest points under the kernel (or per face family) for a move.
+    #[arg(long, default_value_t = 8)]
+    pub fit_min_points: u32,
 
     /// Outliers: drop segments with density <= ratio x mean density; -1 uses
     /// max(mean - 2 std, 0).
@@ -247,6 +292,12 @@ impl Default for Params {
             profile: Profile::Default,
             radius: RadiusArg::Fixed(0.03),
             translate_keep: 0.4,
+            fit: None,
+            fit_iterations: 12,
+            fit_max_turn_deg: 3.0,
+            fit_max_move: 1.0,
+            fit_bandwidth: 0.25,
+            fit_min_points: 8,
             outlier_ratio: 0.2,
             collinear_merge: true,
             cluster_min_weight: 0.4,
@@ -288,6 +339,7 @@ pub struct Fixes {
     pub crop_density: bool,
     pub order_endpoints: bool,
     pub r_l: RlMode,
+    pub fit: Fit,
 }
 
 impl Params {
@@ -313,6 +365,7 @@ impl Params {
             join_gap: self.fix_join_gap.unwrap_or(on),
             crop_density: self.fix_crop_density.unwrap_or(on),
             order_endpoints: self.order_endpoints.unwrap_or(!on),
+            fit: self.fit.unwrap_or(Fit::Paper),
             r_l: self
                 .eval
                 .r_l
