@@ -72,9 +72,29 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         segments: loaded.lines.lines.len(),
         seconds: t0.elapsed().as_secs_f64(),
     }];
-    let out = pipeline::run(
+    // The edge fit uses the Gaussians' normals where the file has rotations and scales.
+    let mut attrs = linegs_gpu::refine::fit::Attributes::default();
+    if a.params.fixes().fit == linegs_gpu::refine::Fit::Edge {
+        if let Some(n) = io::read_gaussian_normals(&a.input.gaussians, a.input.min_opacity)? {
+            match linegs_gpu::refine::fit::Attributes::for_working_set(
+                &loaded.cloud.centers,
+                &n,
+                &loaded.lines.lines.segments,
+            ) {
+                Some(at) if at.normals.as_ref().map(Vec::len) == Some(prep.working_set_len) => {
+                    attrs = at
+                }
+                _ => eprintln!(
+                    "warning: {}: the normals did not line up with the centers; the edge fit uses the centers only",
+                    a.input.gaussians.display()
+                ),
+            }
+        }
+    }
+    let out = pipeline::run_with(
         eng.as_ref(),
         &loaded.lines.lines,
+        &attrs,
         prep.radius,
         &a.params,
         |s| {

@@ -6,6 +6,7 @@ mod chunked;
 mod error;
 mod info;
 mod lines;
+mod normals;
 mod npy;
 mod ply;
 mod write;
@@ -13,6 +14,7 @@ mod write;
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use info::{info, FileInfo, FileKind};
 pub use lines::{read_lines, LineFile, LineFormat};
+pub use normals::read_gaussian_normals;
 pub use ply::{read_gaussians, GaussianCloud, PlyOptions};
 pub use write::{
     check_line_output, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,

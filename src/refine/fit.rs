@@ -18,8 +18,8 @@
 //!
 //! Each step moves a line by at most `0.5 r` and turns it by at most `fit_max_turn_deg`
 //! (and so that neither end moves more than `r/4` by the turn);
-//! its total move stays within `fit_max_move x r` of where it started, so a line is never
-//! carried over to another edge.
+//! its total move stays within `fit_max_move x r` (default 2) of where it started, so a
+//! line is never carried over to another edge.
 
 use crate::engine::{Engine, EngineError, Member, Query};
 use crate::geom::Segment;
@@ -31,6 +31,31 @@ use glam::{DVec2, DVec3};
 pub struct Attributes {
     /// Unit surface normal of each Gaussian (its shortest axis).
     pub normals: Option<Vec<[f32; 3]>>,
+}
+
+impl Attributes {
+    /// Per-Gaussian `normals` (same order as `centers`) cut to the working set of
+    /// `segments` by the same box test as [`crate::index::WorkingSet::new`]; `None` when
+    /// the counts differ.
+    pub fn for_working_set(
+        centers: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        segments: &[Segment],
+    ) -> Option<Attributes> {
+        if centers.len() != normals.len() {
+            return None;
+        }
+        let bounds = crate::geom::Aabb::of_segments(segments).grown(0.1);
+        let kept = centers
+            .iter()
+            .zip(normals)
+            .filter(|(c, _)| !bounds.is_empty() && bounds.contains(crate::geom::p64(**c)))
+            .map(|(_, n)| *n)
+            .collect();
+        Some(Attributes {
+            normals: Some(kept),
+        })
+    }
 }
 
 /// What the fit did to one segment.
@@ -265,14 +290,16 @@ fn step(
         .collect();
     let min_points = p.fit_min_points as usize;
     if let Some(ns) = &attrs.normals {
-        // Normals across the line (a face through the edge): |n·d| < sin 30°.
+        // Normals across the line (a face through the edge): |n·d| < sin 30°; a Gaussian
+        // with no normal (zero) is left out.
         let mut keep = Vec::new();
         let mut n2 = Vec::new();
         for (i, m) in members.iter().enumerate() {
             let n = crate::geom::p64(ns[m.id as usize]);
-            if n.dot(d).abs() < 0.5 {
+            let across = DVec2::new(n.dot(e1), n.dot(e2));
+            if across.length() > 0.866 {
                 keep.push(i);
-                n2.push(DVec2::new(n.dot(e1), n.dot(e2)).normalize_or_zero());
+                n2.push(across.normalize());
             }
         }
         if let Some(f) = two_planes(&pts, &n2, &keep, s.length(), min_points) {

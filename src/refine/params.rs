@@ -164,9 +164,11 @@ pub struct Params {
     /// Translate: fraction of the points nearest to the line whose mean offset moves it.
     #[arg(long, default_value_t = 0.4, value_parser = fraction)]
     pub translate_keep: f64,
-    /// Step 4: `paper` (mean offset of the nearest translate-keep, the published step),
-    /// `edge` (fit the edge: two faces' corner or the dense ridge, iterated) or `none`.
-    /// Default: the profile's (`paper` for both).
+    /// Step 4: `paper` (mean offset of the nearest translate-keep, the published step: to
+    /// reproduce the paper, or to put the lines where the Gaussians are), `edge` (fit the
+    /// edge: two faces' corner where the model has normals, else the dense ridge, iterated;
+    /// to put the lines on the true edges) or `none`. Default: the profile's (`edge` for
+    /// default, `paper` for reference).
     #[arg(long, value_enum)]
     pub fit: Option<Fit>,
     /// Edge fit: most iterations (one engine batch each).
@@ -176,7 +178,7 @@ pub struct Params {
     #[arg(long, default_value_t = 3.0, value_parser = positive)]
     pub fit_max_turn_deg: f64,
     /// Edge fit: largest total move of an endpoint, in units of r.
-    #[arg(long, default_value_t = 1.0, value_parser = positive)]
+    #[arg(long, default_value_t = 2.0, value_parser = positive)]
     pub fit_max_move: f64,
     /// Edge fit: final width of the ridge kernel, in units of r.
     #[arg(long, default_value_t = 0.25, value_parser = positive)]
@@ -295,7 +297,7 @@ impl Default for Params {
             fit: None,
             fit_iterations: 12,
             fit_max_turn_deg: 3.0,
-            fit_max_move: 1.0,
+            fit_max_move: 2.0,
             fit_bandwidth: 0.25,
             fit_min_points: 8,
             outlier_ratio: 0.2,
@@ -365,7 +367,7 @@ impl Params {
             join_gap: self.fix_join_gap.unwrap_or(on),
             crop_density: self.fix_crop_density.unwrap_or(on),
             order_endpoints: self.order_endpoints.unwrap_or(!on),
-            fit: self.fit.unwrap_or(Fit::Paper),
+            fit: self.fit.unwrap_or(if on { Fit::Edge } else { Fit::Paper }),
             r_l: self
                 .eval
                 .r_l
@@ -383,6 +385,8 @@ mod tests {
         let d = Params::default().fixes();
         assert!(d.cluster_distance && d.merge_extent && d.join_order && d.join_gap);
         assert!(d.crop_density && !d.order_endpoints && d.r_l == RlMode::Paper);
+        assert_eq!(d.fit, Fit::Edge);
+        assert_eq!(Params::reference().fixes().fit, Fit::Paper);
         let r = Params::reference().fixes();
         assert!(!r.cluster_distance && !r.merge_extent && !r.join_order && !r.join_gap);
         assert!(!r.crop_density && r.order_endpoints && r.r_l == RlMode::Authors);
