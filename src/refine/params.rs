@@ -112,6 +112,13 @@ fn finite(s: &str) -> Result<f64, String> {
     }
 }
 
+fn non_negative(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("expected a number >= 0, got `{s}`")),
+    }
+}
+
 fn fraction(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
@@ -252,6 +259,13 @@ pub struct Params {
     /// holding the end out past the corner.
     #[arg(long, value_parser = positive)]
     pub crop_probe_half: Option<f64>,
+    /// Crop: also extend an end whose window is dense, along the line, while windows past
+    /// it stay dense, by at most this x L (0: never extend, the paper's crop). Windows of
+    /// 2 x the probe half length march outward, one batch per step, and the last is
+    /// bisected; a corner stops the march, since past it the cylinder holds only the
+    /// other edge's cross-section.
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+    pub crop_extend: f64,
     /// Crop: most probes of the binary search.
     #[arg(long, default_value_t = 10)]
     pub crop_max_probes: u32,
@@ -318,6 +332,7 @@ impl Default for Params {
             crop_mid_frac: 0.6,
             crop_ratio: 0.5,
             crop_probe_half: None,
+            crop_extend: 0.0,
             crop_max_probes: 10,
             crop_min_interval: 1e-4,
             fix_cluster_distance: None,
