@@ -23,14 +23,13 @@ fn scene(edges: usize) -> LineSet {
 }
 
 fn bench(c: &mut Criterion) {
-    let p = Params::default();
-    let fixes = p.fixes();
+    let s = Params::default().with_radius(0.03);
     let mut g = c.benchmark_group("cluster");
     g.sample_size(10);
     for edges in [2_000usize, 20_000] {
         let lines = scene(edges);
         g.bench_function(format!("default/{}", lines.len()), |b| {
-            b.iter(|| cluster(&lines, 0.03, &p, &fixes))
+            b.iter(|| cluster(&lines, &s))
         });
     }
     g.finish();

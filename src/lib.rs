@@ -10,4 +10,5 @@ pub mod mem;
 pub mod pipeline;
 pub mod refine;
 pub mod render;
+pub mod report;
 pub mod synth;

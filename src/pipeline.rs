@@ -1,17 +1,32 @@
-//! The whole job of SPEC 3: working set, radius, grid, engine, before-evaluation, the
-//! refinement steps, after-evaluation — timed per stage for the report.
+//! The whole job of SPEC 3, behind one entry point that every caller uses (the CLI's
+//! `refine`, `eval`, `demo`, `bench` and `batch`, the Python package, the tests):
+//!
+//! 1. a [`Scene`]: the Gaussian centers and the lines, loaded from files
+//!    ([`Scene::load`]) or taken as arrays ([`Scene::from_arrays`]);
+//! 2. a [`Job`]: the parameters, the backend and what to measure beyond the paper's
+//!    metrics (a radius sweep, ground truth);
+//! 3. [`Job::refine`] or [`Job::evaluate`]: builds the working set, resolves the
+//!    [`Settings`] once, builds the grid and the engine once (a [`Refiner`]), runs the
+//!    steps and the evaluations, and returns one [`Report`] (SPEC 7) — the same shape for
+//!    refine, eval and demo.
 
+use crate::engine::select::{make_engine, Backend};
 use crate::engine::{Engine, EngineError};
-use crate::eval::{evaluate, Metrics};
-use crate::geom::{p64, LineSet, Segment};
+use crate::eval::{self, gt, Metrics};
+use crate::geom::{LineSet, Segment, MIN_LENGTH};
 use crate::index::{Grid, WorkingSet};
-use crate::refine::{self, Params, RadiusArg};
-use serde::Serialize;
+use crate::io::{self, PlyOptions};
+use crate::refine::{self, Params, Settings};
+use crate::report::{GroundTruth, InputReport, Report, Sweep};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
+pub use crate::refine::auto_radius;
+
 /// One timed stage of a run.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Stage {
     pub name: String,
     /// Segments after the stage.
@@ -19,166 +34,516 @@ pub struct Stage {
     pub seconds: f64,
 }
 
-/// Everything a run produced.
-#[derive(Clone, Debug, Serialize)]
-pub struct RunOutput {
-    #[serde(skip)]
-    pub lines: LineSet,
-    pub radius: f64,
-    pub n_box: usize,
-    pub before: Metrics,
-    pub after: Metrics,
-    pub stages: Vec<Stage>,
-    pub backend: String,
-    pub adapter: String,
-    pub warnings: Vec<String>,
-    /// Shifts of step 4 and segment length per stage.
-    pub refine: refine::StepNotes,
+impl Stage {
+    fn since(name: &str, segments: usize, t: Instant) -> Stage {
+        Stage {
+            name: name.to_string(),
+            segments,
+            seconds: t.elapsed().as_secs_f64(),
+        }
+    }
 }
 
 #[derive(thiserror::Error, Debug)]
 pub enum RunError {
     #[error(transparent)]
     Engine(#[from] EngineError),
+    #[error(transparent)]
+    Io(#[from] io::Error),
+    /// The input or the options cannot work together (exit code 2).
     #[error("{0}")]
     Input(String),
 }
 
-/// `--radius auto` (SPEC 3 step 2): `c` = centroid of the working set; keep the centers
-/// closer to `c` than the 95th percentile (linear interpolation, as numpy) of the
-/// distances; `r = 0.02 x` the largest kept distance.
-pub fn auto_radius(points: &[[f32; 3]]) -> Option<f64> {
-    if points.is_empty() {
-        return None;
-    }
-    let n = points.len() as f64;
-    let c = points.iter().fold(glam::DVec3::ZERO, |a, p| a + p64(*p)) / n;
-    let mut d: Vec<f64> = points.iter().map(|p| (p64(*p) - c).length()).collect();
-    d.sort_by(f64::total_cmp);
-    let pos = 0.95 * (d.len() - 1) as f64;
-    let lo = pos.floor() as usize;
-    let hi = pos.ceil() as usize;
-    let p95 = d[lo] + (d[hi] - d[lo]) * (pos - lo as f64);
-    let kept = d
-        .iter()
-        .copied()
-        .filter(|&x| x < p95)
-        .fold(f64::NAN, f64::max);
-    let r = 0.02 * if kept.is_nan() { p95 } else { kept };
-    (r > 0.0).then_some(r)
-}
-
-/// The refinement radius for `params` over the working set.
-pub fn resolve_radius(params: &Params, ws: &WorkingSet) -> Result<f64, RunError> {
-    match params.radius {
-        RadiusArg::Fixed(r) => Ok(r),
-        RadiusArg::Auto => auto_radius(&ws.points).ok_or_else(|| {
-            RunError::Input(
-                "--radius auto needs Gaussian centers near the lines, and none are".into(),
-            )
-        }),
-    }
-}
-
-/// Working set + radius + grid: what both engines are built on.
-pub struct Prepared {
-    pub working_set_len: usize,
-    pub radius: f64,
-    pub grid: Arc<Grid>,
-    pub seconds: f64,
-}
-
-pub fn prepare(
-    centers: &[[f32; 3]],
-    segments: &[Segment],
-    params: &Params,
-) -> Result<Prepared, RunError> {
-    let t = Instant::now();
-    let ws = WorkingSet::new(centers, segments);
-    let radius = resolve_radius(params, &ws)?;
-    let cell = radius.max(params.eval.eval_radius * 0.5);
-    let grid = Arc::new(Grid::build(&ws.points, ws.bounds, cell));
-    Ok(Prepared {
-        working_set_len: ws.len(),
-        radius,
-        grid,
-        seconds: t.elapsed().as_secs_f64(),
-    })
-}
-
-/// Runs before-evaluation, the refinement steps and after-evaluation on `engine`.
-pub fn run(
-    engine: &dyn Engine,
-    lines: &LineSet,
-    radius: f64,
-    params: &Params,
-    on_stage: impl FnMut(&Stage),
-) -> Result<RunOutput, RunError> {
-    let attrs = refine::fit::Attributes::default();
-    run_with(engine, lines, &attrs, radius, params, on_stage)
-}
-
-/// [`run`] with the Gaussians' attributes (working-set order) for the edge fit.
-pub fn run_with(
-    engine: &dyn Engine,
-    lines: &LineSet,
-    attrs: &refine::fit::Attributes,
-    radius: f64,
-    params: &Params,
-    mut on_stage: impl FnMut(&Stage),
-) -> Result<RunOutput, RunError> {
-    let fixes = params.fixes();
-    let mut stages = Vec::new();
-    let mut push = |name: &str, segments: usize, t: Instant, stages: &mut Vec<Stage>| {
-        let s = Stage {
-            name: name.to_string(),
-            segments,
-            seconds: t.elapsed().as_secs_f64(),
-        };
-        on_stage(&s);
-        stages.push(s);
-    };
-    let t = Instant::now();
-    let before = evaluate(engine, &lines.segments, &params.eval, fixes.r_l, None)?;
-    push("evaluate_before", lines.len(), t, &mut stages);
-    let (refined, notes) =
-        refine::run_steps_noted(engine, lines, attrs, radius, params, |name, n, t| {
-            push(name, n, t, &mut stages)
-        })?;
-    let t = Instant::now();
-    let after = evaluate(engine, &refined.segments, &params.eval, fixes.r_l, None)?;
-    push("evaluate_after", refined.len(), t, &mut stages);
-    Ok(RunOutput {
-        lines: refined,
-        radius,
-        n_box: engine.n_points(),
-        before,
-        after,
-        stages,
-        backend: engine.backend().to_string(),
-        adapter: engine.adapter(),
-        warnings: notes.warnings.clone(),
-        refine: notes,
-    })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn auto_radius_is_two_percent_of_the_kept_extent() {
-        // 100 points at distances 1..=100 from the centroid (on alternating sides so the
-        // centroid stays at 0, plus the origin).
-        let mut pts = vec![[0f32, 0.0, 0.0]];
-        for i in 1..=100 {
-            pts.push([i as f32, 0.0, 0.0]);
-            pts.push([-(i as f32), 0.0, 0.0]);
+impl RunError {
+    /// Whether the user's input is at fault (exit code 2) rather than the machine.
+    pub fn is_input_error(&self) -> bool {
+        match self {
+            RunError::Input(_) => true,
+            RunError::Io(e) => e.is_input_error(),
+            RunError::Engine(_) => false,
         }
-        let r = auto_radius(&pts).unwrap();
-        // distances: 0, then 1,1,2,2,...,100,100 (201 values); p95 at index 190 -> 95;
-        // kept < 95 -> max 94.
-        assert!((r - 0.02 * 94.0).abs() < 1e-12, "{r}");
-        assert_eq!(auto_radius(&[]), None);
+    }
+}
+
+/// How to read a scene's files.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LoadOptions {
+    /// Keep only Gaussians with `sigmoid(opacity) >= min_opacity`.
+    pub min_opacity: Option<f64>,
+    /// A NaN or infinite Gaussian center is an error instead of a counted warning.
+    pub strict: bool,
+}
+
+/// The Gaussian centers and the line segments of one scene, in memory, with what loading
+/// them found (counts, drops, warnings).
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub gaussians: Vec<[f32; 3]>,
+    pub lines: LineSet,
+    pub input: InputReport,
+    /// One line each, for the user and the report.
+    pub warnings: Vec<String>,
+    /// Seconds spent reading the files (0 for arrays).
+    pub load_seconds: f64,
+    /// Each Gaussian's surface normal (its shortest axis; zero where it is not flat), in
+    /// the order of `gaussians`, where the file has rotations and scales (the edge fit's
+    /// corner test). Read by a second pass over the PLY.
+    pub normals: Option<Vec<[f32; 3]>>,
+    /// What the scene is, when it was made rather than read (the demo's synthetic scene).
+    pub description: Option<String>,
+}
+
+impl Scene {
+    /// Reads the Gaussians (`point_cloud.ply` or any format of SPEC 6) and the lines.
+    pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
+        let t = Instant::now();
+        if let Some(o) = opts.min_opacity {
+            if !(0.0..=1.0).contains(&o) {
+                return Err(RunError::Input(format!(
+                    "--min-opacity {o}: expected an opacity in [0, 1]"
+                )));
+            }
+        }
+        let cloud = io::read_gaussians(
+            gaussians,
+            &PlyOptions {
+                min_opacity: opts.min_opacity,
+                strict: opts.strict,
+            },
+        )?;
+        let file = io::read_lines(lines)?;
+        let normals = io::read_gaussian_normals(gaussians, opts.min_opacity)?
+            .filter(|n| n.len() == cloud.centers.len());
+        let mut warnings = cloud.warnings;
+        warnings.extend(file.warnings);
+        let input = InputReport {
+            gaussians: Some(gaussians.display().to_string()),
+            lines: Some(lines.display().to_string()),
+            lines_format: Some(file.format.name().to_string()),
+            gaussians_read: cloud.centers.len(),
+            gaussians_nonfinite_skipped: cloud.skipped_nonfinite,
+            gaussians_below_opacity: cloud.dropped_low_opacity,
+            segments_read: file.lines.len(),
+            segments_invalid_dropped: file.dropped_invalid,
+            input_lines: file.lines.input_lines(),
+            n_box: 0,
+        };
+        Ok(Scene {
+            gaussians: cloud.centers,
+            lines: file.lines,
+            input,
+            warnings,
+            load_seconds: t.elapsed().as_secs_f64(),
+            normals,
+            description: None,
+        })
+    }
+
+    /// A scene from arrays (the Python package, synthetic scenes): Gaussians with a NaN
+    /// or infinite center are skipped with a warning that counts them (SPEC 6); segments
+    /// with a NaN or infinite coordinate are an error; degenerate segments
+    /// (`L <= 1e-12`) are dropped with a warning (SPEC 2).
+    pub fn from_arrays(gaussians: Vec<[f32; 3]>, lines: LineSet) -> Result<Scene, RunError> {
+        let mut warnings = Vec::new();
+        let n_read = gaussians.len();
+        let mut gaussians = gaussians;
+        gaussians.retain(|c| c.iter().all(|v| v.is_finite()));
+        let nonfinite = n_read - gaussians.len();
+        if nonfinite > 0 {
+            warnings.push(format!(
+                "gaussians: skipped {nonfinite} Gaussian{} with a NaN or infinite center",
+                if nonfinite == 1 { "" } else { "s" }
+            ));
+        }
+        if gaussians.is_empty() {
+            return Err(RunError::Input(
+                "gaussians: the model holds no Gaussian with a finite center".into(),
+            ));
+        }
+        if let Some(i) = lines
+            .segments
+            .iter()
+            .position(|s| !(s.p1.is_finite() && s.p2.is_finite()))
+        {
+            return Err(RunError::Input(format!(
+                "segments: segment {i} has a NaN or infinite coordinate"
+            )));
+        }
+        let keep: Vec<usize> = (0..lines.len())
+            .filter(|&i| lines.segments[i].length() > MIN_LENGTH)
+            .collect();
+        let dropped = lines.len() - keep.len();
+        let lines = if dropped > 0 {
+            warnings.push(format!(
+                "segments: dropped {dropped} degenerate segment{} (length <= 1e-12)",
+                if dropped == 1 { "" } else { "s" }
+            ));
+            lines.select(&keep)
+        } else {
+            lines
+        };
+        if lines.is_empty() {
+            return Err(RunError::Input(
+                "segments: no valid line segment (none given, or all of length <= 1e-12)".into(),
+            ));
+        }
+        let input = InputReport {
+            gaussians: None,
+            lines: None,
+            lines_format: None,
+            gaussians_read: gaussians.len(),
+            gaussians_nonfinite_skipped: nonfinite,
+            gaussians_below_opacity: 0,
+            segments_read: lines.len(),
+            segments_invalid_dropped: dropped,
+            input_lines: lines.input_lines(),
+            n_box: 0,
+        };
+        Ok(Scene {
+            gaussians,
+            lines,
+            input,
+            warnings,
+            load_seconds: 0.0,
+            normals: None,
+            description: None,
+        })
+    }
+}
+
+/// The grid cell of the working set: near the refinement radius, and not below half the
+/// evaluation radius (so an evaluation cylinder spans few cells). One rule for refine and
+/// eval, so that both build the same grid from the same parameters.
+pub fn grid_cell(settings: &Settings) -> f64 {
+    settings.radius().max(settings.eval().eval_radius * 0.5)
+}
+
+/// The built state of one run: the resolved settings and the engine over the grid of the
+/// working set. Build it once; evaluate and refine as often as needed.
+pub struct Refiner {
+    settings: Settings,
+    engine: Box<dyn Engine>,
+    notes: Vec<String>,
+    stages: Vec<Stage>,
+    /// Per-Gaussian attributes of the working set for the edge fit (none by default).
+    attrs: refine::fit::Attributes,
+}
+
+impl Refiner {
+    /// Working set of the box of `segments` (SPEC 2), settings resolved over it, grid,
+    /// and the engine of `backend`.
+    pub fn new(
+        gaussians: &[[f32; 3]],
+        segments: &[Segment],
+        params: &Params,
+        backend: Backend,
+    ) -> Result<Refiner, RunError> {
+        Refiner::with_engine(gaussians, segments, params, |grid| {
+            make_engine(backend, grid)
+        })
+    }
+
+    /// [`Refiner::new`] with an engine of the caller's making (tests: a GPU engine with
+    /// particular options). `make` returns the engine and the notes to show the user.
+    pub fn with_engine(
+        gaussians: &[[f32; 3]],
+        segments: &[Segment],
+        params: &Params,
+        make: impl FnOnce(Arc<Grid>) -> Result<(Box<dyn Engine>, Vec<String>), EngineError>,
+    ) -> Result<Refiner, RunError> {
+        let t = Instant::now();
+        let ws = WorkingSet::new(gaussians, segments);
+        let settings = Settings::resolve(params.clone(), &ws.points).map_err(RunError::Input)?;
+        let grid = Arc::new(Grid::build(&ws.points, ws.bounds, grid_cell(&settings)));
+        drop(ws);
+        let mut stages = vec![Stage::since("index", segments.len(), t)];
+        let t = Instant::now();
+        let (engine, notes) = make(grid)?;
+        stages.push(Stage::since("engine", segments.len(), t));
+        Ok(Refiner {
+            settings,
+            engine,
+            notes,
+            stages,
+            attrs: refine::fit::Attributes::default(),
+        })
+    }
+
+    pub fn settings(&self) -> &Settings {
+        &self.settings
+    }
+
+    pub fn engine(&self) -> &dyn Engine {
+        self.engine.as_ref()
+    }
+
+    /// What choosing the engine said (`auto`: which adapter, or why the CPU).
+    pub fn notes(&self) -> &[String] {
+        &self.notes
+    }
+
+    /// The stages of building it (index, engine).
+    pub fn stages(&self) -> &[Stage] {
+        &self.stages
+    }
+
+    /// `N_box`.
+    pub fn n_box(&self) -> usize {
+        self.engine.n_points()
+    }
+
+    /// The paper's metrics of `segments` at the evaluation radius (SPEC 5).
+    pub fn evaluate(&self, segments: &[Segment]) -> Result<Metrics, EngineError> {
+        let s = &self.settings;
+        eval::evaluate(self.engine(), segments, s.eval(), s.r_l(), None)
+    }
+
+    /// The metrics of `segments` at each radius.
+    pub fn sweep(&self, segments: &[Segment], radii: &[f64]) -> Result<Vec<Metrics>, EngineError> {
+        let s = &self.settings;
+        eval::sweep(self.engine(), segments, s.eval(), s.r_l(), radii)
+    }
+
+    /// Gives the edge fit the Gaussians' `normals` (order of `gaussians`, the arrays this
+    /// refiner was built from with `segments`); `false` when the counts differ.
+    pub fn set_normals(
+        &mut self,
+        gaussians: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        segments: &[Segment],
+    ) -> bool {
+        match refine::fit::Attributes::for_working_set(gaussians, normals, segments) {
+            Some(a) if a.normals.as_ref().map(Vec::len) == Some(self.n_box()) => {
+                self.attrs = a;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Before-evaluation, the steps of SPEC 3 and after-evaluation, calling `on_stage`
+    /// after each stage.
+    pub fn refine(
+        &self,
+        lines: &LineSet,
+        mut on_stage: impl FnMut(&Stage),
+    ) -> Result<Refined, RunError> {
+        let mut stages = Vec::new();
+        let mut push = |s: Stage, stages: &mut Vec<Stage>| {
+            on_stage(&s);
+            stages.push(s);
+        };
+        let t = Instant::now();
+        let before = self.evaluate(&lines.segments)?;
+        push(Stage::since("evaluate_before", lines.len(), t), &mut stages);
+        let (refined, steps) = refine::run_steps_noted(
+            self.engine(),
+            lines,
+            &self.attrs,
+            &self.settings,
+            |name, n, t| push(Stage::since(name, n, t), &mut stages),
+        )?;
+        let t = Instant::now();
+        let after = self.evaluate(&refined.segments)?;
+        push(
+            Stage::since("evaluate_after", refined.len(), t),
+            &mut stages,
+        );
+        Ok(Refined {
+            lines: refined,
+            before,
+            after,
+            stages,
+            steps,
+        })
+    }
+}
+
+/// What [`Refiner::refine`] produced.
+#[derive(Clone, Debug)]
+pub struct Refined {
+    pub lines: LineSet,
+    pub before: Metrics,
+    pub after: Metrics,
+    pub stages: Vec<Stage>,
+    /// Step 4's shifts, the edge fit's counts and segment length per stage.
+    pub steps: refine::StepNotes,
+}
+
+/// One run's parameters and what to measure beyond the paper's metrics.
+#[derive(Clone, Debug, Default)]
+pub struct Job {
+    pub params: Params,
+    pub backend: Backend,
+    /// The paper's radius sweep: metrics at each of these radii, before and after.
+    pub sweep: Option<Vec<f64>>,
+    /// Ground-truth edges for the ABC-NEF metrics (same frame as the lines).
+    pub gt: Option<Vec<Segment>>,
+}
+
+/// A refinement's segments and its report.
+#[derive(Clone, Debug)]
+pub struct Outcome {
+    pub lines: LineSet,
+    pub report: Report,
+}
+
+impl Job {
+    /// The job with `params` on `backend`, nothing extra.
+    pub fn new(params: Params, backend: Backend) -> Job {
+        Job {
+            params,
+            backend,
+            ..Job::default()
+        }
+    }
+
+    /// The engine for `scene`, built once.
+    pub fn refiner(&self, scene: &Scene) -> Result<Refiner, RunError> {
+        Refiner::new(
+            &scene.gaussians,
+            &scene.lines.segments,
+            &self.params,
+            self.backend,
+        )
+    }
+
+    /// Refines `scene` (SPEC 3) and reports (SPEC 7).
+    pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
+        let t = Instant::now();
+        let mut refiner = self.refiner(scene)?;
+        let mut normals_unused = false;
+        if let Some(n) = &scene.normals {
+            normals_unused = !refiner.set_normals(&scene.gaussians, n, &scene.lines.segments);
+        }
+        let out = refiner.refine(&scene.lines, on_stage)?;
+        let sweep = self.sweep_of(&refiner, &scene.lines.segments, Some(&out.lines.segments))?;
+        let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
+            before: gt::gt_metrics(&scene.lines.segments, g, gt::STEP, &gt::THRESHOLDS),
+            after: Some(gt::gt_metrics(
+                &out.lines.segments,
+                g,
+                gt::STEP,
+                &gt::THRESHOLDS,
+            )),
+        });
+        let mut report = Report::new("refine", scene, &refiner, out.before);
+        report.stages.extend(out.stages);
+        report.after = Some(out.after);
+        if normals_unused {
+            report
+                .warnings
+                .push("the Gaussians' normals did not line up with their centers; the edge fit uses the centers only".into());
+        }
+        report.warnings.extend(out.steps.warnings.iter().cloned());
+        report.refine = Some(out.steps);
+        report.sweep = sweep;
+        report.ground_truth = ground_truth;
+        report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();
+        Ok(Outcome {
+            lines: out.lines,
+            report,
+        })
+    }
+
+    /// Measures `scene`'s lines, and `compare` beside them on the same working set (the
+    /// box of the scene's lines), with the same grid rule as [`Job::refine`]. In the
+    /// report, `before` is the scene's lines and `after` is `compare` (null without).
+    pub fn evaluate(&self, scene: &Scene, compare: Option<&LineSet>) -> Result<Report, RunError> {
+        let t = Instant::now();
+        let refiner = self.refiner(scene)?;
+        let t_eval = Instant::now();
+        let before = refiner.evaluate(&scene.lines.segments)?;
+        let after = match compare {
+            Some(c) => Some(refiner.evaluate(&c.segments)?),
+            None => None,
+        };
+        let sweep = self.sweep_of(
+            &refiner,
+            &scene.lines.segments,
+            compare.map(|c| &c.segments[..]),
+        )?;
+        let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
+            before: gt::gt_metrics(&scene.lines.segments, g, gt::STEP, &gt::THRESHOLDS),
+            after: compare.map(|c| gt::gt_metrics(&c.segments, g, gt::STEP, &gt::THRESHOLDS)),
+        });
+        let mut report = Report::new("eval", scene, &refiner, before);
+        report.stages.push(Stage::since(
+            "evaluate",
+            scene.lines.len() + compare.map_or(0, |c| c.len()),
+            t_eval,
+        ));
+        report.after = after;
+        report.sweep = sweep;
+        report.ground_truth = ground_truth;
+        report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();
+        Ok(report)
+    }
+
+    fn sweep_of(
+        &self,
+        refiner: &Refiner,
+        before: &[Segment],
+        after: Option<&[Segment]>,
+    ) -> Result<Option<Sweep>, RunError> {
+        let Some(radii) = &self.sweep else {
+            return Ok(None);
+        };
+        Ok(Some(Sweep {
+            radii: radii.clone(),
+            before: refiner.sweep(before, radii)?,
+            after: match after {
+                Some(a) => Some(refiner.sweep(a, radii)?),
+                None => None,
+            },
+        }))
+    }
+}
+
+/// Where a refinement's files go.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Outputs {
+    /// The refined segments; the format follows the extension.
+    pub lines: PathBuf,
+    /// The JSON report.
+    pub report: Option<PathBuf>,
+    /// A PLY with the input (red) and refined (blue) segments as coloured edges.
+    pub compare_ply: Option<PathBuf>,
+}
+
+/// Colours of the input and refined layers in comparison files.
+pub const BEFORE_COLOR: [u8; 3] = [220, 50, 40];
+pub const AFTER_COLOR: [u8; 3] = [30, 90, 220];
+
+impl Outputs {
+    /// Checks every output path before any work, so a typo costs nothing.
+    pub fn check(&self) -> Result<(), RunError> {
+        io::check_line_output(&self.lines)?;
+        Ok(())
+    }
+
+    /// Writes the refined lines, the comparison PLY and the report (each atomically), the
+    /// report last and with the `write` stage and the output path in it.
+    pub fn write(&self, input: &LineSet, out: &mut Outcome) -> Result<(), RunError> {
+        let t = Instant::now();
+        io::write_lines(&self.lines, &out.lines.segments)?;
+        if let Some(p) = &self.compare_ply {
+            io::write_lines_ply_layers(
+                p,
+                &[
+                    (&input.segments[..], BEFORE_COLOR),
+                    (&out.lines.segments[..], AFTER_COLOR),
+                ],
+            )?;
+        }
+        let write = Stage::since("write", out.lines.len(), t);
+        out.report.total_seconds += write.seconds;
+        out.report.stages.push(write);
+        out.report.output = Some(self.lines.display().to_string());
+        if let Some(p) = &self.report {
+            io::write_bytes_atomic(p, out.report.to_json().as_bytes())?;
+        }
+        Ok(())
     }
 }

@@ -92,8 +92,9 @@ fn eval_runs_on_the_shipped_real_files() {
             "segments",
             "skipped",
         ] {
-            assert!(v.get(k).is_some(), "missing {k}");
+            assert!(v["before"].get(k).is_some(), "missing before.{k}");
         }
+        assert!(v["after"].is_null());
         assert_eq!(v["input"]["segments_read"], 2503);
         assert!(!String::from_utf8_lossy(&o.stdout).contains("NaN"));
     }
@@ -150,6 +151,89 @@ fn refine_writes_output_and_a_report_with_every_key() {
     assert!(info.status.success(), "{}", stderr(&info));
     let n = v["after"]["segments"].as_u64().unwrap() + v["after"]["skipped"].as_u64().unwrap();
     assert!(stdout(&info).contains(&n.to_string()));
+}
+
+/// The top-level keys of every report (refine, eval, demo, each batch scene): one shape.
+const REPORT_KEYS: [&str; 20] = [
+    "tool",
+    "version",
+    "command",
+    "backend",
+    "adapter",
+    "profile",
+    "params",
+    "fixes",
+    "radius",
+    "input",
+    "output",
+    "stages",
+    "total_seconds",
+    "before",
+    "after",
+    "sweep",
+    "ground_truth",
+    "scene",
+    "notes",
+    "warnings",
+];
+
+fn assert_report_shape(v: &serde_json::Value) {
+    let mut keys: Vec<&str> = v.as_object().unwrap().keys().map(|k| k.as_str()).collect();
+    let mut want: Vec<&str> = REPORT_KEYS.to_vec();
+    keys.sort_unstable();
+    want.sort_unstable();
+    assert_eq!(keys, want);
+}
+
+#[test]
+fn eval_of_refines_input_and_output_repeats_refines_metrics_in_the_same_report_shape() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    // .npy keeps every f64 bit, so eval reads exactly the segments refine measured.
+    let out = dir.path().join("refined.npy");
+    let rep = dir.path().join("report.json");
+    let (gs, ls, outs) = (
+        g.to_str().unwrap(),
+        l.to_str().unwrap(),
+        out.to_str().unwrap(),
+    );
+    let o = run(&[
+        "refine",
+        "-g",
+        gs,
+        "-l",
+        ls,
+        "-o",
+        outs,
+        "--report",
+        rep.to_str().unwrap(),
+        "--backend",
+        "cpu",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&rep).unwrap()).unwrap();
+    let o = run(&[
+        "eval",
+        "-g",
+        gs,
+        "-l",
+        ls,
+        "--compare",
+        outs,
+        "--backend",
+        "cpu",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_report_shape(&r);
+    assert_report_shape(&e);
+    assert_eq!(r["command"], "refine");
+    assert_eq!(e["command"], "eval");
+    assert_eq!(e["before"], r["before"]);
+    assert_eq!(e["after"], r["after"]);
+    assert_eq!(e["input"]["n_box"], r["input"]["n_box"]);
+    assert_eq!(r["output"], outs);
 }
 
 fn assert_input_error(o: &Output, needle: &str) {
@@ -268,6 +352,10 @@ fn demo_writes_every_promised_file() {
     let v: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
     assert!(v["after"]["score"].as_f64().unwrap() > v["before"]["score"].as_f64().unwrap());
+    assert_report_shape(&v);
+    assert!(v["scene"].as_str().unwrap().starts_with("SYNTHETIC"));
+    assert_eq!(v["sweep"]["radii"].as_array().unwrap().len(), 4);
+    assert!(v["ground_truth"]["after"]["accuracy"].as_f64().is_some());
 }
 
 #[test]
@@ -297,13 +385,16 @@ fn eval_sweeps_radii_compares_two_sets_and_plots() {
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(std::fs::metadata(&p).unwrap().len() > 1000);
         let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        let sets = v["sets"].as_array().unwrap();
-        assert_eq!(sets.len(), 2);
-        let m = sets[0]["metrics"].as_array().unwrap();
+        let sw = &v["sweep"];
+        assert_eq!(sw["after"].as_array().unwrap().len(), 3);
+        let m = sw["before"].as_array().unwrap();
         assert_eq!(m.len(), 3);
         assert_eq!(m[1]["radius"], 0.05);
+        // the same set twice: the same metrics
+        assert_eq!(v["before"], v["after"]);
         // a set against itself as ground truth is perfect
-        assert_eq!(sets[0]["gt"]["accuracy"], 0.0);
+        assert_eq!(v["ground_truth"]["before"]["accuracy"], 0.0);
+        assert_eq!(v["ground_truth"]["after"]["accuracy"], 0.0);
         // coverage grows with the radius
         assert!(m[2]["coverage_pct"].as_f64() > m[0]["coverage_pct"].as_f64());
     }

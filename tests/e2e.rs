@@ -2,25 +2,23 @@
 
 mod common;
 
-use linegs_gpu::engine::cpu::CpuEngine;
-use linegs_gpu::engine::Engine;
+use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::gt;
 use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::io;
-use linegs_gpu::pipeline::{self, RunOutput};
+use linegs_gpu::pipeline::{Refined, Refiner};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 use std::path::Path;
 
-fn refine_cpu(points: &[[f32; 3]], lines: &LineSet, params: &Params) -> RunOutput {
-    let prep = pipeline::prepare(points, &lines.segments, params).unwrap();
-    let e = CpuEngine::new(prep.grid.clone());
-    let out = pipeline::run(&e, lines, prep.radius, params, |_| {}).unwrap();
-    assert_eq!(e.counters().uploads, 0);
+fn refine_cpu(points: &[[f32; 3]], lines: &LineSet, params: &Params) -> Refined {
+    let r = Refiner::new(points, &lines.segments, params, Backend::Cpu).unwrap();
+    let out = r.refine(lines, |_| {}).unwrap();
+    assert_eq!(r.engine().counters().uploads, 0);
     out
 }
 
-fn assert_sane(out: &RunOutput, input: usize) {
+fn assert_sane(out: &Refined, input: usize) {
     assert!(!out.lines.is_empty() && out.lines.len() <= input);
     for s in &out.lines.segments {
         assert!(

@@ -33,7 +33,7 @@ fn a_short_segment_on_a_long_edge_is_extended_to_its_corners_and_not_past() {
         crop_extend: 4.0,
         ..Params::default()
     };
-    let out = crop::crop(&e, &[short], R, &p, &p.fixes()).unwrap()[0];
+    let out = crop::crop(&e, &[short], &p.with_radius(R)).unwrap()[0];
     let (a, b) = (out.p1.x.min(out.p2.x), out.p1.x.max(out.p2.x));
     assert!(a.abs() < R && (b - 1.0).abs() < R, "{out:?}");
     // on the line, not bent towards the other edges
@@ -41,7 +41,7 @@ fn a_short_segment_on_a_long_edge_is_extended_to_its_corners_and_not_past() {
     // the paper's crop never extends
     let p0 = Params::default();
     assert_eq!(
-        crop::crop(&e, &[short], R, &p0, &p0.fixes()).unwrap()[0],
+        crop::crop(&e, &[short], &p0.with_radius(R)).unwrap()[0],
         short
     );
 }
@@ -56,7 +56,7 @@ fn an_extension_is_bounded_by_its_limit() {
         crop_extend: 0.5,
         ..Params::default()
     };
-    let out = crop::crop(&e, &[short], R, &p, &p.fixes()).unwrap()[0];
+    let out = crop::crop(&e, &[short], &p.with_radius(R)).unwrap()[0];
     assert!((out.length() - 0.4).abs() < 1e-9, "{out:?}");
 }
 
@@ -89,14 +89,14 @@ fn a_turned_segment_on_a_true_edge_is_kept_whole() {
     let e = cpu_engine(&pts, &lines.segments, R);
     let p = Params::default();
     assert_eq!(p.fixes().fit, Fit::Edge);
-    let out = refine::run_steps(&e, &lines, R, &p, |_, _, _| {}).unwrap();
+    let out = refine::run_steps(&e, &lines, &p.with_radius(R), |_, _, _| {}).unwrap();
     let c = covered(&edge, &out.segments, 0.2 * R);
     assert!(c > 0.85, "edge fit keeps {c:.3} of the edge");
     let paper = Params {
         fit: Some(Fit::Paper),
         ..Params::default()
     };
-    let out = refine::run_steps(&e, &lines, R, &paper, |_, _, _| {}).unwrap();
+    let out = refine::run_steps(&e, &lines, &paper.with_radius(R), |_, _, _| {}).unwrap();
     let c_paper = covered(&edge, &out.segments, 0.2 * R);
     assert!(c_paper < c, "paper {c_paper:.3} vs edge {c:.3}");
 }

@@ -4,23 +4,23 @@
 
 mod common;
 
-use linegs_gpu::engine::cpu::CpuEngine;
-use linegs_gpu::engine::Engine;
+use linegs_gpu::engine::select::Backend;
+use linegs_gpu::engine::{Engine, EngineError};
 use linegs_gpu::eval::Metrics;
 use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::io;
-use linegs_gpu::pipeline::{self, RunOutput};
+use linegs_gpu::pipeline::{Refined, Refiner};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 use std::path::Path;
 
-fn run(e: &dyn Engine, lines: &LineSet, radius: f64, p: &Params) -> RunOutput {
-    pipeline::run(e, lines, radius, p, |_| {}).unwrap()
+fn run(r: &Refiner, lines: &LineSet) -> Refined {
+    r.refine(lines, |_| {}).unwrap()
 }
 
 /// SPEC 3: >= 99 % of one backend's segments match a segment of the other within 1e-3 r
 /// at both ends; counts differ by at most 1 %; metrics by at most 1e-3 relative.
-fn assert_close(a: &RunOutput, b: &RunOutput, r: f64) {
+fn assert_close(a: &Refined, b: &Refined, r: f64) {
     let (na, nb) = (a.lines.len() as f64, b.lines.len() as f64);
     assert!(
         (na - nb).abs() <= 0.01 * na.max(nb) + 1e-9,
@@ -63,21 +63,30 @@ fn assert_metrics_close(a: &Metrics, b: &Metrics) {
 
 fn check_scene(points: &[[f32; 3]], lines: &LineSet, profiles: &[Params]) {
     for p in profiles {
-        let prep = pipeline::prepare(points, &lines.segments, p).unwrap();
-        let Some(g) = common::gpu_engine(prep.grid.clone(), Default::default()) else {
+        // Both engines over the grid the library builds for these parameters.
+        let gpu =
+            Refiner::with_engine(points, &lines.segments, p, |grid| match common::gpu_engine(
+                grid,
+                Default::default(),
+            ) {
+                Some(e) => Ok((Box::new(e) as Box<dyn Engine>, Vec::new())),
+                None => Err(EngineError::NoAdapter("skipped".into())),
+            });
+        let Ok(g) = gpu else {
             return;
         };
-        let c = CpuEngine::new(prep.grid.clone());
-        let out_g = run(&g, lines, prep.radius, p);
-        let out_c = run(&c, lines, prep.radius, p);
-        assert_close(&out_g, &out_c, prep.radius);
+        let c = Refiner::new(points, &lines.segments, p, Backend::Cpu).unwrap();
+        assert_eq!(g.settings(), c.settings());
+        let out_g = run(&g, lines);
+        let out_c = run(&c, lines);
+        assert_close(&out_g, &out_c, g.settings().radius());
         // the grid went to the device once for every step and both evaluations
-        assert_eq!(g.counters().uploads, 1);
+        assert_eq!(g.engine().counters().uploads, 1);
         // each backend alone repeats itself to the bit
-        let again = run(&g, lines, prep.radius, p);
+        let again = run(&g, lines);
         assert_eq!(again.lines, out_g.lines);
         assert_eq!(again.after, out_g.after);
-        assert_eq!(g.counters().uploads, 1);
+        assert_eq!(g.engine().counters().uploads, 1);
     }
 }
 

@@ -75,7 +75,7 @@ fn an_overextended_edge_is_cropped_back_to_its_dense_part() {
     let l = input.length();
     for params in [Params::default(), Params::reference()] {
         let e = cpu_engine(&pts, &[input], R);
-        let out = crop::crop(&e, &[input], R, &params, &params.fixes()).unwrap()[0];
+        let out = crop::crop(&e, &[input], &params.with_radius(R)).unwrap()[0];
         let tol = 0.05 * l;
         assert!(out.p1.x.abs() < tol, "{:?}: {out:?}", params.profile);
         assert!(
@@ -105,6 +105,6 @@ fn a_segment_dense_to_its_ends_is_not_cropped() {
     let input = seg([0.01, 0.0, 0.0], [0.99, 0.0, 0.0]);
     let e = cpu_engine(&pts, &[input], R);
     let p = Params::default();
-    let out = crop::crop(&e, &[input], R, &p, &p.fixes()).unwrap();
+    let out = crop::crop(&e, &[input], &p.with_radius(R)).unwrap();
     assert_eq!(out[0], input);
 }

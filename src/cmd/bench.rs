@@ -1,9 +1,9 @@
 use super::input_error;
 use anyhow::Result;
 use clap::Args;
-use linegs_gpu::engine::select::{make_engine, Backend};
+use linegs_gpu::engine::select::Backend;
 use linegs_gpu::mem;
-use linegs_gpu::pipeline::{self, Stage};
+use linegs_gpu::pipeline::{Job, Scene, Stage};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 use serde::Serialize;
@@ -75,42 +75,28 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
     for &n in &a.gaussians {
         for &m in &a.segments {
             let t = Instant::now();
-            let scene = synth::scaled_scene(n, m, a.seed);
+            let synth = synth::scaled_scene(n, m, a.seed);
+            let scene = Scene::from_arrays(synth.gaussians, synth.lines)?;
             let synth_seconds = t.elapsed().as_secs_f64();
             let mut runs = Vec::new();
             for &b in &a.backend {
+                let backend = match b {
+                    BenchBackend::Cpu => Backend::Cpu,
+                    BenchBackend::Gpu => Backend::Gpu,
+                };
+                let job = Job::new(params.clone(), backend);
                 let mut best: Option<RunTiming> = None;
                 for _ in 0..a.repeat {
                     mem::reset_peak_rss();
-                    let t0 = Instant::now();
-                    let prep = pipeline::prepare(&scene.gaussians, &scene.lines.segments, &params)?;
-                    let mut stages = vec![Stage {
-                        name: "index".into(),
-                        segments: scene.lines.len(),
-                        seconds: prep.seconds,
-                    }];
-                    let t = Instant::now();
-                    let backend = match b {
-                        BenchBackend::Cpu => Backend::Cpu,
-                        BenchBackend::Gpu => Backend::Gpu,
-                    };
-                    let (eng, _) = make_engine(backend, prep.grid.clone())?;
-                    stages.push(Stage {
-                        name: "engine_upload".into(),
-                        segments: scene.lines.len(),
-                        seconds: t.elapsed().as_secs_f64(),
-                    });
-                    let out =
-                        pipeline::run(eng.as_ref(), &scene.lines, prep.radius, &params, |_| {})?;
-                    stages.extend(out.stages.iter().cloned());
-                    let total = t0.elapsed().as_secs_f64();
+                    let out = job.refine(&scene, |_| {})?;
+                    let r = out.report;
                     let run = RunTiming {
-                        backend: out.backend.clone(),
-                        adapter: out.adapter.clone(),
-                        n_box: out.n_box,
+                        backend: r.backend,
+                        adapter: r.adapter,
+                        n_box: r.input.n_box,
                         segments_out: out.lines.len(),
-                        stages,
-                        total_seconds: total,
+                        stages: r.stages,
+                        total_seconds: r.total_seconds,
                         peak_rss_mb: mem::peak_rss_bytes().map(|b| b as f64 / 1048576.0),
                     };
                     if best

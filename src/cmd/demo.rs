@@ -1,4 +1,4 @@
-use super::{engine, metrics_table};
+use super::{metrics_table, print_engine};
 use crate::cmd::eval::SeriesCols;
 use crate::cmd::render::{AFTER, BEFORE};
 use anyhow::{Context, Result};
@@ -6,11 +6,10 @@ use clap::Args;
 use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::{self, gt};
 use linegs_gpu::io;
-use linegs_gpu::pipeline;
+use linegs_gpu::pipeline::{Job, Outputs, Scene};
 use linegs_gpu::refine::Params;
 use linegs_gpu::render::{self, Layer, Panel};
 use linegs_gpu::synth;
-use serde_json::json;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -45,24 +44,40 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         scene.lines.len(),
         scene.gt.len()
     );
-    let params = Params::default();
-    let prep = pipeline::prepare(&scene.gaussians, &scene.lines.segments, &params)?;
-    let eng = engine(a.backend, prep.grid.clone(), verbose)?;
-    let out = pipeline::run(eng.as_ref(), &scene.lines, prep.radius, &params, |_| {})?;
+    let toy_gt = scene.gt.clone();
+    let description = scene.description.clone();
+    let mut input = Scene::from_arrays(scene.gaussians, scene.lines)?;
+    input.description = Some(description);
+    let radii = vec![0.02, 0.05, 0.1, 0.2];
+    let job = Job {
+        sweep: Some(radii.clone()),
+        gt: Some(toy_gt.clone()),
+        ..Job::new(Params::default(), a.backend)
+    };
+    let mut out = job.refine(&input, |_| {})?;
+    print_engine(&out.report, verbose);
+    let scene = &input;
+    let gt_edges = &toy_gt;
+    let before = &out.report.before.clone();
+    let after = out.report.after.clone().expect("refine");
     println!(
         "refined {} -> {} segments on {} ({}) in {:.2} s",
         scene.lines.len(),
         out.lines.len(),
-        out.backend,
-        out.adapter,
+        out.report.backend,
+        out.report.adapter,
         t0.elapsed().as_secs_f64()
     );
     print!(
         "{}",
-        metrics_table(&[("before", &out.before), ("after", &out.after)])
+        metrics_table(&[("before", before), ("after", &after)])
     );
-    let gt_before = gt::gt_metrics(&scene.lines.segments, &scene.gt, gt::STEP, &gt::THRESHOLDS);
-    let gt_after = gt::gt_metrics(&out.lines.segments, &scene.gt, gt::STEP, &gt::THRESHOLDS);
+    let g = out
+        .report
+        .ground_truth
+        .clone()
+        .expect("the job has ground truth");
+    let (gt_before, gt_after) = (&g.before, g.after.as_ref().expect("refine"));
     let f = |m: &gt::GtMetrics| m.scores.get(1).map_or(0.0, |s| s.f_score);
     println!(
         "against the ground-truth edges: accuracy {:.4} -> {:.4}, completeness {:.4} -> {:.4}, F@0.01 {:.3} -> {:.3}",
@@ -70,8 +85,8 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         gt_after.accuracy.unwrap_or(f64::NAN),
         gt_before.completeness.unwrap_or(f64::NAN),
         gt_after.completeness.unwrap_or(f64::NAN),
-        f(&gt_before),
-        f(&gt_after)
+        f(gt_before),
+        f(gt_after)
     );
 
     let d = &a.out;
@@ -83,26 +98,18 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     };
     io::write_gaussians_3dgs(&file("gaussians.ply"), &scene.gaussians, None)?;
     io::write_lines(&file("input.obj"), &scene.lines.segments)?;
-    io::write_lines(&file("ground_truth.obj"), &scene.gt)?;
-    io::write_lines(&file("refined.obj"), &out.lines.segments)?;
-    io::write_lines_ply_layers(
-        &file("before_after.ply"),
-        &[
-            (&scene.lines.segments[..], BEFORE),
-            (&out.lines.segments[..], AFTER),
-        ],
-    )?;
-    let radii = [0.02, 0.05, 0.1, 0.2];
-    let rl = params.fixes().r_l;
-    let sw_b = eval::sweep(
-        eng.as_ref(),
-        &scene.lines.segments,
-        &params.eval,
-        rl,
-        &radii,
-    )?;
-    let sw_a = eval::sweep(eng.as_ref(), &out.lines.segments, &params.eval, rl, &radii)?;
-    let (cb, ca) = (SeriesCols::new(&sw_b), SeriesCols::new(&sw_a));
+    io::write_lines(&file("ground_truth.obj"), gt_edges)?;
+    let outputs = Outputs {
+        lines: file("refined.obj"),
+        compare_ply: Some(file("before_after.ply")),
+        report: Some(file("report.json")),
+    };
+    outputs.write(&scene.lines, &mut out)?;
+    let sw = out.report.sweep.as_ref().expect("the job has a sweep");
+    let (cb, ca) = (
+        SeriesCols::new(&sw.before),
+        SeriesCols::new(sw.after.as_ref().expect("refine")),
+    );
     let series = [cb.series("before", &radii), ca.series("after", &radii)];
     let title = "synthetic toy scene: metrics against the evaluation radius";
     render::sweep_plot_png(&series, title, 1400, 900).write_png(&file("sweep.png"))?;
@@ -130,7 +137,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
                 segments: &scene.lines.segments,
                 color: BEFORE,
             }],
-            metrics: mline(&out.before),
+            metrics: mline(before),
         },
         Panel {
             title: "after: refined (default profile)",
@@ -139,7 +146,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
                 segments: &out.lines.segments,
                 color: AFTER,
             }],
-            metrics: mline(&out.after),
+            metrics: mline(&after),
         },
     ];
     render::render_comparison(&scene.gaussians, &panels, 1600, 900)
@@ -157,7 +164,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         },
         Layer {
             name: "ground truth",
-            segments: &scene.gt,
+            segments: gt_edges,
             color: [40, 170, 60],
         },
     ];
@@ -168,33 +175,6 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         200_000,
     );
     io::write_bytes_atomic(&file("viewer.html"), html.as_bytes())?;
-    let report = json!({
-        "tool": "linegs-gpu",
-        "version": env!("CARGO_PKG_VERSION"),
-        "command": "demo",
-        "synthetic": true,
-        "scene": scene.description,
-        "backend": out.backend,
-        "adapter": out.adapter,
-        "profile": params.profile,
-        "params": params,
-        "fixes": params.fixes(),
-        "radius": out.radius,
-        "input": {
-            "gaussians": scene.gaussians.len(),
-            "segments": scene.lines.len(),
-            "n_box": out.n_box,
-        },
-        "stages": out.stages,
-        "before": out.before,
-        "after": out.after,
-        "ground_truth": { "before": gt_before, "after": gt_after },
-        "sweep": { "radii": radii, "before": sw_b, "after": sw_a },
-    });
-    io::write_bytes_atomic(
-        &file("report.json"),
-        serde_json::to_string_pretty(&report)?.as_bytes(),
-    )?;
     println!("wrote to {}:", d.display());
     for f in &files {
         println!("  {}", f.display());

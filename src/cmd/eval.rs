@@ -1,14 +1,12 @@
-use super::{engine, input_error, input_report, load, metrics_table, InputArgs};
+use super::{input_error, load, metrics_table, print_engine, InputArgs};
 use anyhow::Result;
 use clap::Args;
-use linegs_gpu::eval::{self, gt, Metrics};
-use linegs_gpu::index::{Grid, WorkingSet};
+use linegs_gpu::eval::Metrics;
 use linegs_gpu::io;
-use linegs_gpu::refine::{EvalParams, Profile, RlMode};
+use linegs_gpu::pipeline::Job;
+use linegs_gpu::refine::{EvalParams, Params, Profile};
 use linegs_gpu::render;
-use serde::Serialize;
 use std::path::PathBuf;
-use std::sync::Arc;
 
 #[derive(Args, Debug)]
 pub struct EvalArgs {
@@ -39,35 +37,6 @@ pub struct EvalArgs {
     pub json: bool,
 }
 
-#[derive(Serialize)]
-struct SetResult {
-    lines: String,
-    segments_read: usize,
-    metrics: Vec<Metrics>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    gt: Option<gt::GtMetrics>,
-}
-
-#[derive(Serialize)]
-struct EvalReport {
-    tool: &'static str,
-    version: &'static str,
-    command: &'static str,
-    backend: String,
-    adapter: String,
-    r_l_mode: RlMode,
-    input: super::InputReport,
-    sets: Vec<SetResult>,
-    // Flattened first-set metrics at the first radius, for scripts that want the keys of
-    // SPEC 7 at the top.
-    e_rms_cm: Option<f64>,
-    coverage_pct: Option<f64>,
-    r_l: Option<f64>,
-    score: Option<f64>,
-    segments: usize,
-    skipped: usize,
-}
-
 pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
     if let Some(p) = &a.plot {
         let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("");
@@ -78,62 +47,45 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             )));
         }
     }
-    let loaded = load(&a.input)?;
-    let mut sets = vec![(
-        a.input.lines.display().to_string(),
-        loaded.lines.lines.clone(),
-    )];
-    if let Some(c) = &a.compare {
-        let f = io::read_lines(c)?;
-        for w in &f.warnings {
-            eprintln!("warning: {w}");
+    let scene = load(&a.input)?;
+    let compare = match &a.compare {
+        Some(c) => {
+            let f = io::read_lines(c)?;
+            for w in &f.warnings {
+                eprintln!("warning: {w}");
+            }
+            Some(f.lines)
         }
-        sets.push((c.display().to_string(), f.lines));
-    }
-    let gt_lines = match &a.gt {
-        Some(p) => Some(io::read_lines(p)?.lines.segments),
         None => None,
     };
-    let ws = WorkingSet::new(&loaded.cloud.centers, &loaded.lines.lines.segments);
-    let radii = a.radii.clone().unwrap_or_else(|| vec![a.eval.eval_radius]);
-    let min_r = radii.iter().copied().fold(f64::INFINITY, f64::min);
-    let grid = Arc::new(Grid::build(&ws.points, ws.bounds, min_r));
-    let eng = engine(a.input.backend, grid, verbose)?;
-    let rl = a.eval.r_l.unwrap_or(match a.profile {
-        Profile::Default => RlMode::Paper,
-        Profile::Reference => RlMode::Authors,
-    });
-    let mut results = Vec::new();
-    for (name, lines) in &sets {
-        let metrics = eval::sweep(eng.as_ref(), &lines.segments, &a.eval, rl, &radii)?;
-        let gt_m = gt_lines
-            .as_ref()
-            .map(|g| gt::gt_metrics(&lines.segments, g, gt::STEP, &gt::THRESHOLDS));
-        results.push(SetResult {
-            lines: name.clone(),
-            segments_read: lines.len(),
-            metrics,
-            gt: gt_m,
-        });
-    }
-    if let Some(p) = &a.plot {
-        let labels: Vec<String> = if results.len() == 2 {
-            vec!["before".into(), "after".into()]
-        } else {
-            vec!["lines".into()]
-        };
-        let cols: Vec<SeriesCols> = results
-            .iter()
-            .map(|r| SeriesCols::new(&r.metrics))
-            .collect();
-        let series: Vec<render::SweepSeries> = cols
-            .iter()
-            .zip(&labels)
-            .map(|(c, l)| c.series(l, &radii))
-            .collect();
+    let job = Job {
+        params: Params {
+            profile: a.profile,
+            eval: a.eval.clone(),
+            ..Params::default()
+        },
+        backend: a.input.backend,
+        sweep: a.radii.clone(),
+        gt: match &a.gt {
+            Some(p) => Some(io::read_lines(p)?.lines.segments),
+            None => None,
+        },
+    };
+    let report = job.evaluate(&scene, compare.as_ref())?;
+    print_engine(&report, verbose);
+    if let (Some(p), Some(sw)) = (&a.plot, &report.sweep) {
+        let mut cols = vec![("lines", SeriesCols::new(&sw.before))];
+        if let Some(after) = &sw.after {
+            cols = vec![
+                ("before", SeriesCols::new(&sw.before)),
+                ("after", SeriesCols::new(after)),
+            ];
+        }
+        let series: Vec<render::SweepSeries> =
+            cols.iter().map(|(l, c)| c.series(l, &sw.radii)).collect();
         let title = format!(
             "metrics against the evaluation radius ({} Gaussians)",
-            ws.len()
+            report.input.n_box
         );
         if p.extension().and_then(|e| e.to_str()) == Some("svg") {
             io::write_bytes_atomic(p, render::sweep_plot_svg(&series, &title).as_bytes())?;
@@ -144,45 +96,45 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             println!("wrote {}", p.display());
         }
     }
-    let first = &results[0].metrics[0];
     if a.json {
-        let report = EvalReport {
-            tool: "linegs-gpu",
-            version: env!("CARGO_PKG_VERSION"),
-            command: "eval",
-            backend: eng.backend().to_string(),
-            adapter: eng.adapter(),
-            r_l_mode: rl,
-            input: input_report(&a.input, &loaded, ws.len()),
-            e_rms_cm: first.e_rms_cm,
-            coverage_pct: first.coverage_pct,
-            r_l: first.r_l,
-            score: first.score,
-            segments: first.segments,
-            skipped: first.skipped,
-            sets: results,
-        };
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        println!("{}", report.to_json());
         return Ok(());
     }
     println!(
         "{} Gaussians read, {} in the working set; {} ({}); R_L: {:?}",
-        loaded.cloud.centers.len(),
-        ws.len(),
-        eng.backend(),
-        eng.adapter(),
-        rl
+        report.input.gaussians_read,
+        report.input.n_box,
+        report.backend,
+        report.adapter,
+        report.fixes.r_l
     );
-    for r in &results {
-        println!("\n{} ({} segments)", r.lines, r.segments_read);
-        let cols: Vec<(String, &Metrics)> = r
-            .metrics
+    let mut sets = vec![(a.input.lines.display().to_string(), &report.before)];
+    if let (Some(c), Some(m)) = (&a.compare, &report.after) {
+        sets.push((c.display().to_string(), m));
+    }
+    let sweeps = report
+        .sweep
+        .as_ref()
+        .map(|sw| (&sw.before, sw.after.as_ref()));
+    let gts = report
+        .ground_truth
+        .as_ref()
+        .map(|g| (&g.before, g.after.as_ref()));
+    for (i, (name, m)) in sets.iter().enumerate() {
+        println!("\n{name} ({} segments)", m.segments + m.skipped);
+        let sweep = sweeps.and_then(|(b, af)| if i == 0 { Some(b) } else { af });
+        let metrics: Vec<&Metrics> = match sweep {
+            Some(sw) => sw.iter().collect(),
+            None => vec![*m],
+        };
+        let cols: Vec<(String, &Metrics)> = metrics
             .iter()
-            .map(|m| (format!("r_e={}", m.radius), m))
+            .map(|m| (format!("r_e={}", m.radius), *m))
             .collect();
         let refs: Vec<(&str, &Metrics)> = cols.iter().map(|(n, m)| (n.as_str(), *m)).collect();
         print!("{}", metrics_table(&refs));
-        if let Some(g) = &r.gt {
+        let gt = gts.and_then(|(b, af)| if i == 0 { Some(b) } else { af });
+        if let Some(g) = gt {
             println!(
                 "ground truth: accuracy {} completeness {} ({} / {} samples)",
                 g.accuracy.map_or("-".into(), |x| format!("{x:.5}")),

@@ -8,16 +8,14 @@ pub mod refine;
 pub mod render;
 pub mod synth;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
-use linegs_gpu::engine::select::{make_engine, Backend};
-use linegs_gpu::engine::Engine;
+use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::Metrics;
-use linegs_gpu::index::Grid;
-use linegs_gpu::io::{self, GaussianCloud, LineFile, PlyOptions};
-use serde::Serialize;
+use linegs_gpu::io;
+use linegs_gpu::pipeline::{LoadOptions, RunError, Scene};
+use linegs_gpu::report::Report;
 use std::path::PathBuf;
-use std::sync::Arc;
 
 /// Marks an error as the user's input being wrong (exit code 2).
 #[derive(Debug)]
@@ -44,8 +42,8 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
         if let Some(ioe) = cause.downcast_ref::<io::Error>() {
             return if ioe.is_input_error() { 2 } else { 1 };
         }
-        if let Some(linegs_gpu::pipeline::RunError::Input(_)) = cause.downcast_ref() {
-            return 2;
+        if let Some(re) = cause.downcast_ref::<RunError>() {
+            return if re.is_input_error() { 2 } else { 1 };
         }
     }
     1
@@ -73,38 +71,28 @@ pub struct InputArgs {
     pub backend: Backend,
 }
 
-pub struct Loaded {
-    pub cloud: GaussianCloud,
-    pub lines: LineFile,
-}
-
-pub fn load(a: &InputArgs) -> Result<Loaded> {
-    if let Some(o) = a.min_opacity {
-        if !(0.0..=1.0).contains(&o) {
-            return Err(input_error(format!(
-                "--min-opacity {o}: expected an opacity in [0, 1]"
-            )));
+impl InputArgs {
+    pub fn load_options(&self) -> LoadOptions {
+        LoadOptions {
+            min_opacity: self.min_opacity,
+            strict: self.strict,
         }
     }
-    let cloud = io::read_gaussians(
-        &a.gaussians,
-        &PlyOptions {
-            min_opacity: a.min_opacity,
-            strict: a.strict,
-        },
-    )?;
-    let lines = io::read_lines(&a.lines)?;
-    for w in cloud.warnings.iter().chain(&lines.warnings) {
-        eprintln!("warning: {w}");
-    }
-    Ok(Loaded { cloud, lines })
 }
 
-/// Builds the engine for `grid` and says which one answered.
-pub fn engine(backend: Backend, grid: Arc<Grid>, verbose: bool) -> Result<Box<dyn Engine>> {
-    let (engine, warnings) = make_engine(backend, grid).context("starting the query engine")?;
-    for w in warnings {
-        // `auto` says which adapter it picked; only a fallback is a warning.
+/// Reads the scene and prints what loading it found.
+pub fn load(a: &InputArgs) -> Result<Scene> {
+    let scene = Scene::load(&a.gaussians, &a.lines, &a.load_options())?;
+    for w in &scene.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(scene)
+}
+
+/// Prints what choosing the engine said: which adapter `auto` picked is a note, a
+/// fallback a warning; with `verbose`, the engine that answered.
+pub fn print_engine(r: &Report, verbose: bool) {
+    for w in &r.notes {
         let kind = if w.contains("using the GPU adapter") {
             "note"
         } else {
@@ -113,37 +101,7 @@ pub fn engine(backend: Backend, grid: Arc<Grid>, verbose: bool) -> Result<Box<dy
         eprintln!("{kind}: {w}");
     }
     if verbose {
-        eprintln!("engine: {} ({})", engine.backend(), engine.adapter());
-    }
-    Ok(engine)
-}
-
-#[derive(Serialize)]
-pub struct InputReport {
-    pub gaussians: String,
-    pub lines: String,
-    pub lines_format: String,
-    pub gaussians_read: usize,
-    pub gaussians_nonfinite_skipped: usize,
-    pub gaussians_below_opacity: usize,
-    pub segments_read: usize,
-    pub segments_invalid_dropped: usize,
-    pub input_lines: Option<usize>,
-    pub n_box: usize,
-}
-
-pub fn input_report(a: &InputArgs, l: &Loaded, n_box: usize) -> InputReport {
-    InputReport {
-        gaussians: a.gaussians.display().to_string(),
-        lines: a.lines.display().to_string(),
-        lines_format: l.lines.format.name().to_string(),
-        gaussians_read: l.cloud.centers.len(),
-        gaussians_nonfinite_skipped: l.cloud.skipped_nonfinite,
-        gaussians_below_opacity: l.cloud.dropped_low_opacity,
-        segments_read: l.lines.lines.len(),
-        segments_invalid_dropped: l.lines.dropped_invalid,
-        input_lines: l.lines.lines.input_lines(),
-        n_box,
+        eprintln!("engine: {} ({})", r.backend, r.adapter);
     }
 }
 

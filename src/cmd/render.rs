@@ -28,12 +28,12 @@ pub const BEFORE: [u8; 3] = [220, 60, 40];
 pub const AFTER: [u8; 3] = [30, 100, 230];
 
 pub fn run(a: RenderArgs) -> Result<()> {
-    let loaded = load(&a.input)?;
+    let scene = load(&a.input)?;
     let after = match &a.lines_after {
         Some(p) => Some(io::read_lines(p)?.lines),
         None => None,
     };
-    let before = &loaded.lines.lines.segments;
+    let before = &scene.lines.segments;
     let mut panels = vec![Panel {
         title: "input",
         layers: vec![Layer {
@@ -54,7 +54,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             metrics: vec![format!("{} segments", af.len())],
         });
     }
-    let img = render::render_comparison(&loaded.cloud.centers, &panels, a.width, a.height);
+    let img = render::render_comparison(&scene.gaussians, &panels, a.width, a.height);
     img.write_png(&a.output)?;
     println!("wrote {}", a.output.display());
     if let Some(v) = &a.viewer {
@@ -70,7 +70,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
                 color: AFTER,
             });
         }
-        let html = render::viewer_html(&loaded.cloud.centers, &layers, "linegs-gpu", 200_000);
+        let html = render::viewer_html(&scene.gaussians, &layers, "linegs-gpu", 200_000);
         io::write_bytes_atomic(v, html.as_bytes())?;
         println!("wrote {}", v.display());
     }

@@ -6,10 +6,10 @@
 use crate::geom::Segment;
 use glam::DVec3;
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct GtScore {
     pub threshold: f64,
     pub precision: f64,
@@ -17,7 +17,7 @@ pub struct GtScore {
     pub f_score: f64,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct GtMetrics {
     pub step: f64,
     pub predicted_samples: usize,

@@ -6,11 +6,11 @@ pub mod gt;
 use crate::engine::{Engine, EngineError, Query, Want};
 use crate::geom::Segment;
 use crate::refine::{EvalParams, RlMode};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Metrics of one segment set at one radius. `None` (JSON null) where undefined, with the
 /// reason in `message`; never NaN.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Metrics {
     pub radius: f64,
     /// Mean RMS distance of the points to their segment's line, in centimetres.
@@ -30,7 +30,7 @@ pub struct Metrics {
     pub covered_points: u64,
     /// `N_box`.
     pub n_box: usize,
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
 }
 

@@ -10,7 +10,7 @@
 //! offset of segments that do not overlap, so it has no spatial bound and uses all pairs.
 
 use crate::geom::{LineSet, Segment};
-use crate::refine::{Fixes, Params};
+use crate::refine::Settings;
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -77,7 +77,8 @@ fn distance_bound(r_c: f64, min_weight: f64) -> Option<f64> {
 /// Every edge `w >= p.cluster_min_weight` between segments of different input lines,
 /// sorted ascending by `w` (ties in `(i, j)` order, which is what a stable sort of the
 /// all-pairs loop gives).
-pub fn edges(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Edge> {
+pub fn edges(lines: &LineSet, s: &Settings) -> Vec<Edge> {
+    let (r_c, p, fixes) = (s.radius(), s.params(), s.fixes());
     let bound = distance_bound(r_c, p.cluster_min_weight);
     let mut e = match bound {
         Some(b) if fixes.cluster_distance && lines.len() > 1 => {
@@ -394,9 +395,10 @@ fn greedy_order(members: &[usize], edges: &[Edge]) -> Vec<usize> {
 /// Clusters of step 7: every segment in exactly one cluster, clusters ordered by their
 /// smallest member, members in greedy-matching order. Pairs only join segments of
 /// different input lines.
-pub fn cluster(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<usize>> {
+pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
     let n = lines.len();
-    let edges = edges(lines, r_c, p, fixes);
+    let p = s.params();
+    let edges = edges(lines, s);
     let root = union_find(n, &edges, p.cluster_c);
     let mut id_of_root = vec![usize::MAX; n];
     let mut members: Vec<Vec<usize>> = Vec::new();
@@ -426,6 +428,7 @@ pub fn cluster(lines: &LineSet, r_c: f64, p: &Params, fixes: &Fixes) -> Vec<Vec<
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::refine::Params;
 
     fn seg(a: [f64; 3], b: [f64; 3]) -> Segment {
         Segment::from_arrays(a, b)
@@ -588,14 +591,14 @@ mod tests {
             groups: Some(vec![0, 1, 2, 0, 1]),
         };
         let p = Params::default();
-        let c = cluster(&lines, 0.03, &p, &p.fixes());
+        let c = cluster(&lines, &p.with_radius(0.03));
         // 3 joins 0 and 2 through its edge with 2; 4 never meets 1. Inside, (2, 3) is the
         // strongest pair (the larger length ratio), so it leads the greedy order.
         assert_eq!(c, vec![vec![2, 3, 0], vec![1], vec![4]]);
         // reference: 1 lies 5 away beside 0, with equal lengths and no endpoint strictly
         // inside, so only the (zero) axial gap counts and 1 joins the cluster.
         let p = Params::reference();
-        let c = cluster(&lines, 0.03, &p, &p.fixes());
+        let c = cluster(&lines, &p.with_radius(0.03));
         assert_eq!(c, vec![vec![2, 3, 0, 1], vec![4]]);
     }
 
@@ -723,7 +726,7 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| cluster(&lines, 0.03, p, &p.fixes()))
+                .install(|| cluster(&lines, &p.with_radius(0.03)))
         };
         for p in [Params::default(), Params::reference()] {
             let one = run(1, &p);

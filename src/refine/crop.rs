@@ -4,7 +4,7 @@
 
 use crate::engine::{Engine, EngineError, Query, Want};
 use crate::geom::Segment;
-use crate::refine::{Fixes, Params};
+use crate::refine::Settings;
 
 /// Binary-search state of one end, in axial coordinates of the pre-crop segment.
 #[derive(Clone, Copy, Debug)]
@@ -21,10 +21,9 @@ struct Search {
 pub fn crop(
     engine: &dyn Engine,
     segments: &[Segment],
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
 ) -> Result<Vec<Segment>, EngineError> {
+    let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     // Windows: [0, e L], [(1-e) L, L] and the middle m L around the midpoint.
     let mut queries = Vec::with_capacity(segments.len() * 3);
     for s in segments {
@@ -182,7 +181,7 @@ fn extend(
     dense: &[(usize, bool)],
     mid_density: &[f64],
     r: f64,
-    p: &Params,
+    p: &crate::refine::Params,
 ) -> Result<Vec<(usize, bool, f64)>, EngineError> {
     let mut m: Vec<March> = dense
         .iter()

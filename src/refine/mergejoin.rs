@@ -16,7 +16,7 @@
 
 use crate::engine::{CylStats, Engine, EngineError, Query, Want};
 use crate::geom::{LineSet, Segment};
-use crate::refine::{density, Fixes, Params};
+use crate::refine::{density, Fixes, Params, Settings};
 use rayon::prelude::*;
 use std::collections::HashMap;
 
@@ -534,22 +534,19 @@ pub fn merge_join(
     engine: &dyn Engine,
     lines: &LineSet,
     clusters: &[Vec<usize>],
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
 ) -> Result<LineSet, EngineError> {
-    merge_join_budget(engine, lines, clusters, r, p, fixes, FIRST_BUDGET)
+    merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET)
 }
 
 fn merge_join_budget(
     engine: &dyn Engine,
     lines: &LineSet,
     clusters: &[Vec<usize>],
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
     budget: usize,
 ) -> Result<LineSet, EngineError> {
+    let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let cx = Ctx {
         mode: Mode::Cluster,
         r,
@@ -573,10 +570,9 @@ fn merge_join_budget(
 pub fn collinear_merge(
     engine: &dyn Engine,
     lines: &LineSet,
-    r: f64,
-    p: &Params,
-    fixes: &Fixes,
+    s: &Settings,
 ) -> Result<LineSet, EngineError> {
+    let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let Some(groups) = &lines.groups else {
         return Ok(lines.clone());
     };
@@ -661,7 +657,7 @@ mod tests {
 
     fn run(e: &CpuEngine, segs: Vec<Segment>, p: &Params) -> Vec<Segment> {
         let (lines, c) = one_cluster(segs);
-        merge_join(e, &lines, &c, R, p, &p.fixes())
+        merge_join(e, &lines, &c, &p.with_radius(R))
             .unwrap()
             .segments
     }
@@ -812,7 +808,7 @@ mod tests {
         let (e, lines, clusters) = broken_edges();
         let p = Params::default();
         let before = e.counters();
-        let out = merge_join(&e, &lines, &clusters, R, &p, &p.fixes()).unwrap();
+        let out = merge_join(&e, &lines, &clusters, &p.with_radius(R)).unwrap();
         let after = e.counters();
         let want: Vec<Segment> = [0.0, 0.5, 1.0, 1.5]
             .iter()
@@ -848,7 +844,7 @@ mod tests {
                     .num_threads(threads)
                     .build()
                     .unwrap()
-                    .install(|| merge_join(&e, &lines, &clusters, R, &p, &p.fixes()).unwrap())
+                    .install(|| merge_join(&e, &lines, &clusters, &p.with_radius(R)).unwrap())
             };
             let one = go(1);
             assert!(one.len() <= 8, "{} segments left", one.len());
@@ -887,7 +883,7 @@ mod tests {
         for p in [Params::default(), Params::reference()] {
             let go = |budget: usize| {
                 let b = e.counters().batches;
-                let out = merge_join_budget(&e, &lines, &c, R, &p, &p.fixes(), budget).unwrap();
+                let out = merge_join_budget(&e, &lines, &c, &p.with_radius(R), budget).unwrap();
                 (out, e.counters().batches - b)
             };
             let (all, rounds_all) = go(usize::MAX);
@@ -912,7 +908,7 @@ mod tests {
             groups: Some(vec![7, 3, 7, 3, 5]),
         };
         let p = Params::default();
-        let out = collinear_merge(&e, &lines, R, &p, &p.fixes()).unwrap();
+        let out = collinear_merge(&e, &lines, &p.with_radius(R)).unwrap();
         assert_eq!(
             out.segments,
             vec![
@@ -925,13 +921,13 @@ mod tests {
         // Ungrouped input, or the step switched off: unchanged, and no query.
         let q = e.counters().queries;
         let flat = LineSet::new(lines.segments.clone());
-        assert_eq!(collinear_merge(&e, &flat, R, &p, &p.fixes()).unwrap(), flat);
+        assert_eq!(collinear_merge(&e, &flat, &p.with_radius(R)).unwrap(), flat);
         let off = Params {
             collinear_merge: false,
             ..Params::default()
         };
         assert_eq!(
-            collinear_merge(&e, &lines, R, &off, &off.fixes()).unwrap(),
+            collinear_merge(&e, &lines, &off.with_radius(R)).unwrap(),
             lines
         );
         assert_eq!(e.counters().queries, q);
@@ -945,7 +941,7 @@ mod tests {
             groups: Some(vec![4, 9]),
         };
         let p = Params::default();
-        let out = merge_join(&e, &lines, &[vec![1, 0]], R, &p, &p.fixes()).unwrap();
+        let out = merge_join(&e, &lines, &[vec![1, 0]], &p.with_radius(R)).unwrap();
         assert_eq!(out.segments, vec![seg(0.0, 0.0, 2.0, 0.0)]);
         assert_eq!(out.groups, Some(vec![9]));
     }

@@ -3,7 +3,9 @@
 
 pub mod params;
 
-pub use params::{EvalParams, Fit, Fixes, Params, Profile, RadiusArg, RlMode};
+pub use params::{
+    auto_radius, EvalParams, Fit, Fixes, Params, Profile, RadiusArg, RlMode, Settings,
+};
 
 pub mod cluster;
 pub mod crop;
@@ -14,7 +16,7 @@ pub mod translate;
 
 use crate::engine::{Engine, EngineError};
 use crate::geom::{LineSet, Segment};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// `rho = N / L` (0 when `L = 0`).
@@ -28,7 +30,7 @@ pub fn density(count: u64, length: f64) -> f64 {
 
 /// How far step 4 moved the segments, in units of r (each segment: the mean of its two
 /// endpoints' moves).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Shifts {
     pub median_r: f64,
     pub p90_r: f64,
@@ -65,7 +67,7 @@ impl Shifts {
 }
 
 /// Total segment length after one stage, and what the stage removed.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StageLength {
     pub name: String,
     pub length: f64,
@@ -74,7 +76,7 @@ pub struct StageLength {
 }
 
 /// What the steps did beyond the segment counts (the report's `refine` section).
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StepNotes {
     pub fit: Fit,
     pub shifts: Option<Shifts>,
@@ -96,11 +98,10 @@ fn total_length(s: &[Segment]) -> f64 {
 pub fn run_steps(
     engine: &dyn Engine,
     input: &LineSet,
-    r: f64,
-    p: &Params,
+    s: &Settings,
     stage: impl FnMut(&str, usize, Instant),
 ) -> Result<LineSet, EngineError> {
-    Ok(run_steps_noted(engine, input, &fit::Attributes::default(), r, p, stage)?.0)
+    Ok(run_steps_noted(engine, input, &fit::Attributes::default(), s, stage)?.0)
 }
 
 /// [`run_steps`] with the Gaussians' attributes (normals for the edge fit) and the notes.
@@ -108,11 +109,10 @@ pub fn run_steps_noted(
     engine: &dyn Engine,
     input: &LineSet,
     attrs: &fit::Attributes,
-    r: f64,
-    p: &Params,
+    s: &Settings,
     mut stage: impl FnMut(&str, usize, Instant),
 ) -> Result<(LineSet, StepNotes), EngineError> {
-    let fixes = p.fixes();
+    let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let mut lines = input.clone();
     if fixes.order_endpoints {
         for s in &mut lines.segments {
@@ -182,22 +182,22 @@ pub fn run_steps_noted(
 
     if p.collinear_merge && lines.groups.is_some() {
         let t = Instant::now();
-        lines = mergejoin::collinear_merge(engine, &lines, r, p, &fixes)?;
+        lines = mergejoin::collinear_merge(engine, &lines, s)?;
         note_len("collinear_merge", &lines.segments, &mut notes);
         stage("collinear_merge", lines.len(), t);
     }
 
     let t = Instant::now();
-    let clusters = cluster::cluster(&lines, r, p, &fixes);
+    let clusters = cluster::cluster(&lines, s);
     stage("cluster", lines.len(), t);
 
     let t = Instant::now();
-    lines = mergejoin::merge_join(engine, &lines, &clusters, r, p, &fixes)?;
+    lines = mergejoin::merge_join(engine, &lines, &clusters, s)?;
     note_len("merge_join", &lines.segments, &mut notes);
     stage("merge_join", lines.len(), t);
 
     let t = Instant::now();
-    lines.segments = crop::crop(engine, &lines.segments, r, p, &fixes)?;
+    lines.segments = crop::crop(engine, &lines.segments, s)?;
     note_len("crop", &lines.segments, &mut notes);
     stage("crop", lines.len(), t);
     Ok((lines, notes))

@@ -347,7 +347,7 @@ impl Default for Params {
 }
 
 /// The switches after the profile's defaults and the user's overrides are applied.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Fixes {
     pub cluster_distance: bool,
     pub merge_extent: bool,
@@ -359,7 +359,105 @@ pub struct Fixes {
     pub fit: Fit,
 }
 
+/// The parameters resolved once, for one run: the profile's fixes applied and the
+/// refinement radius fixed (`--radius auto` measured on the working set). Every step and
+/// the evaluation take this one value, so a caller cannot pair one run's `Params` with
+/// another's fixes or radius; it can only be built from a `Params`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Settings {
+    params: Params,
+    fixes: Fixes,
+    radius: f64,
+}
+
+impl Settings {
+    /// Resolves `params` over `working_set` (the centers refinement will see): `--radius
+    /// auto` is measured there (SPEC 3 step 2); a fixed radius is taken as given.
+    pub fn resolve(params: Params, working_set: &[[f32; 3]]) -> Result<Settings, String> {
+        let radius = match params.radius {
+            RadiusArg::Fixed(r) => r,
+            RadiusArg::Auto => auto_radius(working_set).ok_or_else(|| {
+                "--radius auto needs Gaussian centers near the lines, and none are".to_string()
+            })?,
+        };
+        Ok(Settings {
+            fixes: params.fixes(),
+            params,
+            radius,
+        })
+    }
+
+    /// What the user asked for (`radius` may say `auto`).
+    pub fn params(&self) -> &Params {
+        &self.params
+    }
+
+    /// The fixes in effect.
+    pub fn fixes(&self) -> &Fixes {
+        &self.fixes
+    }
+
+    /// The refinement radius `r` in effect (also the clustering scale `r_c`).
+    pub fn radius(&self) -> f64 {
+        self.radius
+    }
+
+    /// The evaluation options (SPEC 5).
+    pub fn eval(&self) -> &EvalParams {
+        &self.params.eval
+    }
+
+    /// The denominator of `R_L` in effect.
+    pub fn r_l(&self) -> RlMode {
+        self.fixes.r_l
+    }
+}
+
+/// `--radius auto` (SPEC 3 step 2): `c` = centroid of the working set; keep the centers
+/// closer to `c` than the 95th percentile (linear interpolation, as numpy) of the
+/// distances; `r = 0.02 x` the largest kept distance.
+pub fn auto_radius(points: &[[f32; 3]]) -> Option<f64> {
+    if points.is_empty() {
+        return None;
+    }
+    let n = points.len() as f64;
+    let c = points
+        .iter()
+        .fold(glam::DVec3::ZERO, |a, p| a + crate::geom::p64(*p))
+        / n;
+    let mut d: Vec<f64> = points
+        .iter()
+        .map(|p| (crate::geom::p64(*p) - c).length())
+        .collect();
+    d.sort_by(f64::total_cmp);
+    let pos = 0.95 * (d.len() - 1) as f64;
+    let lo = pos.floor() as usize;
+    let hi = pos.ceil() as usize;
+    let p95 = d[lo] + (d[hi] - d[lo]) * (pos - lo as f64);
+    let kept = d
+        .iter()
+        .copied()
+        .filter(|&x| x < p95)
+        .fold(f64::NAN, f64::max);
+    let r = 0.02 * if kept.is_nan() { p95 } else { kept };
+    (r > 0.0).then_some(r)
+}
+
 impl Params {
+    /// These parameters with the refinement radius fixed to `r`, resolved: what a test or a
+    /// caller that already knows `r` passes to a step.
+    pub fn with_radius(&self, r: f64) -> Settings {
+        let params = Params {
+            radius: RadiusArg::Fixed(r),
+            ..self.clone()
+        };
+        Settings {
+            fixes: params.fixes(),
+            params,
+            radius: r,
+        }
+    }
+
     pub fn reference() -> Self {
         Params {
             profile: Profile::Reference,
@@ -411,6 +509,39 @@ mod tests {
         }
         .fixes();
         assert!(one.join_gap && !one.join_order);
+    }
+
+    #[test]
+    fn auto_radius_is_two_percent_of_the_kept_extent() {
+        // 100 points at distances 1..=100 from the centroid (on alternating sides so the
+        // centroid stays at 0, plus the origin).
+        let mut pts = vec![[0f32, 0.0, 0.0]];
+        for i in 1..=100 {
+            pts.push([i as f32, 0.0, 0.0]);
+            pts.push([-(i as f32), 0.0, 0.0]);
+        }
+        let r = auto_radius(&pts).unwrap();
+        // distances: 0, then 1,1,2,2,...,100,100 (201 values); p95 at index 190 -> 95;
+        // kept < 95 -> max 94.
+        assert!((r - 0.02 * 94.0).abs() < 1e-12, "{r}");
+        assert_eq!(auto_radius(&[]), None);
+        let auto = Params {
+            radius: RadiusArg::Auto,
+            ..Params::default()
+        };
+        let s = Settings::resolve(auto.clone(), &pts).unwrap();
+        assert_eq!(s.radius(), r);
+        assert_eq!(s.params().radius, RadiusArg::Auto);
+        assert!(Settings::resolve(auto, &[]).is_err());
+    }
+
+    #[test]
+    fn settings_carry_the_fixes_of_their_own_params() {
+        let s = Params::reference().with_radius(0.05);
+        assert_eq!(*s.fixes(), Params::reference().fixes());
+        assert_eq!(s.radius(), 0.05);
+        assert_eq!(s.params().radius, RadiusArg::Fixed(0.05));
+        assert_eq!(s.r_l(), RlMode::Authors);
     }
 
     #[test]

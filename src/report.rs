@@ -1,0 +1,124 @@
+//! The JSON report of SPEC 7: one type for refine, eval and demo (and each scene of a
+//! batch), built by [`crate::pipeline`] and read back by the batch summary.
+
+use crate::eval::gt::GtMetrics;
+use crate::eval::Metrics;
+use crate::pipeline::{Refiner, Scene, Stage};
+use crate::refine::{Fixes, Params, Profile};
+use serde::{Deserialize, Serialize};
+
+/// What was read, what was dropped, and `N_box`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct InputReport {
+    /// The Gaussian file (null for arrays).
+    pub gaussians: Option<String>,
+    /// The line file (null for arrays).
+    pub lines: Option<String>,
+    pub lines_format: Option<String>,
+    pub gaussians_read: usize,
+    pub gaussians_nonfinite_skipped: usize,
+    pub gaussians_below_opacity: usize,
+    pub segments_read: usize,
+    pub segments_invalid_dropped: usize,
+    /// Input lines (Line3D++ `.txt` groups), when the format has them.
+    pub input_lines: Option<usize>,
+    /// Gaussians in the working set.
+    pub n_box: usize,
+}
+
+/// The paper's radius sweep (SPEC 5): metrics at each radius.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Sweep {
+    pub radii: Vec<f64>,
+    pub before: Vec<Metrics>,
+    pub after: Option<Vec<Metrics>>,
+}
+
+/// Ground-truth metrics (ABC-NEF protocol) of the input and of the result.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GroundTruth {
+    pub before: GtMetrics,
+    pub after: Option<GtMetrics>,
+}
+
+/// One run's report. `before` is the input lines' metrics; `after` the refined lines'
+/// (`refine`, `demo`) or the second set's (`eval --compare`; null without).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    pub tool: String,
+    pub version: String,
+    /// `refine` or `eval`.
+    pub command: String,
+    pub backend: String,
+    pub adapter: String,
+    pub profile: Profile,
+    pub params: Params,
+    pub fixes: Fixes,
+    /// The refinement radius in effect (`--radius auto` resolved).
+    pub radius: f64,
+    pub input: InputReport,
+    /// The refined segments' file, once written.
+    pub output: Option<String>,
+    pub stages: Vec<Stage>,
+    pub total_seconds: f64,
+    pub before: Metrics,
+    pub after: Option<Metrics>,
+    pub sweep: Option<Sweep>,
+    pub ground_truth: Option<GroundTruth>,
+    /// `refine`: step 4's per-segment shifts (units of r; a warning when systematic), the
+    /// edge fit's counts and segment length removed per stage.
+    pub refine: Option<crate::refine::StepNotes>,
+    /// What the scene is when it was made, not read (the demo's synthetic scene).
+    pub scene: Option<String>,
+    /// What choosing the engine said (which adapter `auto` picked, or why the CPU).
+    pub notes: Vec<String>,
+    pub warnings: Vec<String>,
+}
+
+impl Report {
+    /// The parts every report shares: tool, engine, settings, input, the stages so far
+    /// (load, index, engine) and the input's metrics.
+    pub(crate) fn new(command: &str, scene: &Scene, r: &Refiner, before: Metrics) -> Report {
+        let s = r.settings();
+        let mut stages = Vec::new();
+        if scene.input.gaussians.is_some() {
+            stages.push(Stage {
+                name: "load".into(),
+                segments: scene.lines.len(),
+                seconds: scene.load_seconds,
+            });
+        }
+        stages.extend(r.stages().iter().cloned());
+        Report {
+            tool: "linegs-gpu".into(),
+            version: env!("CARGO_PKG_VERSION").into(),
+            command: command.into(),
+            backend: r.engine().backend().into(),
+            adapter: r.engine().adapter(),
+            profile: s.params().profile,
+            params: s.params().clone(),
+            fixes: *s.fixes(),
+            radius: s.radius(),
+            input: InputReport {
+                n_box: r.n_box(),
+                ..scene.input.clone()
+            },
+            output: None,
+            stages,
+            total_seconds: 0.0,
+            before,
+            after: None,
+            sweep: None,
+            ground_truth: None,
+            refine: None,
+            scene: scene.description.clone(),
+            notes: r.notes().to_vec(),
+            warnings: scene.warnings.clone(),
+        }
+    }
+
+    /// Pretty JSON (no NaN can occur: undefined metrics are null).
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("a report always serializes")
+    }
+}
