@@ -199,13 +199,12 @@ fn families(normals: &[DVec2], min_points: usize) -> Option<[(DVec2, Vec<usize>)
         }
         c = next;
     }
-    let mut out: [(DVec2, Vec<usize>); 2] = Default::default();
-    for k in 0..2 {
+    let out: [(DVec2, Vec<usize>); 2] = [0, 1].map(|k| {
         // Back from doubled angle to a normal direction.
         let ang = 0.5 * c[k].y.atan2(c[k].x);
-        out[k].0 = DVec2::new(ang.cos(), ang.sin());
-        out[k].1 = (0..dbl.len()).filter(|&i| label[i] == k).collect();
-    }
+        let members = (0..dbl.len()).filter(|&i| label[i] == k).collect();
+        (DVec2::new(ang.cos(), ang.sin()), members)
+    });
     // 20° or more apart: cos(2 x 20°) in doubled angle.
     let apart = c[0].dot(c[1]) < (40f64).to_radians().cos();
     (apart && out.iter().all(|f| f.1.len() >= min_points)).then_some(out)
@@ -219,10 +218,9 @@ fn corner(
     min_points: usize,
 ) -> Option<DVec2> {
     let mut c = [0.0; 2];
-    for k in 0..2 {
-        let n = fam[k].0;
-        let mut off: Vec<f64> = fam[k]
-            .1
+    for (ck, (n, members)) in c.iter_mut().zip(fam) {
+        let n = *n;
+        let mut off: Vec<f64> = members
             .iter()
             .filter(|&&i| sel(pts[i].0))
             .map(|&i| n.dot(pts[i].1))
@@ -230,7 +228,7 @@ fn corner(
         if off.len() < min_points {
             return None;
         }
-        c[k] = median(&mut off);
+        *ck = median(&mut off);
     }
     let (n1, n2) = (fam[0].0, fam[1].0);
     let det = n1.x * n2.y - n1.y * n2.x;
