@@ -3,6 +3,7 @@
 
 pub mod engine;
 pub mod eval;
+pub mod frames;
 pub mod geom;
 pub mod index;
 pub mod io;
