@@ -30,9 +30,9 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Refine line segments against the Gaussian centers and report before/after metrics.
-    Refine(cmd::refine::RefineArgs),
+    Refine(Box<cmd::refine::RefineArgs>),
     /// Measure line segments against the Gaussian centers (the paper's metrics).
-    Eval(cmd::eval::EvalArgs),
+    Eval(Box<cmd::eval::EvalArgs>),
     /// Describe a Gaussian model or line file: format, counts, bounding box, properties.
     Info(cmd::info::InfoArgs),
     /// Convert a Gaussian model to a standard PLY, or lines to another line format.
@@ -76,8 +76,8 @@ fn main() -> ExitCode {
     let _runtime_dir = private_runtime_dir();
     let verbose = cli.verbose;
     let result = match cli.command {
-        Command::Refine(a) => cmd::refine::run(a, verbose),
-        Command::Eval(a) => cmd::eval::run(a, verbose),
+        Command::Refine(a) => cmd::refine::run(*a, verbose),
+        Command::Eval(a) => cmd::eval::run(*a, verbose),
         Command::Info(a) => cmd::info::run(a),
         Command::Convert(a) => cmd::convert::run(a),
         Command::Demo(a) => cmd::demo::run(a, verbose),
