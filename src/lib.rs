@@ -4,6 +4,7 @@
 pub mod batch;
 pub mod engine;
 pub mod eval;
+pub mod frames;
 pub mod geom;
 pub mod index;
 pub mod io;

@@ -16,6 +16,7 @@ use std::process::ExitCode;
   linegs-gpu refine --gaussians point_cloud.ply --lines Line3D++.txt -o refined.obj --report report.json
   linegs-gpu eval --gaussians point_cloud.ply --lines refined.obj --radii 0.02,0.05,0.1,0.2 --plot sweep.png
   linegs-gpu info point_cloud.ply
+  linegs-gpu convert model.spz -o model.ply
   linegs-gpu batch scenes.csv -o results --skip-existing
 
 Exit codes: 0 success, 1 failure (GPU, I/O), 2 bad input or usage.")]
@@ -35,6 +36,8 @@ enum Command {
     Eval(cmd::eval::EvalArgs),
     /// Describe a Gaussian model or line file: format, counts, bounding box, properties.
     Info(cmd::info::InfoArgs),
+    /// Convert a Gaussian model to a standard PLY, or lines to another line format.
+    Convert(cmd::convert::ConvertArgs),
     /// Build the synthetic toy scene, refine it, and write inputs, outputs, report,
     /// pictures and a 3D viewer to a folder.
     Demo(cmd::demo::DemoArgs),
@@ -56,6 +59,7 @@ fn main() -> ExitCode {
         Command::Refine(a) => cmd::refine::run(a, verbose),
         Command::Eval(a) => cmd::eval::run(a, verbose),
         Command::Info(a) => cmd::info::run(a),
+        Command::Convert(a) => cmd::convert::run(a),
         Command::Demo(a) => cmd::demo::run(a, verbose),
         Command::Synth(a) => cmd::synth::run(a),
         Command::Render(a) => cmd::render::run(a),

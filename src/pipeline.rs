@@ -53,13 +53,17 @@ pub enum RunError {
     /// The input or the options cannot work together (exit code 2).
     #[error("{0}")]
     Input(String),
+    /// The lines and the Gaussians are not in one frame ([`Job::check_frames`]; exit
+    /// code 2): the message says why and what fixes it.
+    #[error("{0}")]
+    FrameMismatch(String),
 }
 
 impl RunError {
     /// Whether the user's input is at fault (exit code 2) rather than the machine.
     pub fn is_input_error(&self) -> bool {
         match self {
-            RunError::Input(_) => true,
+            RunError::Input(_) | RunError::FrameMismatch(_) => true,
             RunError::Io(e) => e.is_input_error(),
             RunError::Engine(_) => false,
         }
@@ -69,10 +73,14 @@ impl RunError {
 /// How to read a scene's files.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct LoadOptions {
-    /// Keep only Gaussians with `sigmoid(opacity) >= min_opacity`.
+    /// Keep only Gaussians with opacity `>= min_opacity` (in `[0, 1]`).
     pub min_opacity: Option<f64>,
     /// A NaN or infinite Gaussian center is an error instead of a counted warning.
     pub strict: bool,
+    /// Maps the Gaussians into the lines' frame (`--gaussians-transform`).
+    pub transform: Option<io::GaussianTransform>,
+    /// The line readers' options (`--curves`).
+    pub lines: io::LineOptions,
 }
 
 /// Reads a Gaussian model with `opts` (checked first).
@@ -112,8 +120,11 @@ impl Scene {
     /// Reads the Gaussians (`point_cloud.ply` or any format of SPEC 6) and the lines.
     pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
         let t = Instant::now();
-        let cloud = read_gaussians(gaussians, opts)?;
-        let file = io::read_lines(lines)?;
+        let mut cloud = read_gaussians(gaussians, opts)?;
+        if let Some(t) = &opts.transform {
+            t.apply(&mut cloud.centers);
+        }
+        let file = io::read_lines_with(lines, &opts.lines)?;
         let mut warnings = cloud.warnings;
         warnings.extend(file.warnings);
         let input = InputReport {
@@ -127,6 +138,7 @@ impl Scene {
             segments_invalid_dropped: file.dropped_invalid,
             input_lines: file.lines.input_lines(),
             n_box: 0,
+            gaussians_transform: opts.transform.as_ref().map(|t| t.describe.clone()),
         };
         Ok(Scene {
             gaussians: cloud.centers,
@@ -197,6 +209,7 @@ impl Scene {
             segments_invalid_dropped: dropped,
             input_lines: lines.input_lines(),
             n_box: 0,
+            gaussians_transform: None,
         };
         Ok(Scene {
             gaussians,
@@ -350,6 +363,10 @@ pub struct Job {
     pub sweep: Option<Vec<f64>>,
     /// Ground-truth edges for the ABC-NEF metrics (same frame as the lines).
     pub gt: Option<Vec<Segment>>,
+    /// Check that the lines and the Gaussians share a frame ([`crate::frames`]): `refine`
+    /// stops with [`RunError::FrameMismatch`] when (almost) no segment has a Gaussian center
+    /// within `r`; `evaluate` adds a warning to the report.
+    pub check_frames: bool,
 }
 
 /// A refinement's segments and its report.
@@ -383,6 +400,9 @@ impl Job {
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
         let t = Instant::now();
         let refiner = self.refiner(scene)?;
+        if let Some(msg) = self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
+            return Err(RunError::FrameMismatch(msg));
+        }
         let out = refiner.refine(&scene.lines, on_stage)?;
         let sweep = self.sweep_of(&refiner, &scene.lines.segments, Some(&out.lines.segments))?;
         let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
@@ -412,6 +432,13 @@ impl Job {
     pub fn evaluate(&self, scene: &Scene, compare: Option<&LineSet>) -> Result<Report, RunError> {
         let t = Instant::now();
         let refiner = self.refiner(scene)?;
+        let radius = self
+            .sweep
+            .iter()
+            .flatten()
+            .copied()
+            .fold(refiner.settings().eval().eval_radius, f64::min);
+        let mismatch = self.frame_mismatch(scene, &refiner, radius)?;
         let t_eval = Instant::now();
         let before = refiner.evaluate(&scene.lines.segments)?;
         let after = match compare {
@@ -428,6 +455,7 @@ impl Job {
             after: compare.map(|c| gt::gt_metrics(&c.segments, g, gt::STEP, &gt::THRESHOLDS)),
         });
         let mut report = Report::new("eval", scene, &refiner, before);
+        report.warnings.extend(mismatch);
         report.stages.push(Stage::since(
             "evaluate",
             scene.lines.len() + compare.map_or(0, |c| c.len()),
@@ -438,6 +466,34 @@ impl Job {
         report.ground_truth = ground_truth;
         report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();
         Ok(report)
+    }
+
+    /// With `check_frames`, the message when the scene's lines and Gaussians do not share a
+    /// frame (one batch of count queries at `radius`).
+    fn frame_mismatch(
+        &self,
+        scene: &Scene,
+        refiner: &Refiner,
+        radius: f64,
+    ) -> Result<Option<String>, RunError> {
+        if !self.check_frames {
+            return Ok(None);
+        }
+        let fc = crate::frames::check_frames(
+            refiner.engine(),
+            &scene.lines.segments,
+            radius,
+            &scene.gaussians,
+        )?;
+        Ok(fc.mismatch().then(|| {
+            let name = |p: &Option<String>, what: &str| p.clone().unwrap_or_else(|| what.into());
+            format!(
+                "{} and {}: {}",
+                name(&scene.input.lines, "the lines"),
+                name(&scene.input.gaussians, "the Gaussians"),
+                fc.message()
+            )
+        }))
     }
 
     fn sweep_of(

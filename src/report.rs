@@ -24,6 +24,9 @@ pub struct InputReport {
     pub input_lines: Option<usize>,
     /// Gaussians in the working set.
     pub n_box: usize,
+    /// The map applied to the Gaussians (`--gaussians-transform`), when one was.
+    #[serde(default)]
+    pub gaussians_transform: Option<String>,
 }
 
 /// The paper's radius sweep (SPEC 5): metrics at each radius.

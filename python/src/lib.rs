@@ -185,10 +185,9 @@ fn refine(
     sweep: Option<Vec<f64>>,
 ) -> PyResult<(Py<PyBytes>, String)> {
     let job = Job {
-        params: params(args)?,
-        backend: backend(backend_name)?,
         sweep,
         gt: gt_f64.map(segments),
+        ..Job::new(params(args)?, backend(backend_name)?)
     };
     let (bytes, report) = py
         .detach(|| {
@@ -215,10 +214,9 @@ fn evaluate(
     sweep: Option<Vec<f64>>,
 ) -> PyResult<String> {
     let job = Job {
-        params: params(args)?,
-        backend: backend(backend_name)?,
         sweep,
         gt: gt_f64.map(segments),
+        ..Job::new(params(args)?, backend(backend_name)?)
     };
     py.detach(|| {
         let s = scene(gaussians_f32, segments_f64, None)?;

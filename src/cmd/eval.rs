@@ -70,8 +70,13 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             Some(p) => Some(io::read_lines(p)?.lines.segments),
             None => None,
         },
+        check_frames: true,
     };
     let report = job.evaluate(&scene, compare.as_ref())?;
+    // Loading printed the scene's own warnings; the report adds the frame check's.
+    for w in report.warnings.iter().skip(scene.warnings.len()) {
+        eprintln!("warning: {w}");
+    }
     print_engine(&report, verbose);
     if let (Some(p), Some(sw)) = (&a.plot, &report.sweep) {
         let mut cols = vec![("lines", SeriesCols::new(&sw.before))];

@@ -2,6 +2,7 @@
 
 pub mod batch;
 pub mod bench;
+pub mod convert;
 pub mod demo;
 pub mod eval;
 pub mod info;
@@ -53,14 +54,19 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
 /// The Gaussians and lines every command reads.
 #[derive(Args, Debug, Clone)]
 pub struct InputArgs {
-    /// The trained 3DGS model (`point_cloud.ply`; only the centers are used).
-    #[arg(short, long, value_name = "PLY")]
+    /// The trained model; only the centers are used: 3DGS `point_cloud.ply`, SuperSplat
+    /// compressed `.ply`, Niantic `.spz` (v1-v4) or antimatter15 `.splat`.
+    #[arg(short, long, value_name = "MODEL")]
     pub gaussians: PathBuf,
-    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, ELSR `.obj`, plain
+    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, `finaltracks/` or
+    /// `alltracks.txt`, ELSR `.obj`, EMAP/EdgeGaussians `parametric_edges.json`, plain
     /// text (6 numbers a row) or our `.ply` with edges.
     #[arg(short, long, value_name = "FILE")]
     pub lines: PathBuf,
-    /// Keep only Gaussians with sigmoid(opacity) >= this (3DGS stores the logit).
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Keep only Gaussians with opacity >= this (in [0, 1]: sigmoid of the logit that 3DGS
+    /// stores; SPZ, .splat and compressed PLY store it directly).
     #[arg(long, value_name = "ALPHA")]
     pub min_opacity: Option<f64>,
     /// Make Gaussians with NaN or infinite centers an error instead of a warning.
@@ -73,17 +79,60 @@ pub struct InputArgs {
 }
 
 impl InputArgs {
-    pub fn load_options(&self) -> LoadOptions {
-        LoadOptions {
+    /// The options of [`Scene::load`]; reads the `--gaussians-transform` file.
+    pub fn load_options(&self) -> Result<LoadOptions> {
+        Ok(LoadOptions {
             min_opacity: self.min_opacity,
             strict: self.strict,
+            transform: self.frame.read_transform()?,
+            lines: self.frame.line_options(),
+        })
+    }
+}
+
+/// How the Gaussians are brought into the lines' frame, and what to do with curves.
+#[derive(Args, Debug, Clone, Default)]
+pub struct FrameArgs {
+    /// Map the Gaussians into the lines' frame first: a 4x4 matrix as text (row-major,
+    /// applied as given) or nerfstudio's `dataparser_transforms.json` (inverted, so a
+    /// splatfacto/gsplat model goes back to the COLMAP frame of the lines).
+    #[arg(long, value_name = "FILE")]
+    pub gaussians_transform: Option<PathBuf>,
+    /// Bezier curves of EMAP/EdgeGaussians edge files: `skip` them (with a warning) or
+    /// sample each as a `polyline` of 16 segments.
+    #[arg(long, value_enum, default_value_t = io::Curves::Skip)]
+    pub curves: io::Curves,
+}
+
+impl FrameArgs {
+    pub fn line_options(&self) -> io::LineOptions {
+        io::LineOptions {
+            curves: self.curves,
         }
+    }
+
+    /// The `--gaussians-transform` file, read and announced.
+    pub fn read_transform(&self) -> Result<Option<io::GaussianTransform>> {
+        let Some(p) = &self.gaussians_transform else {
+            return Ok(None);
+        };
+        let t = io::read_transform(p)?;
+        eprintln!("note: Gaussians mapped by {}", t.describe);
+        Ok(Some(t))
+    }
+
+    /// Applies `--gaussians-transform` to `cloud`.
+    pub fn transform(&self, cloud: &mut io::GaussianCloud) -> Result<()> {
+        if let Some(t) = self.read_transform()? {
+            t.apply(&mut cloud.centers);
+        }
+        Ok(())
     }
 }
 
 /// Reads the scene and prints what loading it found.
 pub fn load(a: &InputArgs) -> Result<Scene> {
-    let scene = Scene::load(&a.gaussians, &a.lines, &a.load_options())?;
+    let scene = Scene::load(&a.gaussians, &a.lines, &a.load_options()?)?;
     for w in &scene.warnings {
         eprintln!("warning: {w}");
     }

@@ -2,7 +2,7 @@ use super::{load, metrics_table, print_engine, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use linegs_gpu::pipeline::{Job, Outputs};
+use linegs_gpu::pipeline::{Job, Outputs, RunError};
 use linegs_gpu::refine::Params;
 use std::path::PathBuf;
 
@@ -20,6 +20,10 @@ pub struct RefineArgs {
     /// Also write a PLY with the input (red) and refined (blue) segments as coloured edges.
     #[arg(long, value_name = "PLY")]
     pub compare_ply: Option<PathBuf>,
+    /// Refine even when (almost) no segment has a Gaussian center within r, which
+    /// otherwise stops the run (lines and model in different frames or units).
+    #[arg(long)]
+    pub no_frame_check: bool,
     #[command(flatten)]
     pub params: Params,
 }
@@ -38,8 +42,11 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     }
     bar.enable_steady_tick(std::time::Duration::from_millis(120));
     bar.set_message("indexing the Gaussians");
-    let job = Job::new(a.params, a.input.backend);
-    let mut out = job.refine(&scene, |s| {
+    let job = Job {
+        check_frames: !a.no_frame_check,
+        ..Job::new(a.params, a.input.backend)
+    };
+    let refined = job.refine(&scene, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));
         if verbose {
             bar.println(format!(
@@ -47,8 +54,14 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
                 s.name, s.segments, s.seconds
             ));
         }
-    })?;
+    });
     bar.finish_and_clear();
+    let mut out = refined.map_err(|e| match e {
+        RunError::FrameMismatch(m) => RunError::FrameMismatch(format!(
+            "{m} (--no-frame-check refines anyway); nothing was written"
+        )),
+        e => e,
+    })?;
     print_engine(&out.report, verbose);
     outputs.write(&scene.lines, &mut out)?;
     let r = &out.report;

@@ -60,9 +60,11 @@ impl fmt::Display for Position {
 }
 
 /// The formats `read_lines` and `read_gaussians` understand, for the unknown-format hint.
-pub const KNOWN_FORMATS: &str = "PLY (Gaussians: binary or ASCII; lines: vertex + edge), \
-Line3D++ .txt, .obj (v/l records), .stl (ASCII or binary, degenerate line facets), \
-.npy (N x 2 x 3 float), plain text with 6 numbers per row";
+pub const KNOWN_FORMATS: &str = "PLY (Gaussians: binary or ASCII 3DGS, SuperSplat compressed; \
+lines: vertex + edge), Niantic .spz (v1-v4), antimatter15 .splat, Line3D++ .txt, \
+.obj (v/l records), .stl (ASCII or binary, degenerate line facets), .npy (N x 2 x 3 float), \
+LIMAP finaltracks/ and alltracks.txt, EMAP/EdgeGaussians parametric_edges.json, \
+plain text with 6 numbers per row";
 
 /// Errors of the `io` module. Display is `<path>: <position>: <what is wrong>`, followed
 /// where it helps by what to do.

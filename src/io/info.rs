@@ -8,8 +8,9 @@ use std::path::{Path, PathBuf};
 use crate::geom::{p64, Aabb};
 
 use super::error::Error;
-use super::lines::read_lines;
-use super::ply::{parse_header, read_gaussians, PlyOptions};
+use super::gaussians::{detect_gaussians, read_gaussians, GaussianFormat};
+use super::lines::{read_lines_with, LineOptions};
+use super::ply::{parse_header, PlyOptions};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FileKind {
@@ -42,8 +43,17 @@ pub struct FileInfo {
     pub warnings: Vec<String>,
 }
 
-/// Reads `path` as a Gaussian model (a PLY without `edge` element) or as a line file.
+/// Reads `path` as a Gaussian model (a PLY without `edge` element, SPZ, `.splat`) or as a
+/// line file (a LIMAP `finaltracks/` folder included).
 pub fn info(path: &Path) -> Result<FileInfo, Error> {
+    info_with(path, &LineOptions::default())
+}
+
+/// [`info`] with the options of the line readers (`--curves`).
+pub fn info_with(path: &Path, line_opts: &LineOptions) -> Result<FileInfo, Error> {
+    if path.is_dir() {
+        return lines_info(path, 0, line_opts);
+    }
     let bytes = std::fs::metadata(path)
         .map_err(|e| Error::io(path, "open", e))?
         .len();
@@ -54,10 +64,37 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
         .read_to_end(&mut head)
         .map_err(|e| Error::io(path, "read", e))?;
     let is_ply = head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n");
+    let not_ply_gaussians = !is_ply
+        && matches!(
+            detect_gaussians(path, &head, bytes),
+            Ok(GaussianFormat::Spz | GaussianFormat::Splat)
+        );
+    if not_ply_gaussians {
+        let cloud = read_gaussians(path, &PlyOptions::default())?;
+        let mut bbox = Aabb::empty();
+        for c in &cloud.centers {
+            bbox.extend(p64(*c));
+        }
+        return Ok(FileInfo {
+            path: path.to_path_buf(),
+            bytes,
+            kind: FileKind::Gaussians,
+            format: cloud.format,
+            count: cloud.centers.len(),
+            elements: Vec::new(),
+            properties: Vec::new(),
+            dropped_invalid: cloud.skipped_nonfinite,
+            groups: None,
+            bbox,
+            lengths: None,
+            warnings: cloud.warnings,
+        });
+    }
     if is_ply {
         let header = parse_header(path, &head, head.len() as u64 == bytes)?;
         if header.element("edge").is_none() {
             let cloud = read_gaussians(path, &PlyOptions::default())?;
+            let compressed = cloud.format.starts_with("SuperSplat");
             let mut bbox = Aabb::empty();
             for c in &cloud.centers {
                 bbox.extend(p64(*c));
@@ -76,7 +113,11 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
                 path: path.to_path_buf(),
                 bytes,
                 kind: FileKind::Gaussians,
-                format: format!("PLY {}", cloud.format),
+                format: if compressed {
+                    cloud.format
+                } else {
+                    format!("PLY {}", cloud.format)
+                },
                 count: cloud.centers.len(),
                 elements: header
                     .elements
@@ -92,7 +133,11 @@ pub fn info(path: &Path) -> Result<FileInfo, Error> {
             });
         }
     }
-    let file = read_lines(path)?;
+    lines_info(path, bytes, line_opts)
+}
+
+fn lines_info(path: &Path, bytes: u64, opts: &LineOptions) -> Result<FileInfo, Error> {
+    let file = read_lines_with(path, opts)?;
     let segs = &file.lines.segments;
     let mut lens: Vec<f64> = segs.iter().map(|s| s.length()).collect();
     lens.sort_by(f64::total_cmp);

@@ -6,7 +6,9 @@ use std::path::Path;
 
 use crate::geom::{LineSet, Segment, MIN_LENGTH};
 
+use super::edges_json::{self, Curves};
 use super::error::{Error, Position};
+use super::limap;
 use super::npy;
 use super::ply::{self, PropKind};
 
@@ -25,6 +27,12 @@ pub enum LineFormat {
     PlainText,
     /// PLY with `vertex` and `edge` elements (what `write_lines` writes).
     Ply,
+    /// LIMAP `finaltracks/` folder (`track_<id>.txt`), or one such track file.
+    LimapTracks,
+    /// LIMAP `alltracks.txt` (every track in one file).
+    LimapAllTracks,
+    /// EMAP / EdgeGaussians `parametric_edges.json`.
+    EdgesJson,
 }
 
 impl LineFormat {
@@ -36,6 +44,9 @@ impl LineFormat {
             LineFormat::Npy => "NumPy .npy",
             LineFormat::PlainText => "plain text (x1 y1 z1 x2 y2 z2)",
             LineFormat::Ply => "PLY (vertex + edge)",
+            LineFormat::LimapTracks => "LIMAP line tracks (track_<id>.txt)",
+            LineFormat::LimapAllTracks => "LIMAP alltracks.txt",
+            LineFormat::EdgesJson => "EMAP/EdgeGaussians parametric edges (JSON)",
         }
     }
 }
@@ -99,6 +110,26 @@ impl Parsed {
 /// infinite coordinate is an error naming its position; a file with no valid segment is an
 /// error.
 pub fn read_lines(path: &Path) -> Result<LineFile, Error> {
+    read_lines_with(path, &LineOptions::default())
+}
+
+/// How [`read_lines_with`] treats what is not a straight segment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LineOptions {
+    /// Bézier curves of EMAP/EdgeGaussians edge files: skipped, or sampled as polylines.
+    pub curves: Curves,
+}
+
+/// [`read_lines`] with options. A folder is read as LIMAP's `finaltracks/`.
+pub fn read_lines_with(path: &Path, opts: &LineOptions) -> Result<LineFile, Error> {
+    if path.is_dir() {
+        let (segments, ids, warnings) = limap::read_folder(path)?;
+        let mut p = Parsed::new(Origin::Records("track"));
+        p.segments = segments;
+        p.groups = Some(ids);
+        p.warnings = warnings;
+        return finish(path, LineFormat::LimapTracks, &mut p);
+    }
     let mut bytes = std::fs::read(path).map_err(|e| Error::io(path, "read", e))?;
     // Editors on Windows prefix text with a UTF-8 byte-order mark; no binary format starts so.
     if bytes.starts_with(b"\xEF\xBB\xBF") {
@@ -108,6 +139,7 @@ pub fn read_lines(path: &Path) -> Result<LineFile, Error> {
     let mut parsed = match format {
         LineFormat::Ply => parse_ply(path, &bytes)?,
         LineFormat::Npy => {
+            limap::refuse_pickled_npy(path, &bytes)?;
             let mut p = Parsed::new(Origin::Records("row"));
             p.segments = npy::parse(path, &bytes)?;
             p
@@ -121,6 +153,27 @@ pub fn read_lines(path: &Path) -> Result<LineFile, Error> {
                 LineFormat::Stl => parse_ascii_stl(path, text)?,
                 LineFormat::Obj => parse_obj(path, text)?,
                 LineFormat::PlainText => parse_plain(path, text)?,
+                LineFormat::LimapTracks => {
+                    let (line, seg) = limap::parse_track(path, text)?;
+                    let mut p = Parsed::new(Origin::Lines(vec![line]));
+                    p.segments = vec![seg];
+                    p
+                }
+                LineFormat::LimapAllTracks => {
+                    let (segments, ids, lines) = limap::parse_alltracks(path, text)?;
+                    let mut p = Parsed::new(Origin::Lines(lines));
+                    p.segments = segments;
+                    p.groups = Some(ids);
+                    p
+                }
+                LineFormat::EdgesJson => {
+                    let (segments, groups, warnings) = edges_json::parse(path, text, opts.curves)?;
+                    let mut p = Parsed::new(Origin::Records("edge"));
+                    p.segments = segments;
+                    p.groups = groups;
+                    p.warnings = warnings;
+                    p
+                }
                 _ => parse_line3dpp(path, text)?,
             }
         }
@@ -247,6 +300,15 @@ pub(crate) fn detect(path: &Path, bytes: &[u8]) -> Result<LineFormat, Error> {
         return Err(Error::Empty {
             path: path.to_path_buf(),
         });
+    }
+    if edges_json::looks_like_edges(text) {
+        return Ok(LineFormat::EdgesJson);
+    }
+    if limap::looks_like_track(text) {
+        return Ok(LineFormat::LimapTracks);
+    }
+    if limap::looks_like_alltracks(text) {
+        return Ok(LineFormat::LimapAllTracks);
     }
     let obj_record = |r: &str| matches!(r.split_whitespace().next(), Some("v" | "l"));
     if ext == "obj" || data_rows(text).any(|(_, r)| obj_record(r)) {

@@ -308,7 +308,7 @@ impl Settings {
         let radius = match params.radius {
             RadiusArg::Fixed(r) => r,
             RadiusArg::Auto => auto_radius(working_set).ok_or_else(|| {
-                "--radius auto needs Gaussian centers near the lines, and none are".to_string()
+                "--radius auto needs Gaussian centers near the lines, and none are: are the lines and the Gaussians in one frame? (--gaussians-transform maps the model; README: Frames)".to_string()
             })?,
         };
         Ok(Settings {

@@ -1,0 +1,105 @@
+//! `linegs-gpu convert IN -o OUT`: a model in any readable format to a standard PLY
+//! (centers and opacity), or lines in any readable format to any writable one.
+
+use super::{input_error, FrameArgs};
+use anyhow::Result;
+use clap::Args;
+use linegs_gpu::io::{self, PlyOptions};
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct ConvertArgs {
+    /// A Gaussian model (3DGS or SuperSplat compressed `.ply`, `.spz`, `.splat`) or a line
+    /// file or folder in any format `refine --lines` reads.
+    pub input: PathBuf,
+    /// Gaussians: a `.ply` (binary, `float x y z opacity`, opacity as the 3DGS logit).
+    /// Lines: `.obj`, `.stl`, `.ply`, `.txt` or `.npy`, by extension.
+    #[arg(short, long, value_name = "FILE")]
+    pub output: PathBuf,
+    /// Gaussians: keep only those with opacity >= this (in [0, 1]).
+    #[arg(long, value_name = "ALPHA")]
+    pub min_opacity: Option<f64>,
+    /// Gaussians: a NaN or infinite center is an error instead of a skipped Gaussian.
+    #[arg(long)]
+    pub strict: bool,
+    #[command(flatten)]
+    pub frame: FrameArgs,
+}
+
+pub fn run(a: ConvertArgs) -> Result<()> {
+    if io::is_gaussian_model(&a.input)? {
+        let ext = a
+            .output
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
+        if ext != "ply" {
+            return Err(input_error(format!(
+                "{}: Gaussians are written as .ply (centers and opacity), not `.{ext}`",
+                a.output.display()
+            )));
+        }
+        if let Some(o) = a.min_opacity {
+            if !(0.0..=1.0).contains(&o) {
+                return Err(input_error(format!(
+                    "--min-opacity {o}: expected an opacity in [0, 1]"
+                )));
+            }
+        }
+        let (mut cloud, opacity) = io::read_gaussians_with_opacity(
+            &a.input,
+            &PlyOptions {
+                min_opacity: a.min_opacity,
+                strict: a.strict,
+            },
+        )?;
+        for w in &cloud.warnings {
+            eprintln!("warning: {w}");
+        }
+        a.frame.transform(&mut cloud)?;
+        let comment = format!(
+            "converted by linegs-gpu {} from {} ({})",
+            env!("CARGO_PKG_VERSION"),
+            a.input
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            cloud.format
+        );
+        io::write_gaussians_ply(&a.output, &cloud.centers, opacity.as_deref(), &comment)?;
+        println!(
+            "{}: {} of {} Gaussians ({}) -> {}{}",
+            a.input.display(),
+            cloud.centers.len(),
+            cloud.vertex_count,
+            cloud.format,
+            a.output.display(),
+            if opacity.is_some() {
+                ""
+            } else {
+                " (no opacity in the input, centers only)"
+            }
+        );
+        return Ok(());
+    }
+    if a.frame.gaussians_transform.is_some() || a.min_opacity.is_some() {
+        return Err(input_error(format!(
+            "{}: holds line segments; --gaussians-transform and --min-opacity apply to Gaussian models",
+            a.input.display()
+        )));
+    }
+    io::check_line_output(&a.output)?;
+    let lines = io::read_lines_with(&a.input, &a.frame.line_options())?;
+    for w in &lines.warnings {
+        eprintln!("warning: {w}");
+    }
+    io::write_lines(&a.output, &lines.lines.segments)?;
+    println!(
+        "{}: {} segments ({}) -> {}",
+        a.input.display(),
+        lines.lines.len(),
+        lines.format,
+        a.output.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,418 @@
+//! Gaussian models in every format the splatting tools write (SPEC 6): the 3DGS PLY (in
+//! `ply.rs`), SuperSplat's compressed PLY, Niantic SPZ v1–v4 and antimatter15 `.splat`,
+//! chosen by content (and, for `.splat`, which has no magic, by extension and size). Every
+//! reader feeds one [`Sink`], so NaN centers, `--min-opacity` and empty models are handled
+//! the same way whatever the format.
+
+use std::fs::File;
+use std::io::{Read, Write};
+use std::path::Path;
+
+use super::error::{Error, Position};
+use super::ply::{self, GaussianCloud, PlyOptions, PropKind};
+use super::write::write_atomic;
+use super::{ply_compressed, splat, spz};
+
+/// The Gaussian formats [`read_gaussians`] recognises.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GaussianFormat {
+    /// A PLY with `x`, `y`, `z` on `vertex` (3DGS `point_cloud.ply` and its relatives).
+    Ply,
+    /// SuperSplat / PlayCanvas compressed PLY: `chunk` bounds and `packed_position`.
+    CompressedPly,
+    /// Niantic SPZ (gzip, versions 1–3; ZSTD streams, version 4).
+    Spz,
+    /// antimatter15 `.splat`: 32 bytes a splat, no header.
+    Splat,
+}
+
+/// Picks the Gaussian format of a file from its first bytes (up to 1 MiB), its length and
+/// its extension.
+pub fn detect_gaussians(path: &Path, head: &[u8], file_len: u64) -> Result<GaussianFormat, Error> {
+    if file_len == 0 {
+        return Err(Error::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    if head.starts_with(b"ply") {
+        let header = ply::parse_header(path, head, head.len() as u64 == file_len)?;
+        return Ok(if ply_compressed::is_compressed(&header) {
+            GaussianFormat::CompressedPly
+        } else {
+            GaussianFormat::Ply
+        });
+    }
+    if spz::sniff(head) {
+        return Ok(GaussianFormat::Spz);
+    }
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    if ext == "splat" {
+        return Ok(GaussianFormat::Splat);
+    }
+    if ext == "spz" {
+        // Named .spz but neither magic: let the SPZ reader say what is wrong.
+        return Ok(GaussianFormat::Spz);
+    }
+    Err(Error::unknown(
+        path,
+        "Gaussians are read from PLY (3DGS or SuperSplat compressed), Niantic .spz \
+         (starts with `NGSP` or a gzip header) and antimatter15 .splat (by extension), \
+         and this file is none of them",
+    ))
+}
+
+/// True when `path` holds Gaussians (any readable model format) rather than lines: a PLY
+/// without an `edge` element, an SPZ or a `.splat`. Folders and unreadable files are not.
+pub fn is_gaussian_model(path: &Path) -> Result<bool, Error> {
+    if path.is_dir() {
+        return Ok(false);
+    }
+    let (head, len) = head_of(path)?;
+    Ok(match detect_gaussians(path, &head, len) {
+        Ok(GaussianFormat::Ply | GaussianFormat::CompressedPly) => {
+            ply::parse_header(path, &head, head.len() as u64 == len)?
+                .element("edge")
+                .is_none()
+        }
+        Ok(_) => true,
+        Err(_) => false,
+    })
+}
+
+/// Reads the Gaussian centers of a model in any format of SPEC 6.
+///
+/// NaN/Inf centers are skipped and counted with one warning (an error with `strict`);
+/// `min_opacity` keeps Gaussians whose opacity (after the format's activation) is at least
+/// the threshold; a file with no usable Gaussian is an error.
+pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, Error> {
+    Ok(read(path, opts, false)?.0)
+}
+
+/// Like [`read_gaussians`], and also the opacity of every kept Gaussian as the logit that
+/// 3DGS stores (`None` when the file has no opacity), for `convert`.
+pub fn read_gaussians_with_opacity(
+    path: &Path,
+    opts: &PlyOptions,
+) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
+    read(path, opts, true)
+}
+
+fn read(
+    path: &Path,
+    opts: &PlyOptions,
+    keep_opacity: bool,
+) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
+    let (head, len) = head_of(path)?;
+    match detect_gaussians(path, &head, len)? {
+        // The 3DGS reader streams and has a fast path; it only lacks the opacity output.
+        GaussianFormat::Ply if !keep_opacity => Ok((ply::read_gaussians(path, opts)?, None)),
+        GaussianFormat::Ply => read_ply_with_opacity(path, opts),
+        GaussianFormat::CompressedPly => {
+            let bytes = read_all(path)?;
+            ply_compressed::read(path, &bytes, Sink::new(path, opts, keep_opacity))
+        }
+        GaussianFormat::Spz => {
+            let bytes = read_all(path)?;
+            spz::read(path, &bytes, Sink::new(path, opts, keep_opacity))
+        }
+        GaussianFormat::Splat => {
+            let bytes = read_all(path)?;
+            splat::read(path, &bytes, Sink::new(path, opts, keep_opacity))
+        }
+    }
+}
+
+/// The first MiB of a file and its length.
+pub(crate) fn head_of(path: &Path) -> Result<(Vec<u8>, u64), Error> {
+    let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
+    let len = file
+        .metadata()
+        .map_err(|e| Error::io(path, "read metadata of", e))?
+        .len();
+    let mut head = Vec::new();
+    file.take(1 << 20)
+        .read_to_end(&mut head)
+        .map_err(|e| Error::io(path, "read", e))?;
+    Ok((head, len))
+}
+
+fn read_all(path: &Path) -> Result<Vec<u8>, Error> {
+    std::fs::read(path).map_err(|e| Error::io(path, "read", e))
+}
+
+/// A plain PLY read through the generic record walker, keeping the opacity logits.
+fn read_ply_with_opacity(
+    path: &Path,
+    opts: &PlyOptions,
+) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
+    // The streaming reader validates everything first (and names the faults the same way).
+    let checked = ply::read_gaussians(
+        path,
+        &PlyOptions {
+            min_opacity: None,
+            strict: opts.strict,
+        },
+    )?;
+    let bytes = read_all(path)?;
+    let (header, mut body) = ply::open_in_memory(path, &bytes)?;
+    let vi = header
+        .element("vertex")
+        .ok_or_else(|| Error::missing(path, "the PLY has no `vertex` element"))?;
+    let vertex = &header.elements[vi];
+    let scalar = |n: &str| {
+        vertex
+            .prop(n)
+            .filter(|&i| matches!(vertex.props[i].kind, PropKind::Scalar(_)))
+    };
+    let (Some(x), Some(y), Some(z)) = (scalar("x"), scalar("y"), scalar("z")) else {
+        return Err(Error::missing(path, "the `vertex` element has no x, y, z"));
+    };
+    let op = scalar("opacity");
+    if opts.min_opacity.is_some() && op.is_none() {
+        return Err(Error::missing(
+            path,
+            "--min-opacity needs an `opacity` property on `vertex` (3DGS models have one; this file has none)",
+        ));
+    }
+    let mut wanted = vec![x, y, z];
+    wanted.extend(op);
+    for elem in &header.elements[..vi] {
+        body.skip(path, elem)?;
+    }
+    let mut sink = Sink::new(path, opts, op.is_some());
+    body.for_each(path, vertex, &wanted, |loc, v| {
+        let logit = v.get(3).copied().unwrap_or(0.0) as f32;
+        sink.push(
+            [v[0] as f32, v[1] as f32, v[2] as f32],
+            sigmoid(logit as f64),
+            logit,
+            || loc.position("vertex"),
+        )
+    })?;
+    let (mut cloud, opacity) = sink.finish(vertex.count, header.format())?;
+    cloud.properties = checked.properties;
+    cloud.warnings = checked.warnings;
+    Ok((cloud, opacity))
+}
+
+#[inline]
+pub(crate) fn sigmoid(x: f64) -> f64 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Collects the usable centers of one read, whatever the format: NaN/Inf centers skipped
+/// and counted (an error with `strict`), the `min_opacity` cut on the opacity in `[0, 1]`.
+pub(crate) struct Sink<'a> {
+    path: &'a Path,
+    min_opacity: Option<f64>,
+    strict: bool,
+    keep_opacity: bool,
+    centers: Vec<[f32; 3]>,
+    logits: Vec<f32>,
+    nonfinite: usize,
+    first_nonfinite: Option<Position>,
+    low: usize,
+    /// Appended to the cloud's warnings (format-specific notes).
+    pub(crate) warnings: Vec<String>,
+}
+
+impl<'a> Sink<'a> {
+    pub(crate) fn new(path: &'a Path, opts: &PlyOptions, keep_opacity: bool) -> Self {
+        Sink {
+            path,
+            min_opacity: opts.min_opacity,
+            strict: opts.strict,
+            keep_opacity,
+            centers: Vec::new(),
+            logits: Vec::new(),
+            nonfinite: 0,
+            first_nonfinite: None,
+            low: 0,
+            warnings: Vec::new(),
+        }
+    }
+
+    pub(crate) fn reserve(&mut self, n: usize) {
+        self.centers.reserve(n);
+        if self.keep_opacity {
+            self.logits.reserve(n);
+        }
+    }
+
+    /// Takes one Gaussian: its center, opacity in `[0, 1]` (for the cut) and the logit that
+    /// a 3DGS PLY would store (for `convert`).
+    #[inline]
+    pub(crate) fn push(
+        &mut self,
+        c: [f32; 3],
+        opacity: f64,
+        logit: f32,
+        pos: impl FnOnce() -> Position,
+    ) -> Result<(), Error> {
+        if !c.iter().all(|v| v.is_finite()) {
+            let pos = pos();
+            if self.strict {
+                let bad = c
+                    .iter()
+                    .copied()
+                    .find(|v| !v.is_finite())
+                    .unwrap_or(f32::NAN);
+                let mut e = Error::non_finite(self.path, pos, "Gaussian center", bad as f64);
+                if let Error::NonFinite { hint, .. } = &mut e {
+                    *hint = "; without --strict such Gaussians are skipped with a warning";
+                }
+                return Err(e);
+            }
+            self.nonfinite += 1;
+            self.first_nonfinite.get_or_insert(pos);
+            return Ok(());
+        }
+        if let Some(t) = self.min_opacity {
+            // NaN opacity fails the test and is dropped, as in the PLY reader.
+            if opacity.partial_cmp(&t).is_none_or(|o| o.is_lt()) {
+                self.low += 1;
+                return Ok(());
+            }
+        }
+        self.centers.push(c);
+        if self.keep_opacity {
+            self.logits.push(logit);
+        }
+        Ok(())
+    }
+
+    /// The cloud, or the error for a model with nothing usable. `total` is the number of
+    /// Gaussians in the file; `format` what `info` shows.
+    pub(crate) fn finish(
+        mut self,
+        total: usize,
+        format: String,
+    ) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
+        let mut warnings = std::mem::take(&mut self.warnings);
+        if self.nonfinite > 0 {
+            let first = self
+                .first_nonfinite
+                .as_ref()
+                .map(|p| format!(" (first at {p})"))
+                .unwrap_or_default();
+            warnings.push(format!(
+                "{}: skipped {} Gaussian{} whose center is NaN or infinite{first}; --strict makes this an error",
+                self.path.display(),
+                self.nonfinite,
+                if self.nonfinite == 1 { "" } else { "s" },
+            ));
+        }
+        if total == 0 {
+            return Err(Error::no_data(self.path, "the model has no Gaussians"));
+        }
+        if self.centers.is_empty() {
+            let mut why = Vec::new();
+            if self.nonfinite > 0 {
+                why.push(format!("{} with a NaN or infinite center", self.nonfinite));
+            }
+            if self.low > 0 {
+                why.push(format!(
+                    "{} below --min-opacity {}",
+                    self.low,
+                    self.min_opacity.unwrap_or(0.0)
+                ));
+            }
+            return Err(Error::no_data(
+                self.path,
+                format!(
+                    "none of the {total} Gaussians is usable ({})",
+                    why.join(", ")
+                ),
+            ));
+        }
+        self.centers.shrink_to_fit();
+        let opacity = self.keep_opacity.then_some(self.logits);
+        Ok((
+            GaussianCloud {
+                centers: self.centers,
+                format,
+                vertex_count: total,
+                properties: Vec::new(),
+                skipped_nonfinite: self.nonfinite,
+                dropped_low_opacity: self.low,
+                warnings,
+            },
+            opacity,
+        ))
+    }
+}
+
+/// Writes Gaussian centers (and opacity logits, when given) as a binary little-endian PLY
+/// with `float x y z [opacity]`: what every 3DGS tool and this one read, 16 bytes a
+/// Gaussian instead of the 248 of the full 3DGS layout.
+pub fn write_gaussians_ply(
+    path: &Path,
+    centers: &[[f32; 3]],
+    opacity_logit: Option<&[f32]>,
+    comment: &str,
+) -> Result<(), Error> {
+    if let Some(op) = opacity_logit {
+        if op.len() != centers.len() {
+            return Err(Error::Unsupported {
+                path: path.to_path_buf(),
+                msg: format!(
+                    "{} opacities for {} centers; give one per Gaussian",
+                    op.len(),
+                    centers.len()
+                ),
+            });
+        }
+    }
+    let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
+    for line in comment.lines() {
+        header.push_str(&format!("comment {line}\n"));
+    }
+    header.push_str(&format!(
+        "element vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
+        centers.len()
+    ));
+    if opacity_logit.is_some() {
+        header.push_str("property float opacity\n");
+    }
+    header.push_str("end_header\n");
+    write_atomic(path, |w| {
+        w.write_all(header.as_bytes())?;
+        let mut rec = [0u8; 16];
+        for (i, c) in centers.iter().enumerate() {
+            for k in 0..3 {
+                rec[4 * k..4 * k + 4].copy_from_slice(&c[k].to_le_bytes());
+            }
+            let n = match opacity_logit {
+                Some(o) => {
+                    rec[12..16].copy_from_slice(&o[i].to_le_bytes());
+                    16
+                }
+                None => 12,
+            };
+            w.write_all(&rec[..n])?;
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_content_is_named_and_empty_files_are_empty() {
+        let p = Path::new("model.bin");
+        let e = detect_gaussians(p, b"hello", 5).unwrap_err();
+        assert!(matches!(e, Error::UnknownFormat { .. }), "{e}");
+        assert!(e.to_string().contains(".spz"), "{e}");
+        let e = detect_gaussians(p, b"", 0).unwrap_err();
+        assert!(matches!(e, Error::Empty { .. }), "{e}");
+        assert_eq!(
+            detect_gaussians(Path::new("a.SPLAT"), &[0u8; 32], 32).unwrap(),
+            GaussianFormat::Splat
+        );
+    }
+}

@@ -1,0 +1,291 @@
+//! LIMAP line tracks: the `finaltracks/` folder (`track_<id>.txt`, one file a track, what
+//! `limap.util.io.save_folder_linetracks` writes) and `alltracks.txt` (all tracks in one
+//! file, `save_txt_linetracks`). Each track is one 3D segment; its track id is kept as the
+//! segment's group. LIMAP's pickled `.npy` files are refused with what to save instead.
+//!
+//! `track_<id>.txt` (LIMAP `LineTrack::Write`):
+//! ```text
+//! x1 y1 z1 x2 y2 z2
+//! n_lines n_images
+//! image_id_list <n_lines ids>
+//! line_id_list <n_lines ids>
+//! line2d_list
+//! ...
+//! ```
+//! `alltracks.txt`: `n_tracks`, then per track `track_id n_lines n_images`, the start
+//! point, the end point, `n_lines` image ids and `n_lines` line ids.
+
+use std::path::{Path, PathBuf};
+
+use crate::geom::Segment;
+
+use super::error::{Error, Position};
+
+/// Whitespace tokens with their 1-based line and 1-based place on the line.
+struct Tokens<'a> {
+    path: &'a Path,
+    toks: Vec<(usize, usize, &'a str)>,
+    at: usize,
+}
+
+impl<'a> Tokens<'a> {
+    fn new(path: &'a Path, text: &'a str) -> Self {
+        let mut toks = Vec::new();
+        for (i, line) in text.lines().enumerate() {
+            for (k, t) in line.split_whitespace().enumerate() {
+                toks.push((i + 1, k + 1, t));
+            }
+        }
+        Tokens { path, toks, at: 0 }
+    }
+
+    fn next(&mut self, what: &str) -> Result<(usize, usize, &'a str), Error> {
+        match self.toks.get(self.at) {
+            Some(&t) => {
+                self.at += 1;
+                Ok(t)
+            }
+            None => {
+                let line = self.toks.last().map_or(1, |t| t.0);
+                Err(Error::truncated(
+                    self.path,
+                    Position::Line(line),
+                    format!("the file ends where {what} should be"),
+                ))
+            }
+        }
+    }
+
+    fn coord(&mut self, what: &str) -> Result<f64, Error> {
+        let (line, value, t) = self.next(what)?;
+        let pos = Position::LineValue { line, value };
+        let x: f64 = t.parse().map_err(|_| {
+            Error::parse(
+                self.path,
+                pos.clone(),
+                format!("{what}: `{t}` is not a number"),
+            )
+        })?;
+        if !x.is_finite() {
+            return Err(Error::non_finite(self.path, pos, "line coordinate", x));
+        }
+        Ok(x)
+    }
+
+    fn int(&mut self, what: &str) -> Result<(usize, i64), Error> {
+        let (line, value, t) = self.next(what)?;
+        let x = t.parse::<i64>().map_err(|_| {
+            Error::parse(
+                self.path,
+                Position::LineValue { line, value },
+                format!("expected {what} (an integer), found `{t}`"),
+            )
+        })?;
+        Ok((line, x))
+    }
+
+    fn count(&mut self, what: &str) -> Result<(usize, usize), Error> {
+        let (line, value, t) = self.next(what)?;
+        let n = t.parse::<usize>().map_err(|_| {
+            Error::parse(
+                self.path,
+                Position::LineValue { line, value },
+                format!("expected {what} (a non-negative integer), found `{t}`"),
+            )
+        })?;
+        // Every counted item is at least one token; a larger count is a damaged file.
+        if n > self.toks.len() {
+            return Err(Error::parse(
+                self.path,
+                Position::LineValue { line, value },
+                format!("{what} {n} is more than the file could hold"),
+            ));
+        }
+        Ok((line, n))
+    }
+
+    fn keyword(&mut self, word: &str) -> Result<(), Error> {
+        let (line, value, t) = self.next(&format!("`{word}`"))?;
+        if t != word {
+            return Err(Error::parse(
+                self.path,
+                Position::LineValue { line, value },
+                format!("expected `{word}` (a LIMAP track file), found `{t}`"),
+            ));
+        }
+        Ok(())
+    }
+
+    fn segment(&mut self) -> Result<(usize, Segment), Error> {
+        let line = self.toks.get(self.at).map_or(1, |t| t.0);
+        let mut v = [0.0; 6];
+        for (k, slot) in v.iter_mut().enumerate() {
+            *slot = self.coord(["x1", "y1", "z1", "x2", "y2", "z2"][k])?;
+        }
+        Ok((
+            line,
+            Segment::from_arrays([v[0], v[1], v[2]], [v[3], v[4], v[5]]),
+        ))
+    }
+}
+
+/// One data row's tokens.
+fn row_tokens(text: &str, row: usize) -> Option<Vec<&str>> {
+    text.lines()
+        .filter(|l| !l.trim().is_empty())
+        .nth(row)
+        .map(|l| l.split_whitespace().collect())
+}
+
+/// A single `track_<id>.txt`: 6 numbers, 2 counts, then `image_id_list`.
+pub(crate) fn looks_like_track(text: &str) -> bool {
+    let (Some(a), Some(b), Some(c)) = (
+        row_tokens(text, 0),
+        row_tokens(text, 1),
+        row_tokens(text, 2),
+    ) else {
+        return false;
+    };
+    a.len() == 6
+        && a.iter().all(|t| t.parse::<f64>().is_ok())
+        && b.len() == 2
+        && b.iter().all(|t| t.parse::<usize>().is_ok())
+        && c.first() == Some(&"image_id_list")
+}
+
+/// `alltracks.txt`: a track count alone on the first row, then `id n_lines n_images`.
+pub(crate) fn looks_like_alltracks(text: &str) -> bool {
+    let Some(a) = row_tokens(text, 0) else {
+        return false;
+    };
+    if a.len() != 1 || a[0].parse::<usize>().is_err() {
+        return false;
+    }
+    match row_tokens(text, 1) {
+        Some(b) => b.len() == 3 && b.iter().all(|t| t.parse::<i64>().is_ok()),
+        None => a[0] == "0",
+    }
+}
+
+/// Reads one track file: its segment and the 1-based line it is on.
+pub(crate) fn parse_track(path: &Path, text: &str) -> Result<(usize, Segment), Error> {
+    let mut t = Tokens::new(path, text);
+    let (line, seg) = t.segment()?;
+    let (_, n_lines) = t.count("the line count n_lines")?;
+    t.count("the image count n_images")?;
+    t.keyword("image_id_list")?;
+    for _ in 0..n_lines {
+        t.int("an image id")?;
+    }
+    t.keyword("line_id_list")?;
+    for _ in 0..n_lines {
+        t.int("a line id")?;
+    }
+    Ok((line, seg))
+}
+
+/// Segments with one number each (a track id, or a text line), and warnings.
+type Tracks<T> = (Vec<Segment>, Vec<u32>, Vec<T>);
+
+/// Segments, their track ids and their lines, from `alltracks.txt`.
+pub(crate) fn parse_alltracks(path: &Path, text: &str) -> Result<Tracks<usize>, Error> {
+    let mut t = Tokens::new(path, text);
+    let (_, n) = t.count("the track count")?;
+    let mut segs = Vec::with_capacity(n);
+    let mut ids = Vec::with_capacity(n);
+    let mut lines = Vec::with_capacity(n);
+    for _ in 0..n {
+        let (line, id) = t.int("a track id")?;
+        let id = u32::try_from(id).map_err(|_| {
+            Error::parse(
+                path,
+                Position::Line(line),
+                format!("track id {id} is not a non-negative 32-bit integer"),
+            )
+        })?;
+        let (_, n_lines) = t.count("the line count")?;
+        t.count("the image count")?;
+        let (line, seg) = t.segment()?;
+        for _ in 0..2 * n_lines {
+            t.int("an image or line id")?;
+        }
+        segs.push(seg);
+        ids.push(id);
+        lines.push(line);
+    }
+    if let Some(&(line, value, tok)) = t.toks.get(t.at) {
+        return Err(Error::parse(
+            path,
+            Position::LineValue { line, value },
+            format!("`{tok}` after the {n} tracks the first line announces (wrong track count?)"),
+        ));
+    }
+    Ok((segs, ids, lines))
+}
+
+/// A `finaltracks/` folder: every `track_<id>.txt` in it, by id.
+pub(crate) fn read_folder(dir: &Path) -> Result<Tracks<String>, Error> {
+    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, "read", e))?;
+    let mut tracks: Vec<(u32, PathBuf)> = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(|e| Error::io(dir, "read", e))?;
+        let name = entry.file_name();
+        let name = name.to_string_lossy();
+        let Some(id) = name
+            .strip_prefix("track_")
+            .and_then(|s| s.strip_suffix(".txt"))
+            .and_then(|s| s.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        tracks.push((id, entry.path()));
+    }
+    if tracks.is_empty() {
+        return Err(Error::unknown(
+            dir,
+            "a folder is read as LIMAP line tracks (finaltracks/ with track_<id>.txt files), and this one holds none",
+        ));
+    }
+    tracks.sort();
+    let mut warnings = Vec::new();
+    let (lo, hi) = (tracks[0].0 as usize, tracks[tracks.len() - 1].0 as usize);
+    if lo != 0 || hi + 1 != tracks.len() {
+        warnings.push(format!(
+            "{}: the track files are numbered {lo}..{hi} with {} missing; LIMAP writes track_0.txt .. track_<n-1>.txt",
+            dir.display(),
+            hi + 1 - tracks.len()
+        ));
+    }
+    let mut segs = Vec::with_capacity(tracks.len());
+    let mut ids = Vec::with_capacity(tracks.len());
+    for (id, p) in tracks {
+        let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, "read", e))?;
+        let text = std::str::from_utf8(&bytes)
+            .map_err(|_| Error::unknown(&p, "a LIMAP track file is text, and this one is not"))?;
+        if text.trim().is_empty() {
+            return Err(Error::Empty { path: p });
+        }
+        let (_, seg) = parse_track(&p, text)?;
+        segs.push(seg);
+        ids.push(id);
+    }
+    Ok((segs, ids, warnings))
+}
+
+/// LIMAP (and other Python tools) save dicts and lists of objects with `np.save`, which
+/// pickles them (`'descr': '|O'`). Unpickling runs code, so such files are refused.
+pub(crate) fn refuse_pickled_npy(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    let head = &bytes[..bytes.len().min(4096)];
+    let head = String::from_utf8_lossy(head);
+    let compact: String = head.chars().filter(|c| !c.is_whitespace()).collect();
+    if compact.contains("'descr':'|O'") || compact.contains("\"descr\":\"|O\"") {
+        return Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: "this .npy holds pickled Python objects (LIMAP saves its tracks, configs and image collections this way), which linegs-gpu does not unpickle. \
+                  Give --lines LIMAP's finaltracks/ folder or alltracks.txt, or save a float array: \
+                  np.save('lines.npy', np.array([[t.line.start, t.line.end] for t in linetracks]))"
+                .to_string(),
+        });
+    }
+    Ok(())
+}
