@@ -116,7 +116,8 @@ def _args(params: Dict[str, Any]) -> list:
             v = "true" if v else "false"
         elif isinstance(v, float):
             v = repr(v)
-        out += ["--" + k.replace("_", "-"), str(v)]
+        # `--name=value`, so that a negative number is a value, not a flag
+        out.append(f"--{k.replace('_', '-')}={v}")
     return out
 
 

@@ -102,9 +102,7 @@ fn params(args: Vec<String>) -> PyResult<Params> {
 
 fn backend(name: &str) -> PyResult<Backend> {
     <Backend as clap::ValueEnum>::from_str(name, true).map_err(|_| {
-        InputError::new_err(format!(
-            "backend `{name}`: expected `auto`, `gpu` or `cpu`"
-        ))
+        InputError::new_err(format!("backend `{name}`: expected `auto`, `gpu` or `cpu`"))
     })
 }
 
@@ -134,11 +132,17 @@ fn read_gaussians(
     let opts = LoadOptions {
         min_opacity,
         strict,
+        ..LoadOptions::default()
     };
     let cloud = py
         .detach(|| pipeline::read_gaussians(&path, &opts))
         .map_err(to_py)?;
-    let bytes: Vec<u8> = cloud.centers.iter().flatten().flat_map(|x| x.to_ne_bytes()).collect();
+    let bytes: Vec<u8> = cloud
+        .centers
+        .iter()
+        .flatten()
+        .flat_map(|x| x.to_ne_bytes())
+        .collect();
     Ok((PyBytes::new(py, &bytes).unbind(), cloud.warnings))
 }
 
@@ -150,14 +154,21 @@ fn read_lines(
 ) -> PyResult<(Py<PyBytes>, Option<Vec<u32>>, Vec<String>)> {
     let f = py.detach(|| io::read_lines(&path)).map_err(io_to_py)?;
     let bytes = segment_bytes(&f.lines.segments);
-    Ok((PyBytes::new(py, &bytes).unbind(), f.lines.groups, f.warnings))
+    Ok((
+        PyBytes::new(py, &bytes).unbind(),
+        f.lines.groups,
+        f.warnings,
+    ))
 }
 
 #[pyfunction]
 fn write_lines(py: Python<'_>, path: PathBuf, segments_f64: &[u8]) -> PyResult<()> {
     py.detach(|| {
         let segs = segments(segments_f64);
-        if let Some(i) = segs.iter().position(|s| !(s.p1.is_finite() && s.p2.is_finite())) {
+        if let Some(i) = segs
+            .iter()
+            .position(|s| !(s.p1.is_finite() && s.p2.is_finite()))
+        {
             return Err(RunError::Input(format!(
                 "{}: segment {i} has a NaN or infinite coordinate",
                 path.display()
