@@ -32,6 +32,13 @@ pub struct Stage {
     /// Segments after the stage.
     pub segments: usize,
     pub seconds: f64,
+    /// GPU engine: host time of its batches in this stage (preparing queries, deciding
+    /// flagged points), excluding waits for the device.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_seconds: Option<f64>,
+    /// GPU engine: time waiting for the device in this stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device_seconds: Option<f64>,
 }
 
 impl Stage {
@@ -40,6 +47,8 @@ impl Stage {
             name: name.to_string(),
             segments,
             seconds: t.elapsed().as_secs_f64(),
+            host_seconds: None,
+            device_seconds: None,
         }
     }
 }
@@ -320,7 +329,15 @@ impl Refiner {
         mut on_stage: impl FnMut(&Stage),
     ) -> Result<Refined, RunError> {
         let mut stages = Vec::new();
-        let mut push = |s: Stage, stages: &mut Vec<Stage>| {
+        // The engine's clocks (GPU engine) split each stage into host and device time.
+        let mut clock = self.engine().seconds();
+        let mut push = |mut s: Stage, stages: &mut Vec<Stage>| {
+            let now = self.engine().seconds();
+            if let (Some(a), Some(b)) = (clock, now) {
+                s.host_seconds = Some(b.0 - a.0);
+                s.device_seconds = Some(b.1 - a.1);
+            }
+            clock = now;
             on_stage(&s);
             stages.push(s);
         };

@@ -86,6 +86,8 @@ impl Report {
                 name: "load".into(),
                 segments: scene.lines.len(),
                 seconds: scene.load_seconds,
+                host_seconds: None,
+                device_seconds: None,
             });
         }
         stages.extend(r.stages().iter().cloned());

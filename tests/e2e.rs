@@ -68,8 +68,11 @@ fn the_toy_scene_is_cleaned_and_default_beats_reference() {
         m_d.scores[1].recall > m_r.scores[1].recall,
         "{m_d:?} {m_r:?}"
     );
+    // Since reference runs every cluster's merge/join to its end (issue 9), its accuracy
+    // on this scene is as good as default's (its crop stops inside the dense ends, which
+    // costs recall, not accuracy).
     assert!(
-        m_d.accuracy.unwrap() < m_r.accuracy.unwrap(),
+        m_d.accuracy.unwrap() < 1.1 * m_r.accuracy.unwrap(),
         "{m_d:?} {m_r:?}"
     );
     assert!(m_d.predicted_samples < m_r.predicted_samples);

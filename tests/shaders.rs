@@ -1,22 +1,28 @@
 //! Every kernel parses and validates with naga, without a GPU: a shader typo fails here,
-//! not in a user's run.
+//! not in a user's run. And every struct the host and the kernels share has, in naga's
+//! reflection of each kernel, the offsets and size of the Rust struct the host writes.
 
+use linegs_gpu::engine::gpu::{common_wgsl, kernel_source, layout};
 use std::path::Path;
 
-/// A kernel as the engine loads it: `common.wgsl` first (WGSL has no include).
+/// A kernel as the engine loads it: the generated prelude and `common.wgsl` first.
 fn source(path: &Path) -> Result<String, String> {
     let src = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(if path.file_name().is_some_and(|n| n == "common.wgsl") {
-        src
+        common_wgsl()
     } else {
-        linegs_gpu::engine::gpu::kernel_source(&src)
+        kernel_source(&src)
     })
+}
+
+fn parse(src: &str, path: &Path) -> Result<naga::Module, String> {
+    naga::front::wgsl::parse_str(src)
+        .map_err(|e| e.emit_to_string_with_path(src, path.to_string_lossy().as_ref()))
 }
 
 fn validate(path: &Path) -> Result<naga::valid::ModuleInfo, String> {
     let src = source(path)?;
-    let module = naga::front::wgsl::parse_str(&src)
-        .map_err(|e| e.emit_to_string_with_path(&src, path.to_string_lossy().as_ref()))?;
+    let module = parse(&src, path)?;
     naga::valid::Validator::new(
         naga::valid::ValidationFlags::all(),
         // No subgroups, no f64, nothing beyond core WebGPU.
@@ -26,23 +32,40 @@ fn validate(path: &Path) -> Result<naga::valid::ModuleInfo, String> {
     .map_err(|e| e.emit_to_string_with_path(&src, path.to_string_lossy().as_ref()))
 }
 
+fn shader_dir() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders")
+}
+
+fn kernels() -> Vec<std::path::PathBuf> {
+    let mut v: Vec<_> = std::fs::read_dir(shader_dir())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "wgsl"))
+        .collect();
+    v.sort();
+    v
+}
+
 #[test]
 fn every_shader_is_valid_wgsl() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
     let mut names = Vec::new();
-    for entry in std::fs::read_dir(&dir).unwrap() {
-        let path = entry.unwrap().path();
-        if path.extension().is_some_and(|e| e == "wgsl") {
-            if let Err(e) = validate(&path) {
-                panic!("{e}");
-            }
-            names.push(path.file_name().unwrap().to_string_lossy().into_owned());
+    for path in kernels() {
+        if let Err(e) = validate(&path) {
+            panic!("{e}");
         }
+        names.push(path.file_name().unwrap().to_string_lossy().into_owned());
     }
-    names.sort();
     assert_eq!(
         names,
-        ["common.wgsl", "coverage.wgsl", "nearest.wgsl", "stats.wgsl"]
+        [
+            "args.wgsl",
+            "common.wgsl",
+            "cut.wgsl",
+            "eval.wgsl",
+            "reduce.wgsl",
+            "scan.wgsl",
+            "walk.wgsl"
+        ]
     );
 }
 
@@ -50,40 +73,68 @@ fn every_shader_is_valid_wgsl() {
 fn the_validator_rejects_a_broken_kernel() {
     let dir = tempfile::tempdir().unwrap();
     let bad = dir.path().join("bad.wgsl");
-    let src =
-        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders/stats.wgsl"))
-            .unwrap()
-            .replace("let u = dot(w, it.d);", "let u = dot(w, it.dd);");
+    let src = std::fs::read_to_string(shader_dir().join("eval.wgsl"))
+        .unwrap()
+        .replace("let g = geom(q, it.cell);", "let g = geom(q, it.cel);");
     std::fs::write(&bad, src).unwrap();
     assert!(validate(&bad).is_err());
 }
 
-#[test]
-fn kernels_share_the_work_item_layout() {
-    // The launchers upload one `Item` layout to all three kernels: it is defined once, in
-    // common.wgsl, and is 48 bytes as the host writes it.
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
-    let item = |name: &str| {
-        let src = source(&dir.join(name)).unwrap();
-        let module = naga::front::wgsl::parse_str(&src).unwrap();
-        let (_, ty) = module
-            .types
-            .iter()
-            .find(|(_, t)| t.name.as_deref() == Some("Item"))
-            .expect("struct Item");
-        match &ty.inner {
-            naga::TypeInner::Struct { members, span } => (
-                members
-                    .iter()
-                    .map(|m| (m.name.clone().unwrap(), m.offset))
-                    .collect::<Vec<_>>(),
-                *span,
-            ),
-            _ => panic!("Item is not a struct"),
+/// (size, member offsets) of struct `name` in `module`, as naga lays it out.
+fn reflect(module: &naga::Module, name: &str) -> Option<(usize, Vec<(String, usize)>)> {
+    let (_, ty) = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some(name))?;
+    match &ty.inner {
+        naga::TypeInner::Struct { members, span } => Some((
+            *span as usize,
+            members
+                .iter()
+                .map(|m| (m.name.clone().unwrap(), m.offset as usize))
+                .collect(),
+        )),
+        _ => None,
+    }
+}
+
+/// Compares every shared struct in `module` with the Rust layout; returns the mismatches.
+fn layout_mismatches(module: &naga::Module) -> Vec<String> {
+    let mut bad = Vec::new();
+    for (name, size, fields) in layout::layouts() {
+        let want: Vec<(String, usize)> = fields.iter().map(|(f, o)| (f.to_string(), *o)).collect();
+        match reflect(module, name) {
+            Some((s, got)) if s == size && got == want => {}
+            Some((s, got)) => bad.push(format!(
+                "{name}: WGSL {s} bytes {got:?}, Rust {size} bytes {want:?}"
+            )),
+            None => bad.push(format!("{name}: missing from the WGSL")),
         }
-    };
-    let stats = item("stats.wgsl");
-    assert_eq!(stats.1, 48);
-    assert_eq!(stats, item("nearest.wgsl"));
-    assert_eq!(stats, item("coverage.wgsl"));
+    }
+    bad
+}
+
+#[test]
+fn every_kernel_lays_out_the_shared_structs_as_the_host_writes_them() {
+    for path in kernels() {
+        let module = parse(&source(&path).unwrap(), &path).unwrap();
+        let bad = layout_mismatches(&module);
+        assert!(bad.is_empty(), "{}: {bad:#?}", path.display());
+    }
+}
+
+#[test]
+fn the_layout_check_catches_a_drifted_struct() {
+    // A vec3 field is 16-byte aligned in WGSL but not in Rust: the check must see it.
+    let src = common_wgsl().replacen(
+        "    fx: f32,\n    fy: f32,\n    fz: f32,\n",
+        "    f: vec3<f32>,\n",
+        1,
+    );
+    assert_ne!(src, common_wgsl());
+    let src = src.replace("q.fx, q.fy, q.fz", "q.f.x, q.f.y, q.f.z");
+    let module = parse(&src, Path::new("drifted.wgsl")).unwrap();
+    let bad = layout_mismatches(&module);
+    assert_eq!(bad.len(), 1, "{bad:?}");
+    assert!(bad[0].starts_with("GQuery"), "{bad:?}");
 }

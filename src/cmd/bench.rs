@@ -58,6 +58,11 @@ struct RunTiming {
     segments_out: usize,
     stages: Vec<Stage>,
     total_seconds: f64,
+    /// GPU engine: host and device-wait seconds of its batches over the run.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    host_seconds: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    device_seconds: Option<f64>,
     peak_rss_mb: Option<f64>,
 }
 
@@ -90,7 +95,14 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
                     mem::reset_peak_rss();
                     let out = job.refine(&scene, |_| {})?;
                     let r = out.report;
+                    let sum = |f: fn(&Stage) -> Option<f64>| {
+                        r.stages.iter().filter_map(f).reduce(|a, b| a + b)
+                    };
+                    let host_seconds = sum(|s| s.host_seconds);
+                    let device_seconds = sum(|s| s.device_seconds);
                     let run = RunTiming {
+                        host_seconds,
+                        device_seconds,
                         backend: r.backend,
                         adapter: r.adapter,
                         n_box: r.input.n_box,
@@ -181,6 +193,12 @@ fn print_case(c: &Case) {
     println!();
     for r in &c.runs {
         println!("  {}: {} (N_box {})", r.backend, r.adapter, r.n_box);
+        if let (Some(h), Some(d)) = (r.host_seconds, r.device_seconds) {
+            println!(
+                "  {}: host {h:.3} s, waiting for the device {d:.3} s",
+                r.backend
+            );
+        }
     }
     if let Some(x) = c.gpu_over_cpu {
         println!("gpu / cpu total time: {x:.2}");

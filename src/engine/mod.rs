@@ -146,4 +146,10 @@ pub trait Engine: Send + Sync {
     /// The union of all members of the batch.
     fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError>;
     fn counters(&self) -> Counters;
+    /// `(host_seconds, device_seconds)` spent answering batches so far: host work
+    /// (preparing queries, deciding flagged points) and waits for the device. `None` for
+    /// engines without a device.
+    fn seconds(&self) -> Option<(f64, f64)> {
+        None
+    }
 }

@@ -1,7 +1,7 @@
 //! `--backend auto|gpu|cpu` (SPEC 4): which engine answers the queries.
 
 use super::cpu::CpuEngine;
-use super::gpu::GpuEngine;
+use super::gpu::{GpuEngine, GpuOptions};
 use super::{Engine, EngineError};
 use crate::index::Grid;
 use std::sync::Arc;
@@ -20,10 +20,11 @@ use std::sync::Arc;
 )]
 #[serde(rename_all = "lowercase")]
 pub enum Backend {
-    /// A GPU adapter when one exists (lavapipe counts), else the CPU.
+    /// A hardware GPU adapter when one exists, else the CPU engine (software adapters
+    /// such as lavapipe run on the same cores, slower: only with `gpu`).
     #[default]
     Auto,
-    /// A GPU adapter, or an error.
+    /// A GPU adapter (software ones included), or an error.
     Gpu,
     /// The CPU engine (rayon).
     Cpu,
@@ -46,34 +47,96 @@ impl std::fmt::Display for Backend {
 }
 
 /// The engine for `backend` over `grid`, with the messages the user should see: for
-/// `auto`, which adapter it picked or why it fell back to the CPU.
+/// `auto`, which adapter it picked, or why it chose the CPU engine.
 pub fn make_engine(
     backend: Backend,
     grid: Arc<Grid>,
 ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
-    choose(backend, grid, GpuEngine::new)
+    match backend {
+        Backend::Auto => {
+            let adapters = crate::engine::gpu::enumerate_adapters();
+            let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
+            let pick = auto_pick(&infos);
+            choose(backend, grid, |g| match pick {
+                Pick::Hardware(i) => {
+                    GpuEngine::on_adapter(&adapters[i], g, GpuOptions::default()).map(Some)
+                }
+                Pick::None(why) | Pick::SoftwareOnly(why) => Err(EngineError::NoAdapter(why)),
+            })
+        }
+        _ => choose(backend, grid, |g| GpuEngine::new(g).map(Some)),
+    }
+}
+
+/// What `auto` found among the adapters.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Pick {
+    /// The adapter at this index: a hardware GPU (discrete first, then integrated,
+    /// virtual, other).
+    Hardware(usize),
+    /// Only software adapters (`DeviceType::Cpu`), listed in the reason.
+    SoftwareOnly(String),
+    /// No adapter at all.
+    None(String),
+}
+
+/// `auto`'s choice: the best hardware adapter; software adapters never.
+pub fn auto_pick(infos: &[wgpu::AdapterInfo]) -> Pick {
+    use wgpu::DeviceType as D;
+    let rank = |t: D| match t {
+        D::DiscreteGpu => Some(0),
+        D::IntegratedGpu => Some(1),
+        D::VirtualGpu => Some(2),
+        D::Other => Some(3),
+        D::Cpu => None,
+    };
+    if let Some((i, _)) = infos
+        .iter()
+        .enumerate()
+        .filter_map(|(i, a)| rank(a.device_type).map(|r| (i, r)))
+        .min_by_key(|&(i, r)| (r, i))
+    {
+        return Pick::Hardware(i);
+    }
+    if infos.is_empty() {
+        return Pick::None("no GPU adapter found".into());
+    }
+    let names: Vec<&str> = infos.iter().map(|a| a.name.as_str()).collect();
+    Pick::SoftwareOnly(format!(
+        "only software adapters ({}), which run on the same cores as the CPU engine and slower; \
+         --backend gpu uses them",
+        names.join(", ")
+    ))
 }
 
 fn choose(
     backend: Backend,
     grid: Arc<Grid>,
-    gpu: impl FnOnce(Arc<Grid>) -> Result<GpuEngine, EngineError>,
+    gpu: impl FnOnce(Arc<Grid>) -> Result<Option<GpuEngine>, EngineError>,
 ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
     match backend {
         Backend::Cpu => Ok((Box::new(CpuEngine::new(grid)), Vec::new())),
-        Backend::Gpu => {
-            let e = gpu(grid)?;
-            Ok((Box::new(e), Vec::new()))
-        }
+        Backend::Gpu => match gpu(grid)? {
+            Some(e) => Ok((Box::new(e), Vec::new())),
+            None => Err(EngineError::NoAdapter("none".into())),
+        },
         Backend::Auto => match gpu(grid.clone()) {
-            Ok(e) => {
-                let note = format!("backend auto: using the GPU adapter {}", e.adapter());
+            Ok(Some(e)) => {
+                let note = format!(
+                    "backend auto: using the GPU engine on the hardware adapter {}",
+                    e.adapter()
+                );
                 Ok((Box::new(e), vec![note]))
             }
+            Ok(None) => unreachable!("auto gets an engine or a reason"),
             Err(why) => {
                 let cpu = CpuEngine::new(grid);
+                let why = match why {
+                    EngineError::NoAdapter(w) => w,
+                    other => other.to_string(),
+                };
                 let note = format!(
-                    "backend auto: no usable GPU ({why}); falling back to the CPU engine, {}",
+                    "backend auto: using the CPU engine, {}: {why}",
                     cpu.adapter()
                 );
                 Ok((Box::new(cpu), vec![note]))
@@ -96,8 +159,35 @@ mod tests {
         Arc::new(Grid::build(&[[0.5, 0.5, 0.5]], b, 0.1))
     }
 
-    fn no_gpu(_: Arc<Grid>) -> Result<GpuEngine, EngineError> {
+    fn no_gpu(_: Arc<Grid>) -> Result<Option<GpuEngine>, EngineError> {
         Err(EngineError::NoAdapter("none in this test".into()))
+    }
+
+    fn info(name: &str, device_type: wgpu::DeviceType) -> wgpu::AdapterInfo {
+        let mut a = wgpu::AdapterInfo::new(device_type, wgpu::Backend::Vulkan);
+        a.name = name.into();
+        a
+    }
+
+    #[test]
+    fn auto_never_picks_a_software_adapter() {
+        use wgpu::DeviceType as D;
+        let lavapipe = info("llvmpipe (LLVM 15.0.6, 256 bits)", D::Cpu);
+        match auto_pick(std::slice::from_ref(&lavapipe)) {
+            Pick::SoftwareOnly(why) => {
+                assert!(why.contains("llvmpipe"), "{why}");
+                assert!(why.contains("--backend gpu"), "{why}");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(auto_pick(&[]), Pick::None(_)));
+        let igpu = info("Intel(R) UHD", D::IntegratedGpu);
+        let dgpu = info("NVIDIA H200", D::DiscreteGpu);
+        assert_eq!(
+            auto_pick(&[lavapipe.clone(), igpu.clone()]),
+            Pick::Hardware(1)
+        );
+        assert_eq!(auto_pick(&[igpu, lavapipe, dgpu]), Pick::Hardware(2));
     }
 
     #[test]
@@ -105,7 +195,7 @@ mod tests {
         let (e, notes) = choose(Backend::Auto, grid(), no_gpu).unwrap();
         assert_eq!(e.backend(), "cpu");
         assert_eq!(notes.len(), 1);
-        assert!(notes[0].contains("falling back to the CPU"), "{}", notes[0]);
+        assert!(notes[0].contains("using the CPU engine"), "{}", notes[0]);
         assert!(notes[0].contains("none in this test"), "{}", notes[0]);
     }
 

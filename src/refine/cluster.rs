@@ -395,7 +395,95 @@ fn greedy_order(members: &[usize], edges: &[Edge]) -> Vec<usize> {
 /// Clusters of step 7: every segment in exactly one cluster, clusters ordered by their
 /// smallest member, members in greedy-matching order. Pairs only join segments of
 /// different input lines.
+///
+/// Exact copies of one segment that no other segment is similar to, in two or more input
+/// lines, form a cluster of their own, whose members step 8 all merges into the first:
+/// such a group is set aside before the edges are built (its `m^2 / 2` edges would cost
+/// quadratic time and memory) and comes back as one cluster, its first member in front as
+/// the greedy order puts it, the others in index order (which step 8 cannot tell apart).
 pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
+    let copies = isolated_copies(lines, s);
+    if copies.is_empty() {
+        return cluster_all(lines, s);
+    }
+    let mut rest = vec![false; lines.len()];
+    for c in &copies {
+        for &k in &c[1..] {
+            rest[k] = true;
+        }
+    }
+    let keep: Vec<usize> = (0..lines.len()).filter(|&k| !rest[k]).collect();
+    let mut out: Vec<Vec<usize>> = cluster_all(&lines.select(&keep), s)
+        .into_iter()
+        .map(|c| c.into_iter().map(|k| keep[k]).collect())
+        .collect();
+    let mut cluster_of_first = vec![usize::MAX; lines.len()];
+    for (ci, c) in out.iter().enumerate() {
+        cluster_of_first[c[0]] = ci;
+    }
+    for c in copies {
+        // The first copy has no edge left, so it is a cluster alone.
+        let ci = cluster_of_first[c[0]];
+        debug_assert_eq!(out[ci], vec![c[0]]);
+        out[ci] = c;
+    }
+    out
+}
+
+/// Groups (ascending indices, two or more) of bit-identical segments that step 7 puts in
+/// a cluster of their own and step 8 merges into their first member: the segment has no
+/// edge to any other distinct segment (tested in both pair orders, groups ignored), its
+/// copies are similar to each other (`w >= w_min`) and lie in two or more input lines (so
+/// union-find joins them all: every threshold stays above their common `w < 1`), and, when
+/// merge results are ordered (`order_endpoints`), it is ordered already, so the merge of
+/// two copies gives back the first one bit for bit (`G' = G`, tie keeps `G`).
+fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
+    let (r_c, p, fixes) = (st.radius(), st.params(), st.fixes());
+    let bits = |s: &Segment| {
+        let (a, b) = (s.p1.to_array(), s.p2.to_array());
+        [a[0], a[1], a[2], b[0], b[1], b[2]].map(f64::to_bits)
+    };
+    let mut slot = std::collections::HashMap::new();
+    let mut same: Vec<Vec<usize>> = Vec::new();
+    for (k, s) in lines.segments.iter().enumerate() {
+        let id = *slot.entry(bits(s)).or_insert_with(|| {
+            same.push(Vec::new());
+            same.len() - 1
+        });
+        same[id].push(k);
+    }
+    if same.len() == lines.len() {
+        return Vec::new();
+    }
+    let reps = LineSet::new(same.iter().map(|c| lines.segments[c[0]]).collect());
+    let mut linked = vec![false; reps.len()];
+    for e in edges(&reps, st) {
+        linked[e.i] = true;
+        linked[e.j] = true;
+    }
+    let n = reps.len();
+    let reversed = LineSet::new(reps.segments.iter().rev().copied().collect());
+    for e in edges(&reversed, st) {
+        linked[n - 1 - e.i] = true;
+        linked[n - 1 - e.j] = true;
+    }
+    same.into_iter()
+        .zip(linked)
+        .filter(|(c, linked)| {
+            let s = &lines.segments[c[0]];
+            let w = similarity(s, s, r_c, fixes.cluster_distance, p.cluster_min_cos);
+            c.len() >= 2
+                && !linked
+                && w >= p.cluster_min_weight
+                && c.iter().any(|&k| lines.group(k) != lines.group(c[0]))
+                && (!fixes.order_endpoints || s.p1.length() <= s.p2.length())
+        })
+        .map(|(c, _)| c)
+        .collect()
+}
+
+/// [`cluster`] without setting copies aside: the definition.
+pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
     let n = lines.len();
     let p = s.params();
     let edges = edges(lines, s);
@@ -600,6 +688,34 @@ mod tests {
         let p = Params::reference();
         let c = cluster(&lines, &p.with_radius(0.03));
         assert_eq!(c, vec![vec![2, 3, 0, 1], vec![4]]);
+    }
+
+    #[test]
+    fn isolated_exact_copies_form_one_cluster_without_their_edges() {
+        let s = |x: f64, y: f64| seg([x, y, 0.0], [x + 1.0, y, 0.0]);
+        // 0, 2, 4 copies of one edge (in lines 0 and 1); 1 and 3 copies of another, both
+        // in line 2 (no edge between them); 5 a near copy of the second edge.
+        let (a, b) = (s(0.0, 0.0), s(3.0, 1.0));
+        let lines = LineSet {
+            segments: vec![a, b, a, b, a, s(3.0, 1.001)],
+            groups: Some(vec![0, 2, 1, 2, 0, 3]),
+        };
+        for p in [Params::default(), Params::reference()] {
+            let st = p.with_radius(0.03);
+            assert_eq!(isolated_copies(&lines, &st), vec![vec![0, 2, 4]]);
+            let c = cluster(&lines, &st);
+            let all = cluster_all(&lines, &st);
+            assert_eq!(c, vec![vec![0, 2, 4], vec![1, 5, 3]]);
+            // The definition: the same clusters, the first member the same.
+            assert_eq!(all.len(), c.len());
+            for (a, b) in all.iter().zip(&c) {
+                assert_eq!(a[0], b[0]);
+                let (mut a, mut b) = (a.clone(), b.clone());
+                a.sort();
+                b.sort();
+                assert_eq!(a, b);
+            }
+        }
     }
 
     /// Scenes with short and long segments, near-duplicates and equal lengths.

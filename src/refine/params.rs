@@ -219,6 +219,11 @@ pub struct Params {
     /// Fix: a merge keeps the union of both extents along the kept line. Default: profile.
     #[arg(long, value_name = "BOOL")]
     pub fix_merge_extent: Option<bool>,
+    /// Fix: a pair goes to the merge (not the join) when an endpoint of either projects
+    /// inside the other (reference: only the shorter's endpoints inside the longer, as
+    /// the authors test it). Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_merge_overlap: Option<bool>,
     /// Fix: join sorts endpoints by projection on the first direction (reference: by
     /// distance from its P1). Default: profile.
     #[arg(long, value_name = "BOOL")]
@@ -231,8 +236,9 @@ pub struct Params {
     /// Default: profile.
     #[arg(long, value_name = "BOOL")]
     pub fix_crop_density: Option<bool>,
-    /// Order each segment's endpoints so that |P1| <= |P2| at load, as the authors' code
-    /// does. Default: on for reference, off for default.
+    /// Order the endpoints of each segment so that |P1| <= |P2|, at load and for every
+    /// segment a merge or join makes, as the authors' segment constructor does. Default:
+    /// on for reference, off for default.
     #[arg(long, value_name = "BOOL")]
     pub order_endpoints: Option<bool>,
 
@@ -269,6 +275,7 @@ impl Default for Params {
             crop_min_interval: 1e-4,
             fix_cluster_distance: None,
             fix_merge_extent: None,
+            fix_merge_overlap: None,
             fix_join_order: None,
             fix_join_gap: None,
             fix_crop_density: None,
@@ -283,6 +290,7 @@ impl Default for Params {
 pub struct Fixes {
     pub cluster_distance: bool,
     pub merge_extent: bool,
+    pub merge_overlap: bool,
     pub join_order: bool,
     pub join_gap: bool,
     pub crop_density: bool,
@@ -407,6 +415,7 @@ impl Params {
         Fixes {
             cluster_distance: self.fix_cluster_distance.unwrap_or(on),
             merge_extent: self.fix_merge_extent.unwrap_or(on),
+            merge_overlap: self.fix_merge_overlap.unwrap_or(on),
             join_order: self.fix_join_order.unwrap_or(on),
             join_gap: self.fix_join_gap.unwrap_or(on),
             crop_density: self.fix_crop_density.unwrap_or(on),
@@ -428,6 +437,7 @@ mod tests {
         let d = Params::default().fixes();
         assert!(d.cluster_distance && d.merge_extent && d.join_order && d.join_gap);
         assert!(d.crop_density && !d.order_endpoints && d.r_l == RlMode::Paper);
+        assert!(d.merge_overlap && !Params::reference().fixes().merge_overlap);
         let r = Params::reference().fixes();
         assert!(!r.cluster_distance && !r.merge_extent && !r.join_order && !r.join_gap);
         assert!(!r.crop_density && r.order_endpoints && r.r_l == RlMode::Authors);

@@ -47,6 +47,14 @@ pub fn pick_adapter() -> Result<wgpu::Adapter, EngineError> {
         .map_err(|e| EngineError::NoAdapter(e.to_string()))
 }
 
+/// Every adapter wgpu offers (`WGPU_BACKEND` restricts the backends), for `--backend auto`.
+pub fn enumerate_adapters() -> Vec<wgpu::Adapter> {
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let backends = wgpu::Backends::from_env().unwrap_or(wgpu::Backends::all());
+    pollster::block_on(instance.enumerate_adapters(backends))
+}
+
 impl Context {
     /// Opens a device on `adapter` with the limits the engine needs raised to what the
     /// adapter offers: large storage bindings, buffers and textures, up to 8 storage buffers
@@ -59,12 +67,21 @@ impl Context {
         limits.max_storage_buffers_per_shader_stage =
             offered.max_storage_buffers_per_shader_stage.min(8);
         limits.max_compute_workgroups_per_dimension = offered.max_compute_workgroups_per_dimension;
-        limits.max_texture_dimension_2d = offered.max_texture_dimension_2d;
-        if limits.max_storage_buffers_per_shader_stage < 6 {
+        if limits.max_storage_buffers_per_shader_stage < 7 {
             return Err(EngineError::Gpu(format!(
-                "adapter {} offers {} storage buffers per shader stage, the kernels need 6",
+                "adapter {} offers {} storage buffers per shader stage, the kernels need 7",
                 adapter.get_info().name,
                 limits.max_storage_buffers_per_shader_stage
+            )));
+        }
+        let downlevel = adapter.get_downlevel_capabilities();
+        if !downlevel
+            .flags
+            .contains(wgpu::DownlevelFlags::INDIRECT_EXECUTION)
+        {
+            return Err(EngineError::Gpu(format!(
+                "adapter {} cannot dispatch indirectly, which the kernels need",
+                adapter.get_info().name
             )));
         }
         let desc = wgpu::DeviceDescriptor {
@@ -158,6 +175,7 @@ impl Context {
     /// Submits `encoder` with a copy of the first `size` bytes of `src` into `staging` (a
     /// MAP_READ buffer of at least `size` bytes), waits, and hands the bytes to `f` where
     /// they lie, without copying them out.
+    #[cfg(test)]
     pub fn read_back<R>(
         &self,
         mut encoder: wgpu::CommandEncoder,
@@ -193,14 +211,51 @@ impl Context {
         Ok(out)
     }
 
+    /// Submits `encoder` (which copies what the host needs into `staging`, a MAP_READ
+    /// buffer), waits for the device, and hands the first `size` bytes of `staging` to `f`
+    /// where they lie. Returns `f`'s result and the seconds spent waiting.
+    pub fn submit_and_map<R>(
+        &self,
+        encoder: wgpu::CommandEncoder,
+        staging: &wgpu::Buffer,
+        size: u64,
+        f: impl FnOnce(&[u8]) -> R,
+    ) -> Result<(R, f64), EngineError> {
+        let t = std::time::Instant::now();
+        self.queue.submit([encoder.finish()]);
+        if size == 0 {
+            return Ok((f(&[]), t.elapsed().as_secs_f64()));
+        }
+        let slice = staging.slice(..size);
+        let (tx, rx) = mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| EngineError::Gpu(format!("waiting for the device: {e}")))?;
+        rx.recv()
+            .map_err(|_| EngineError::Gpu("read-back never completed".into()))?
+            .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
+        let waited = t.elapsed().as_secs_f64();
+        let out = {
+            let view = slice
+                .get_mapped_range()
+                .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
+            f(&view)
+        };
+        staging.unmap();
+        Ok((out, waited))
+    }
+
     /// A fresh command encoder.
     pub fn encoder(&self) -> wgpu::CommandEncoder {
         self.device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor::default())
     }
 
-    /// Compute pipeline with its layout derived from the shader.
-    pub fn pipeline(&self, label: &str, wgsl: &str) -> wgpu::ComputePipeline {
+    /// Compute pipeline of entry point `entry`, with its layout derived from the shader.
+    pub fn pipeline(&self, label: &str, wgsl: &str, entry: &str) -> wgpu::ComputePipeline {
         let module = self
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -212,13 +267,14 @@ impl Context {
                 label: Some(label),
                 layout: None,
                 module: &module,
-                entry_point: Some("main"),
+                entry_point: Some(entry),
                 compilation_options: Default::default(),
                 cache: None,
             })
     }
 
     /// Bind group 0 of `pipeline` with `buffers` bound in order (binding 0, 1, ...).
+    /// A bind group holds the buffers alive, so batches may drop theirs afterwards.
     pub fn bind(
         &self,
         pipeline: &wgpu::ComputePipeline,
@@ -273,113 +329,6 @@ impl Reusable {
     }
 }
 
-/// Texels per row of every table texture (`ROW` in the shaders).
-pub const ROW: usize = 4096;
-
-/// A table of `[u32; 4]` rows kept in an `Rgba32Uint` texture of `ROW`-texel rows: the
-/// kernels read their inputs with `textureLoad`, which lavapipe turns into SIMD gathers,
-/// where a storage-buffer load costs one branchy scalar load per lane and component.
-pub struct Table {
-    label: &'static str,
-    texture: Option<(wgpu::Texture, wgpu::TextureView)>,
-}
-
-impl Table {
-    pub fn new(label: &'static str) -> Self {
-        Table {
-            label,
-            texture: None,
-        }
-    }
-
-    /// Rows a table of `n` texels needs.
-    pub fn rows(n: usize) -> u32 {
-        n.div_ceil(ROW).max(1) as u32
-    }
-
-    /// A texture for `rows` rows, reused when large enough.
-    fn reserve(&mut self, ctx: &Context, rows: u32) -> &(wgpu::Texture, wgpu::TextureView) {
-        if self.texture.as_ref().is_none_or(|(t, _)| t.height() < rows) {
-            let grown = self.texture.as_ref().map_or(0, |(t, _)| t.height() * 3 / 2);
-            let height = rows
-                .max(grown)
-                .min(ctx.limits.max_texture_dimension_2d)
-                .max(rows);
-            self.texture = Some(table_texture(ctx, self.label, height));
-        }
-        self.texture.as_ref().expect("just created")
-    }
-
-    /// Uploads `texels` (row-major from texel 0) and returns the view to bind.
-    pub fn write(&mut self, ctx: &Context, texels: &[[u32; 4]]) -> wgpu::TextureView {
-        let (texture, view) = self.reserve(ctx, Table::rows(texels.len()));
-        write_texels(ctx, texture, texels);
-        view.clone()
-    }
-}
-
-/// An `Rgba32Uint` texture of `height` rows of `ROW` texels.
-pub fn table_texture(
-    ctx: &Context,
-    label: &str,
-    height: u32,
-) -> (wgpu::Texture, wgpu::TextureView) {
-    let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
-        label: Some(label),
-        size: wgpu::Extent3d {
-            width: ROW as u32,
-            height,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: wgpu::TextureFormat::Rgba32Uint,
-        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-        view_formats: &[],
-    });
-    let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
-    (texture, view)
-}
-
-/// Writes `texels` from texel 0 of `texture`: the full rows in one copy, the last partial
-/// row in another (no padded copy of the data).
-pub fn write_texels(ctx: &Context, texture: &wgpu::Texture, texels: &[[u32; 4]]) {
-    let full = texels.len() / ROW;
-    let copy = |origin_y: u32, data: &[[u32; 4]], width: u32, height: u32| {
-        ctx.queue.write_texture(
-            wgpu::TexelCopyTextureInfo {
-                texture,
-                mip_level: 0,
-                origin: wgpu::Origin3d {
-                    x: 0,
-                    y: origin_y,
-                    z: 0,
-                },
-                aspect: wgpu::TextureAspect::All,
-            },
-            bytemuck::cast_slice(data),
-            wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some((ROW * 16) as u32),
-                rows_per_image: Some(height),
-            },
-            wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-        );
-    };
-    if full > 0 {
-        copy(0, &texels[..full * ROW], ROW as u32, full as u32);
-    }
-    let rest = &texels[full * ROW..];
-    if !rest.is_empty() {
-        copy(full as u32, rest, rest.len() as u32, 1);
-    }
-}
-
 /// Binds the first `size` bytes of `buf` (at least 4).
 pub fn head(buf: &wgpu::Buffer, size: u64) -> wgpu::BindingResource<'_> {
     wgpu::BindingResource::Buffer(wgpu::BufferBinding {
@@ -389,50 +338,18 @@ pub fn head(buf: &wgpu::Buffer, size: u64) -> wgpu::BindingResource<'_> {
     })
 }
 
-/// Item groups per workgroup (`GROUPS_PER_WORKGROUP` in the shaders; 64 invocations).
-const GROUPS_PER_WORKGROUP: u64 = 8;
-
-/// `struct Params` of the shaders: the uniform every kernel reads.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct Params {
-    /// Groups (workgroups) in the dispatch.
-    pub n_groups: u32,
-    /// Sorted index of the first point of the bound part.
-    pub part_base: u32,
-    pub mode: u32,
-    /// First group of the dispatch in the slice's group list.
-    pub group_base: u32,
-}
-
-/// Records one dispatch of `pipeline` over `n_groups` item groups, `GROUPS_PER_WORKGROUP`
-/// per workgroup.
-pub fn encode(
-    ctx: &Context,
-    pipeline: &wgpu::ComputePipeline,
-    group: &wgpu::BindGroup,
-    n_groups: usize,
-    max_x: u32,
-) -> wgpu::CommandEncoder {
-    let mut encoder = ctx
-        .device
-        .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
-    {
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, group, &[]);
-        let (x, y) = tiles(n_groups as u64, GROUPS_PER_WORKGROUP, max_x);
-        pass.dispatch_workgroups(x, y, 1);
-    }
-    encoder
-}
-
 /// `bytes` as a slice of `T`, in place when aligned (mapped memory always is).
 pub fn pods<T: bytemuck::Pod>(bytes: &[u8]) -> std::borrow::Cow<'_, [T]> {
     match bytemuck::try_cast_slice(bytes) {
         Ok(s) => std::borrow::Cow::Borrowed(s),
         Err(_) => std::borrow::Cow::Owned(bytemuck::pod_collect_to_vec(bytes)),
     }
+}
+
+/// `LINEGS_SKIP_GPU_TESTS=1`: GPU tests on a machine without an adapter skip (with a
+/// notice) instead of failing.
+pub fn skip_gpu_tests() -> bool {
+    std::env::var("LINEGS_SKIP_GPU_TESTS").is_ok_and(|v| v == "1")
 }
 
 /// Test builds fill new buffers with garbage (also on request: `LINEGS_GPU_GARBAGE=1`).
@@ -452,15 +369,16 @@ pub fn tiles(n: u64, workgroup: u64, max_x: u32) -> (u32, u32) {
 mod tests {
     use super::*;
 
-    /// A device, or `None` (with a notice) where there is no adapter and `CI` is not `true`.
+    /// A device; without an adapter a failure, unless `LINEGS_SKIP_GPU_TESTS=1` (then
+    /// `None`, with a notice).
     fn context() -> Option<Context> {
         match pick_adapter() {
             Ok(a) => Some(Context::new(&a).expect("device")),
-            Err(e) if std::env::var("CI").is_ok_and(|v| v == "true") => panic!("{e}"),
-            Err(e) => {
-                eprintln!("SKIPPED: {e}");
+            Err(e) if skip_gpu_tests() => {
+                eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): {e}");
                 None
             }
+            Err(e) => panic!("{e} (set LINEGS_SKIP_GPU_TESTS=1 to skip the GPU tests)"),
         }
     }
 

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# CPU engine versus GPU engine on a machine with a real GPU (issue 13): prints the adapter
+# and a per-stage table at 10^6 Gaussians x 10^4 segments and 10^7 x 10^5, in one run per
+# size so that the ratio is fair. Needs a Vulkan, Metal or DX12 driver for the GPU; a
+# software adapter (lavapipe, WARP, SwiftShader) is measured too, with a warning.
+# Usage: scripts/bench-gpu.sh [extra `linegs-gpu bench` options, e.g. --profile reference]
+# Pick an adapter with WGPU_ADAPTER_NAME=<part of its name> (see `vulkaninfo --summary`).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+cargo build --release --quiet --bin linegs-gpu
+bin=target/release/linegs-gpu
+
+echo "== machine: $(nproc) CPU threads; $(uname -srm)"
+if command -v nvidia-smi >/dev/null; then
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader || true
+fi
+
+# Each size in one process (CPU then GPU); the time limits keep the script under 5 minutes.
+extra=("$@")
+for size in "1000000 10000 60" "10000000 100000 220"; do
+  read -r g s limit <<<"$size"
+  out=$(timeout "$limit" "$bin" bench --gaussians "$g" --segments "$s" --backend cpu,gpu \
+    "${extra[@]}") || {
+    echo "bench at $g x $s failed or ran past $limit s" >&2
+    exit 1
+  }
+  echo "$out"
+  if echo "$out" | grep -E "^  gpu: " | grep -qiE "llvmpipe|lavapipe|swiftshader|warp|software"; then
+    echo "WARNING: the GPU engine ran on a software adapter; these are not real-GPU numbers" >&2
+  fi
+done

@@ -1,0 +1,110 @@
+// Evaluation, one invocation per work item (the items that fit the buffer, read from
+// ctl[0]); dispatched once per part of the point store, each dispatch taking the items
+// whose chunk lies in its part. Every point is classified (common.wgsl): sure members
+// count on the device, points within the f32 error bound of a boundary are appended to
+// the flag list for the host to decide in f64 (so counts and sets are exact).
+//   MODE_STATS(_SIDES): the item's count, side count and sums into its own slot.
+//   MODE_COVERAGE: the members' bits into the mask (integer atomicOr).
+//   MODE_HIST: each member into its query's histogram of d2 / r2 (integer atomicAdd).
+//   MODE_BELOW: with the query's plan, sums of the members certainly among the k nearest
+//     into the item's slot, and the members of the cut band flagged as candidates.
+// Loop bound: min(count, CHUNK) points per invocation (then at most 8 words), far below
+// the 65,535 iterations after which lavapipe silently stops an invocation.
+
+@group(0) @binding(1) var<storage, read> queries: array<GQuery>;
+@group(0) @binding(2) var<storage, read> items: array<Item>;
+@group(0) @binding(3) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read_write> partials: array<Partial>;
+@group(0) @binding(5) var<storage, read_write> ctl: array<atomic<u32>>;
+@group(0) @binding(6) var<storage, read_write> aux: array<atomic<u32>>;
+@group(0) @binding(7) var<storage, read> plans: array<Plan>;
+
+fn flag(kind_query: u32, point: u32) {
+    let slot = atomicAdd(&ctl[1], 1u);
+    if slot < params.flag_cap {
+        atomicStore(&ctl[CTL_HEAD + 2u * slot], kind_query);
+        atomicStore(&ctl[CTL_HEAD + 2u * slot + 1u], point);
+    }
+}
+
+@compute @workgroup_size(64)
+fn main(
+    @builtin(workgroup_id) wg: vec3<u32>,
+    @builtin(num_workgroups) n_wg: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let id = linear_id(wg, n_wg, lane);
+    if id >= min(atomicLoad(&ctl[0]), params.item_cap) {
+        return;
+    }
+    let it = items[id];
+    if it.start / params.part_len != params.part {
+        return;
+    }
+    let qi = it.query;
+    let q = queries[qi];
+    let g = geom(q, it.cell);
+    let n = min(it.count, CHUNK);
+    let first = it.start - params.part_base;
+    let mode = params.mode;
+    let sides = mode == MODE_STATS_SIDES;
+    var count = 0u;
+    var side = 0u;
+    var d2 = 0.0;
+    var off = vec3<f32>(0.0);
+    var bits = array<u32, 8>(0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u);
+    var plan: Plan;
+    if mode == MODE_BELOW {
+        plan = plans[qi];
+    }
+    let inv_r2 = select(0.0, 1.0 / q.r2, q.r2 > 0.0);
+    for (var i = 0u; i < n; i++) {
+        let t = classify(g, points[first + i].xyz, sides);
+        if t.kind == OUT {
+            continue;
+        }
+        if t.kind == NEAR {
+            if mode != MODE_BELOW {
+                flag(qi | FLAG_BOUNDARY, it.start + i);
+            }
+            continue;
+        }
+        if mode == MODE_COVERAGE {
+            bits[i >> 5u] |= 1u << (i & 31u);
+        } else if mode == MODE_HIST {
+            atomicAdd(&aux[qi * NBINS + bin_of(t.d2 * inv_r2)], 1u);
+        } else {
+            var take = true;
+            if mode == MODE_BELOW && plan.cut != ALL_BELOW {
+                take = t.d2 < plan.lo;
+                if !take && t.d2 <= plan.hi {
+                    flag(qi | FLAG_CANDIDATE, it.start + i);
+                }
+            }
+            if take {
+                count += 1u;
+                side += select(0u, 1u, t.u > g.mid);
+                d2 += t.d2;
+                off += t.v;
+            }
+        }
+    }
+    if mode == MODE_COVERAGE {
+        // Chunks start anywhere, so word j of `bits` straddles two mask words.
+        let shift = it.start & 31u;
+        for (var j = 0u; j < 8u; j++) {
+            if bits[j] != 0u {
+                let word = (it.start >> 5u) + j;
+                atomicOr(&aux[word], bits[j] << shift);
+                if shift != 0u {
+                    let high = bits[j] >> (32u - shift);
+                    if high != 0u {
+                        atomicOr(&aux[word + 1u], high);
+                    }
+                }
+            }
+        }
+    } else if mode != MODE_HIST {
+        partials[id] = Partial(count, side, d2, off.x, off.y, off.z, 0u, 0u);
+    }
+}

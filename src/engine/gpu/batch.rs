@@ -1,0 +1,722 @@
+//! One batch on the device: the kernels' pipelines, the buffers uploaded once and those
+//! reused between batches, and `submit`, which records the whole chain (walk, scan, emit,
+//! evaluate, reduce) in one command buffer, submits it and reads back one staging buffer.
+
+use super::device::{self, Context, Reusable};
+use super::layout::*;
+use super::GpuOptions;
+use crate::engine::{CylStats, EngineError, Query};
+use crate::geom::p64;
+use crate::index::Grid;
+use glam::DVec3;
+use rayon::prelude::*;
+
+/// What a batch asks of the evaluation kernel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    Stats { sides: bool },
+    Nearest,
+    Coverage,
+}
+
+/// The sizes the engine works within, from the options and the device.
+pub struct Limits {
+    /// Points per part of the point store.
+    pub part_len: u32,
+    /// The device's own binding limit (cell table, coverage mask).
+    pub device_binding: u64,
+    pub item_max: u32,
+    pub flag_max: u32,
+    pub max_queries: usize,
+    pub max_x: u32,
+}
+
+impl Limits {
+    pub fn new(ctx: &Context, opts: &GpuOptions, _n_points: usize) -> Limits {
+        let device_binding = ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size);
+        let binding = opts
+            .max_binding_bytes
+            .unwrap_or(u64::MAX)
+            .min(device_binding);
+        let part_len = (binding / 16).clamp(1, u32::MAX as u64 / 2) as u32;
+        let item_max = (opts.max_items as u64)
+            .min(device_binding / std::mem::size_of::<Partial>() as u64)
+            .clamp(1, 1 << 31) as u32;
+        let flag_max = ((device_binding / 4 - CTL_HEAD as u64) / 2).min(1 << 30) as u32;
+        let per_query = (NBINS as u64 * 4).max(std::mem::size_of::<GQuery>() as u64);
+        let max_queries = opts
+            .max_queries
+            .min((device_binding / per_query) as usize)
+            .clamp(1, 1 << 22);
+        Limits {
+            part_len,
+            device_binding,
+            item_max,
+            flag_max,
+            max_queries,
+            max_x: opts.max_workgroups_x.max(1),
+        }
+    }
+}
+
+pub struct Kernels {
+    walk: wgpu::ComputePipeline,
+    scan: wgpu::ComputePipeline,
+    scan_add: wgpu::ComputePipeline,
+    args: wgpu::ComputePipeline,
+    eval: wgpu::ComputePipeline,
+    cut: wgpu::ComputePipeline,
+    reduce: wgpu::ComputePipeline,
+}
+
+impl Kernels {
+    pub fn new(ctx: &Context) -> Kernels {
+        let k = |name: &str, src: &str, entry: &str| {
+            ctx.pipeline(name, &super::kernel_source(src), entry)
+        };
+        let scan = include_str!("../../../shaders/scan.wgsl");
+        Kernels {
+            walk: k("walk", include_str!("../../../shaders/walk.wgsl"), "main"),
+            scan: k("scan", scan, "main"),
+            scan_add: k("scan add", scan, "add"),
+            args: k("args", include_str!("../../../shaders/args.wgsl"), "main"),
+            eval: k("eval", include_str!("../../../shaders/eval.wgsl"), "main"),
+            cut: k("cut", include_str!("../../../shaders/cut.wgsl"), "main"),
+            reduce: k(
+                "reduce",
+                include_str!("../../../shaders/reduce.wgsl"),
+                "main",
+            ),
+        }
+    }
+}
+
+/// What lives on the device for the engine's whole life.
+pub struct Statics {
+    cell_start: wgpu::Buffer,
+    cell_bytes: u64,
+    pub parts: Vec<(wgpu::Buffer, u64)>,
+    dims: [u32; 3],
+}
+
+impl Statics {
+    /// Uploads the cell table and the sorted centers, each as its offset from its own
+    /// cell's corner in cell units (computed in f64, so the f32 keeps ~1e-7 of a cell).
+    pub fn upload(ctx: &Context, grid: &Grid, lim: &Limits) -> Result<Statics, EngineError> {
+        let cell_bytes = (grid.cell_start.len() * 4) as u64;
+        if cell_bytes > lim.device_binding {
+            return Err(EngineError::Gpu(format!(
+                "the grid's cell table ({cell_bytes} bytes) is above the device's binding limit"
+            )));
+        }
+        let (dx, dy) = (grid.dims[0], grid.dims[1]);
+        let inv = 1.0 / grid.cell;
+        let rel: Vec<[f32; 4]> = grid
+            .points
+            .par_iter()
+            .map(|p| {
+                let p = p64(*p);
+                // The same function the grid sorted with, so this is the point's own cell.
+                let c = grid.cell_of(p);
+                let o = grid.cell_origin(c % dx, (c / dx) % dy, c / (dx * dy));
+                let r = (p - o) * inv;
+                [r.x as f32, r.y as f32, r.z as f32, 0.0]
+            })
+            .collect();
+        ctx.scoped("uploading the Gaussians", || {
+            let storage = wgpu::BufferUsages::STORAGE;
+            let cell_start = ctx.buffer("cell_start", cell_bytes, storage);
+            ctx.queue
+                .write_buffer(&cell_start, 0, bytemuck::cast_slice(&grid.cell_start));
+            let mut parts = Vec::new();
+            for chunk in rel.chunks(lim.part_len as usize) {
+                let bytes = (chunk.len() * 16) as u64;
+                let buf = ctx.buffer("points", bytes, storage);
+                ctx.queue.write_buffer(&buf, 0, bytemuck::cast_slice(chunk));
+                parts.push((buf, bytes));
+            }
+            if parts.is_empty() {
+                parts.push((ctx.buffer("points", 16, storage), 16));
+            }
+            ctx.queue.submit([]);
+            Statics {
+                cell_start,
+                cell_bytes,
+                parts,
+                dims: grid.dims,
+            }
+        })
+    }
+}
+
+/// Per-batch buffers, reused and grown across batches, with the capacities learnt.
+pub struct Buffers {
+    params: Reusable,
+    queries: Reusable,
+    scan: Reusable,
+    items: Reusable,
+    partials: Reusable,
+    results: Reusable,
+    ctl: Reusable,
+    indirect: Reusable,
+    /// The k-nearest histograms, or the coverage mask.
+    aux: Reusable,
+    plans: Reusable,
+    staging: Reusable,
+    /// Bytes of the coverage mask in `aux` (set by `clear_mask`).
+    aux_len: u64,
+    item_cap: u32,
+    flag_cap: u32,
+}
+
+impl Buffers {
+    pub fn new(_ctx: &Context, lim: &Limits) -> Buffers {
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        Buffers {
+            params: Reusable::new("params", wgpu::BufferUsages::UNIFORM),
+            queries: Reusable::new("queries", storage),
+            scan: Reusable::new("scan", storage),
+            items: Reusable::new("items", storage),
+            partials: Reusable::new("partials", storage),
+            results: Reusable::new("results", storage),
+            ctl: Reusable::new("ctl", storage),
+            indirect: Reusable::new(
+                "indirect",
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT,
+            ),
+            aux: Reusable::new("aux", storage),
+            plans: Reusable::new("plans", storage),
+            staging: Reusable::new("staging", wgpu::BufferUsages::MAP_READ),
+            aux_len: 4,
+            item_cap: lim.item_max.min(1 << 16),
+            flag_cap: lim.flag_max.min(1 << 14),
+        }
+    }
+}
+
+/// One sub-batch's answers: per query its result (and k-nearest plan), and the flagged
+/// points as (query slot | kind, sorted point index), sorted.
+pub struct Output {
+    pub results: Vec<QResult>,
+    pub plans: Vec<Plan>,
+    pub flags: Vec<(u32, u32)>,
+}
+
+impl Output {
+    /// `n` queries for the host to answer.
+    pub fn host_only(n: usize) -> Output {
+        Output {
+            results: vec![
+                QResult {
+                    status: STATUS_HOST,
+                    ..Default::default()
+                };
+                n
+            ],
+            plans: Vec::new(),
+            flags: Vec::new(),
+        }
+    }
+}
+
+pub enum Attempt {
+    /// The output and the seconds spent waiting for the device.
+    Done(Output, f64),
+    /// The sub-batch needs more items or flags than one submit may hold.
+    TooLarge(f64),
+}
+
+/// The f32 error bounds of the kernels for a query of axial length `len` and radius `r`
+/// (cell units). The axis point a kernel starts from is accurate to a few roundings of
+/// its own size (a few cells); the caps carry the rounding of `len` and of `len - t`, and
+/// the direction's rounding over the length: all within 2 roundings of relative 2^-24 of
+/// `len + 2 r + 8`, and the bound allows 8. A squared distance of at most `(r + eps)^2`
+/// then errs by at most `4 eps (r + eps)` plus its own rounding.
+pub fn error_bounds(len: f64, r: f64) -> (f64, f64) {
+    let eps = (len + 2.0 * r + 8.0) * (2f64).powi(-21);
+    let e2 = 4.0 * eps * (r + eps) + r * r * (2f64).powi(-20);
+    (eps, e2)
+}
+
+/// `x` with its 12 leading significant bits (toward zero), as the kernels' `bits12`.
+fn bits12(x: f32) -> f32 {
+    f32::from_bits(x.to_bits() & 0xFFFF_F000)
+}
+
+/// The `e2` bound the kernels use for `q` (cell units, as rounded to f32).
+pub fn e2_of(grid: &Grid, q: &Query) -> f64 {
+    let inv = 1.0 / grid.cell;
+    error_bounds(q.seg.length() * inv, q.r * inv).1 as f32 as f64
+}
+
+/// Cells from the grid's origin beyond which a query goes to the host (f32 integers stay
+/// exact far beyond).
+const FAR: f64 = (1u64 << 22) as f64;
+
+fn gquery(grid: &Grid, q: &Query, k: u64) -> GQuery {
+    let s = &q.seg;
+    let valid = !grid.is_empty()
+        && s.is_valid()
+        && s.p1.is_finite()
+        && s.p2.is_finite()
+        && q.r.is_finite()
+        && q.r >= 0.0
+        && q.plane.is_finite();
+    if !valid {
+        return GQuery {
+            r2: -1.0,
+            ..Default::default()
+        };
+    }
+    let inv = 1.0 / grid.cell;
+    let a = (s.p1 - grid.origin) * inv;
+    if a.abs().max_element() > FAR || s.length() * inv > FAR {
+        // Integer cells beyond f32's exact range: the host answers the query.
+        return GQuery {
+            r2: -2.0,
+            ..Default::default()
+        };
+    }
+    let i = a.floor();
+    let f = (a - i).as_vec3();
+    let d = s.dir();
+    let df = d.as_vec3();
+    let dh =
+        glam::Vec3::new(bits12(df.x.abs()), bits12(df.y.abs()), bits12(df.z.abs())) * df.signum();
+    let dl = (d - dh.as_dvec3()).as_vec3();
+    let len = s.length() * inv;
+    let r = q.r * inv;
+    let (eps, e2) = error_bounds(len, r);
+    GQuery {
+        ix: i.x as i32,
+        iy: i.y as i32,
+        iz: i.z as i32,
+        len: len as f32,
+        fx: f.x,
+        fy: f.y,
+        fz: f.z,
+        r2: (r * r) as f32,
+        dx: df.x,
+        dy: df.y,
+        dz: df.z,
+        mid: ((q.plane - s.p1).dot(d) * inv) as f32,
+        dhx: dh.x,
+        dhy: dh.y,
+        dhz: dh.z,
+        r: r as f32,
+        dlx: dl.x,
+        dly: dl.y,
+        dlz: dl.z,
+        eps: eps as f32,
+        e2: e2 as f32,
+        k: k.min(u32::MAX as u64) as u32,
+        pad0: 0,
+        pad1: 0,
+    }
+}
+
+/// A query's device result in scene units.
+pub fn stats_of(r: &QResult, cell: f64) -> CylStats {
+    let pair = |a: f32, b: f32| a as f64 + b as f64;
+    CylStats {
+        count: r.count as u64,
+        side_pos: r.side as u64,
+        sum_d2: pair(r.d2, r.d2_c) * cell * cell,
+        sum_offset: DVec3::new(pair(r.ox, r.ox_c), pair(r.oy, r.oy_c), pair(r.oz, r.oz_c)) * cell,
+    }
+}
+
+/// Levels of the prefix scan over `n` counts: (base, elements, block sums) each, and the
+/// index of the grand total and the scan buffer's length.
+fn scan_levels(n: u32) -> (Vec<(u32, u32, u32)>, u32, u32) {
+    let mut levels = Vec::new();
+    let (mut base, mut len) = (0u32, n);
+    loop {
+        let blocks = len.div_ceil(SCAN_WG).max(1);
+        let sums = base + len;
+        levels.push((base, len, sums));
+        if blocks == 1 {
+            return (levels, sums, sums + 1);
+        }
+        base = sums;
+        len = blocks;
+    }
+}
+
+fn grow(need: u32, max: u32) -> u32 {
+    (need as u64 + need as u64 / 4 + 64).min(max as u64) as u32
+}
+
+/// Records, submits and reads back one sub-batch of `kind`; reruns it with larger item
+/// or flag buffers when the first try did not fit.
+#[allow(clippy::too_many_arguments)]
+pub fn submit(
+    ctx: &Context,
+    k: &Kernels,
+    st: &Statics,
+    lim: &Limits,
+    grid: &Grid,
+    b: &mut Buffers,
+    kind: Kind,
+    qs: &[Query],
+    ks: &[u64],
+) -> Result<Attempt, EngineError> {
+    let n = qs.len();
+    if n == 0 {
+        return Ok(Attempt::Done(
+            Output {
+                results: Vec::new(),
+                plans: Vec::new(),
+                flags: Vec::new(),
+            },
+            0.0,
+        ));
+    }
+    let gq: Vec<GQuery> = qs
+        .par_iter()
+        .enumerate()
+        .with_min_len(256)
+        .map(|(i, q)| gquery(grid, q, ks.get(i).copied().unwrap_or(0)))
+        .collect();
+    let mut waited = 0.0;
+    loop {
+        let (out, w, total, n_flags) = attempt(ctx, k, st, lim, b, kind, &gq)?;
+        waited += w;
+        let mut again = false;
+        if total > b.item_cap {
+            if total > lim.item_max {
+                return Ok(Attempt::TooLarge(waited));
+            }
+            b.item_cap = grow(total, lim.item_max);
+            again = true;
+        }
+        if n_flags > b.flag_cap {
+            if n_flags > lim.flag_max {
+                return Ok(Attempt::TooLarge(waited));
+            }
+            b.flag_cap = grow(n_flags, lim.flag_max);
+            again = true;
+        }
+        if !again {
+            return Ok(Attempt::Done(out, waited));
+        }
+    }
+}
+
+fn slot(buf: &wgpu::Buffer, i: usize) -> wgpu::BindingResource<'_> {
+    wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+        buffer: buf,
+        offset: i as u64 * PARAMS_SLOT,
+        size: std::num::NonZeroU64::new(std::mem::size_of::<Params>() as u64),
+    })
+}
+
+/// One try: returns the output, the wait, the items needed and the flags raised.
+#[allow(clippy::too_many_arguments)]
+fn attempt(
+    ctx: &Context,
+    k: &Kernels,
+    st: &Statics,
+    lim: &Limits,
+    b: &mut Buffers,
+    kind: Kind,
+    gq: &[GQuery],
+) -> Result<(Output, f64, u32, u32), EngineError> {
+    let n = gq.len() as u32;
+    let item_cap = b.item_cap;
+    let flag_cap = b.flag_cap;
+    let (levels, total_idx, scan_len) = scan_levels(n);
+    let nearest = kind == Kind::Nearest;
+
+    // Sizes of everything bound.
+    let q_bytes = n as u64 * std::mem::size_of::<GQuery>() as u64;
+    let scan_bytes = scan_len as u64 * 4;
+    let item_bytes = item_cap as u64 * std::mem::size_of::<Item>() as u64;
+    let part_bytes = if kind == Kind::Coverage {
+        64
+    } else {
+        item_cap as u64 * std::mem::size_of::<Partial>() as u64
+    };
+    let res_bytes = n as u64 * std::mem::size_of::<QResult>() as u64;
+    let ctl_bytes = (CTL_HEAD as u64 + 2 * flag_cap as u64) * 4;
+    let hist_bytes = n as u64 * NBINS as u64 * 4;
+    let plan_bytes = n as u64 * std::mem::size_of::<Plan>() as u64;
+
+    // The uniform slots, one per dispatch, in recording order.
+    let base = Params {
+        n,
+        dims_x: st.dims[0],
+        dims_y: st.dims[1],
+        dims_z: st.dims[2],
+        part_len: lim.part_len,
+        item_cap,
+        flag_cap,
+        max_x: lim.max_x,
+        total: total_idx,
+        ..Default::default()
+    };
+    let mut slots: Vec<Params> = Vec::new();
+    let mut push = |p: Params| {
+        slots.push(p);
+        slots.len() - 1
+    };
+    let walk_count = push(Params {
+        mode: MODE_COUNT,
+        ..base
+    });
+    let walk_emit = push(Params {
+        mode: MODE_EMIT,
+        ..base
+    });
+    let scan_slots: Vec<usize> = levels
+        .iter()
+        .map(|&(b0, len, sums)| {
+            push(Params {
+                n: len,
+                base: b0,
+                sums,
+                ..base
+            })
+        })
+        .collect();
+    let args_slot = push(base);
+    let eval_mode = match kind {
+        Kind::Stats { sides: false } => MODE_STATS,
+        Kind::Stats { sides: true } => MODE_STATS_SIDES,
+        Kind::Coverage => MODE_COVERAGE,
+        Kind::Nearest => MODE_HIST,
+    };
+    let part_slots = |mode: u32, push: &mut dyn FnMut(Params) -> usize| -> Vec<usize> {
+        (0..st.parts.len())
+            .map(|p| {
+                push(Params {
+                    mode,
+                    part: p as u32,
+                    part_base: p as u32 * lim.part_len,
+                    ..base
+                })
+            })
+            .collect()
+    };
+    let eval_slots = part_slots(eval_mode, &mut push);
+    let below_slots = if nearest {
+        part_slots(MODE_BELOW, &mut push)
+    } else {
+        Vec::new()
+    };
+    let cut_slot = push(base);
+    let reduce_slot = push(base);
+    let mut uniform = vec![0u8; slots.len() * PARAMS_SLOT as usize];
+    for (i, p) in slots.iter().enumerate() {
+        let at = i * PARAMS_SLOT as usize;
+        uniform[at..at + std::mem::size_of::<Params>()].copy_from_slice(bytemuck::bytes_of(p));
+    }
+
+    let params = b.params.get(ctx, uniform.len() as u64).clone();
+    ctx.queue.write_buffer(&params, 0, &uniform);
+    let queries = b.queries.get(ctx, q_bytes).clone();
+    ctx.queue
+        .write_buffer(&queries, 0, bytemuck::cast_slice(gq));
+    let scan = b.scan.get(ctx, scan_bytes).clone();
+    let items = b.items.get(ctx, item_bytes).clone();
+    let partials = b.partials.get(ctx, part_bytes).clone();
+    let results = b.results.get(ctx, res_bytes).clone();
+    let ctl = b.ctl.get(ctx, ctl_bytes).clone();
+    let indirect = b.indirect.get(ctx, 12).clone();
+    let aux_bytes = match kind {
+        Kind::Nearest => hist_bytes,
+        Kind::Coverage => b.aux_len,
+        Kind::Stats { .. } => 4,
+    };
+    let aux = b.aux.get(ctx, aux_bytes).clone();
+    let plans = b.plans.get(ctx, plan_bytes.max(16)).clone();
+    let staging_bytes = res_bytes + ctl_bytes + if nearest { plan_bytes } else { 0 };
+    let staging = b.staging.get(ctx, staging_bytes).clone();
+
+    let h = device::head;
+    let cells = h(&st.cell_start, st.cell_bytes);
+    let bind = |p: &wgpu::ComputePipeline, res: Vec<wgpu::BindingResource<'_>>| ctx.bind(p, &res);
+    let walk_group = |s: usize| {
+        bind(
+            &k.walk,
+            vec![
+                slot(&params, s),
+                h(&queries, q_bytes),
+                cells.clone(),
+                h(&scan, scan_bytes),
+                h(&items, item_bytes),
+                h(&results, res_bytes),
+            ],
+        )
+    };
+    let scan_group =
+        |p: &wgpu::ComputePipeline, s: usize| bind(p, vec![slot(&params, s), h(&scan, scan_bytes)]);
+    let eval_group = |s: usize, part: usize| {
+        let (pb, pbytes) = &st.parts[part];
+        bind(
+            &k.eval,
+            vec![
+                slot(&params, s),
+                h(&queries, q_bytes),
+                h(&items, item_bytes),
+                h(pb, *pbytes),
+                h(&partials, part_bytes),
+                h(&ctl, ctl_bytes),
+                h(&aux, aux_bytes),
+                h(&plans, plan_bytes.max(16)),
+            ],
+        )
+    };
+
+    let mut enc = ctx.encoder();
+    enc.clear_buffer(&ctl, 0, Some(CTL_HEAD as u64 * 4));
+    if nearest {
+        enc.clear_buffer(&aux, 0, Some(hist_bytes.next_multiple_of(4)));
+    }
+    {
+        let groups_q = device::tiles(n as u64, WG as u64, lim.max_x);
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+        let g = walk_group(walk_count);
+        pass.set_pipeline(&k.walk);
+        pass.set_bind_group(0, &g, &[]);
+        pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
+        // Scan up the levels, then add the block sums back down.
+        for (i, &(_, len, _)) in levels.iter().enumerate() {
+            let g = scan_group(&k.scan, scan_slots[i]);
+            pass.set_pipeline(&k.scan);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups(len.div_ceil(SCAN_WG).max(1), 1, 1);
+        }
+        for i in (0..levels.len().saturating_sub(1)).rev() {
+            let g = scan_group(&k.scan_add, scan_slots[i]);
+            pass.set_pipeline(&k.scan_add);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups(levels[i].1.div_ceil(SCAN_WG).max(1), 1, 1);
+        }
+        let g = bind(
+            &k.args,
+            vec![
+                slot(&params, args_slot),
+                h(&scan, scan_bytes),
+                h(&ctl, ctl_bytes),
+                h(&indirect, 12),
+            ],
+        );
+        pass.set_pipeline(&k.args);
+        pass.set_bind_group(0, &g, &[]);
+        pass.dispatch_workgroups(1, 1, 1);
+        let g = walk_group(walk_emit);
+        pass.set_pipeline(&k.walk);
+        pass.set_bind_group(0, &g, &[]);
+        pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
+        pass.set_pipeline(&k.eval);
+        for (p, &s) in eval_slots.iter().enumerate() {
+            let g = eval_group(s, p);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups_indirect(&indirect, 0);
+        }
+        if nearest {
+            let g = bind(
+                &k.cut,
+                vec![
+                    slot(&params, cut_slot),
+                    h(&queries, q_bytes),
+                    h(&aux, hist_bytes),
+                    h(&plans, plan_bytes),
+                ],
+            );
+            pass.set_pipeline(&k.cut);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
+            pass.set_pipeline(&k.eval);
+            for (p, &s) in below_slots.iter().enumerate() {
+                let g = eval_group(s, p);
+                pass.set_bind_group(0, &g, &[]);
+                pass.dispatch_workgroups_indirect(&indirect, 0);
+            }
+        }
+        if kind != Kind::Coverage {
+            let g = bind(
+                &k.reduce,
+                vec![
+                    slot(&params, reduce_slot),
+                    h(&scan, scan_bytes),
+                    h(&partials, part_bytes),
+                    h(&results, res_bytes),
+                ],
+            );
+            pass.set_pipeline(&k.reduce);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
+        }
+    }
+    enc.copy_buffer_to_buffer(&results, 0, &staging, 0, res_bytes);
+    enc.copy_buffer_to_buffer(&ctl, 0, &staging, res_bytes, ctl_bytes);
+    if nearest {
+        enc.copy_buffer_to_buffer(&plans, 0, &staging, res_bytes + ctl_bytes, plan_bytes);
+    }
+    let ((out, total, n_flags), waited) =
+        ctx.submit_and_map(enc, &staging, staging_bytes, |bytes| {
+            let (r, rest) = bytes.split_at(res_bytes as usize);
+            let (c, p) = rest.split_at(ctl_bytes as usize);
+            let results: Vec<QResult> = bytemuck::pod_collect_to_vec(r);
+            let ctlw: &[u32] = &device::pods::<u32>(c);
+            let total = ctlw[0];
+            let n_flags = ctlw[1];
+            let kept = n_flags.min(flag_cap) as usize;
+            let head = CTL_HEAD as usize;
+            let mut flags: Vec<(u32, u32)> = (0..kept)
+                .map(|i| (ctlw[head + 2 * i], ctlw[head + 2 * i + 1]))
+                .collect();
+            flags.sort_unstable_by_key(|&(q, p)| ((q & !FLAG_CANDIDATE), q >> 31, p));
+            let plans: Vec<Plan> = if nearest {
+                bytemuck::pod_collect_to_vec(&p[..plan_bytes as usize])
+            } else {
+                Vec::new()
+            };
+            (
+                Output {
+                    results,
+                    plans,
+                    flags,
+                },
+                total,
+                n_flags,
+            )
+        })?;
+    Ok((out, waited, total, n_flags))
+}
+
+/// Allocates and clears the coverage mask over `n` points (`b.aux`).
+pub fn clear_mask(
+    ctx: &Context,
+    b: &mut Buffers,
+    lim: &Limits,
+    n: usize,
+) -> Result<(), EngineError> {
+    let bytes = (n.div_ceil(32) * 4) as u64;
+    if bytes > lim.device_binding {
+        return Err(EngineError::Gpu(format!(
+            "coverage of {n} points needs a {bytes}-byte mask, above the device's binding limit"
+        )));
+    }
+    b.aux_len = bytes;
+    let aux = b.aux.get(ctx, bytes).clone();
+    let mut enc = ctx.encoder();
+    enc.clear_buffer(&aux, 0, Some(bytes.next_multiple_of(4)));
+    ctx.queue.submit([enc.finish()]);
+    Ok(())
+}
+
+/// Reads the coverage mask back: the u32 words, and the seconds spent waiting.
+pub fn read_mask(ctx: &Context, b: &mut Buffers, n: usize) -> Result<(Vec<u32>, f64), EngineError> {
+    let bytes = (n.div_ceil(32) * 4) as u64;
+    let aux = b.aux.get(ctx, bytes).clone();
+    let staging = b.staging.get(ctx, bytes).clone();
+    let mut enc = ctx.encoder();
+    enc.copy_buffer_to_buffer(&aux, 0, &staging, 0, bytes);
+    ctx.submit_and_map(enc, &staging, bytes, bytemuck::pod_collect_to_vec)
+}

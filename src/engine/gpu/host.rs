@@ -1,0 +1,199 @@
+//! The host's share of a batch: the flagged points decided in f64 with the CPU engine's
+//! own test ([`Cylinder::test`]), the k-nearest cut band ranked exactly, and the rare query
+//! answered wholly here.
+
+use super::layout::{Plan, QResult, ALL_BELOW, FLAG_CANDIDATE, STATUS_HOST};
+use crate::engine::{CylStats, NearestSum, Query};
+use crate::geom::{p64, Cylinder};
+use crate::index::Grid;
+use glam::DVec3;
+
+/// For each of `n` query slots, its run of `flags` (sorted by query).
+pub fn spans(flags: &[(u32, u32)], n: usize) -> Vec<std::ops::Range<usize>> {
+    let mut spans = vec![0..0; n];
+    let mut a = 0;
+    while a < flags.len() {
+        let q = (flags[a].0 & !FLAG_CANDIDATE) as usize;
+        let mut b = a;
+        while b < flags.len() && (flags[b].0 & !FLAG_CANDIDATE) as usize == q {
+            b += 1;
+        }
+        if q < n {
+            spans[q] = a..b;
+        }
+        a = b;
+    }
+    spans
+}
+
+fn valid(q: &Query) -> bool {
+    q.seg.is_valid() && q.r.is_finite() && q.r >= 0.0
+}
+
+/// Whether sorted point `i` is in `X(q)`, exactly as the CPU engine decides it.
+pub fn is_member(grid: &Grid, q: &Query, i: u32) -> bool {
+    valid(q)
+        && Cylinder::new(&q.seg, q.r)
+            .test(p64(grid.points[i as usize]))
+            .is_some()
+}
+
+/// Adds sorted point `i` to `s` when it is a member of `X(q)`.
+pub fn add_member(grid: &Grid, q: &Query, i: u32, s: &mut CylStats) {
+    if !valid(q) {
+        return;
+    }
+    let p = p64(grid.points[i as usize]);
+    if let Some((_, v)) = Cylinder::new(&q.seg, q.r).test(p) {
+        s.count += 1;
+        s.sum_d2 += v.length_squared();
+        s.sum_offset += v;
+        if (p - q.plane).dot(q.seg.dir()) > 0.0 {
+            s.side_pos += 1;
+        }
+    }
+}
+
+/// Calls `f(sorted index)` for each member of `X(q)`, in grid order (as the CPU engine).
+pub fn for_each_member(grid: &Grid, q: &Query, mut f: impl FnMut(usize)) {
+    if !valid(q) {
+        return;
+    }
+    let cyl = Cylinder::new(&q.seg, q.r);
+    grid.visit_rows(&q.seg, q.r, |row| {
+        let range = grid.row_range(&row);
+        let start = range.start;
+        for (j, p) in grid.points[range].iter().enumerate() {
+            if cyl.test(p64(*p)).is_some() {
+                f(start + j);
+            }
+        }
+    });
+}
+
+/// The whole answer of one query on the host.
+pub fn stats(grid: &Grid, q: &Query) -> CylStats {
+    let mut s = CylStats::default();
+    for_each_member(grid, q, |i| add_member(grid, q, i as u32, &mut s));
+    s
+}
+
+/// `(d2, index, offset)` of member `i`.
+fn ranked(grid: &Grid, cyl: &Cylinder, i: u32) -> (f64, u32, DVec3) {
+    let w = p64(grid.points[i as usize]) - cyl.p1;
+    let v = w - cyl.d * w.dot(cyl.d);
+    (v.length_squared(), i, v)
+}
+
+/// Sums of the `need` members of `m` nearest the line, ranked by (d2, index) in f64 like
+/// the CPU engine.
+fn add_nearest(m: &mut [(f64, u32, DVec3)], need: usize, acc: &mut NearestSum) {
+    if need == 0 {
+        return;
+    }
+    let order =
+        |a: &(f64, u32, DVec3), b: &(f64, u32, DVec3)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+    if need < m.len() {
+        m.select_nth_unstable_by(need - 1, order);
+    }
+    let first = &mut m[..need];
+    first.sort_unstable_by(order);
+    for x in first.iter() {
+        acc.sum_d2 += x.0;
+        acc.sum_offset += x.2;
+    }
+}
+
+/// The exact k nearest from the device's sums below the cut, the candidates of the cut
+/// band and the members among the boundary points (`flags`: this query's, sorted).
+///
+/// The device's histogram holds the sure members `D`; the host adds the boundary members
+/// `M`. With `e` the bound of the f32 error of d2 and `[lo, hi]` the plan's band, every
+/// point with f64 d2 `< lo + e` is below the cut bin and every one in a bin up to it has
+/// f64 d2 `<= hi - e`. So when fewer than k points (`before` of `D`, plus those of `M`) can
+/// lie below `lo + e`, and at least k (`upto`, plus those of `M`) lie up to `hi - e`, the
+/// k-th distance is in that band: everything below it is in the set, nothing above, and
+/// the host ranks only the band. `None` when that does not hold (or a count is
+/// inconsistent): the caller then answers the query on the host.
+pub fn nearest(
+    grid: &Grid,
+    q: &Query,
+    k: u64,
+    r: &QResult,
+    plan: Option<&Plan>,
+    flags: &[(u32, u32)],
+) -> Option<NearestSum> {
+    if r.status & STATUS_HOST != 0 {
+        return None;
+    }
+    let plan = plan?;
+    let cyl = Cylinder::new(&q.seg, q.r);
+    let mut boundary: Vec<(f64, u32, DVec3)> = flags
+        .iter()
+        .filter(|f| f.0 & FLAG_CANDIDATE == 0 && is_member(grid, q, f.1))
+        .map(|f| ranked(grid, &cyl, f.1))
+        .collect();
+    let total = plan.total as u64 + boundary.len() as u64;
+    let k = k.min(total);
+    let mut out = NearestSum {
+        k,
+        ..Default::default()
+    };
+    if k == 0 {
+        return Some(out);
+    }
+    let dev = super::batch::stats_of(r, grid.cell);
+    out.sum_d2 = dev.sum_d2;
+    out.sum_offset = dev.sum_offset;
+    let add_all = |m: &[(f64, u32, DVec3)], out: &mut NearestSum| {
+        for x in m {
+            out.sum_d2 += x.0;
+            out.sum_offset += x.2;
+        }
+    };
+    if plan.cut == ALL_BELOW {
+        // The device summed every sure member: right only when all members are wanted.
+        if k == total && dev.count == plan.total as u64 {
+            add_all(&boundary, &mut out);
+            return Some(out);
+        }
+        return None;
+    }
+    let c2 = grid.cell * grid.cell;
+    let e2 = super::batch::e2_of(grid, q);
+    let t_lo = (plan.lo as f64 + e2) * c2;
+    let t_hi = (plan.hi as f64 - e2) * c2;
+    boundary.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let n_low = boundary.partition_point(|x| x.0 < t_lo);
+    let n_upto = boundary.partition_point(|x| x.0 <= t_hi);
+    if plan.before as u64 + n_low as u64 >= k || (plan.upto as u64 + n_upto as u64) < k {
+        return None;
+    }
+    let mut band: Vec<(f64, u32, DVec3)> = flags
+        .iter()
+        .filter(|f| f.0 & FLAG_CANDIDATE != 0)
+        .map(|f| ranked(grid, &cyl, f.1))
+        .collect();
+    band.extend_from_slice(&boundary[n_low..n_upto]);
+    let fixed = dev.count + n_low as u64;
+    if fixed > k || fixed + (band.len() as u64) < k {
+        return None;
+    }
+    add_all(&boundary[..n_low], &mut out);
+    add_nearest(&mut band, (k - fixed) as usize, &mut out);
+    Some(out)
+}
+
+/// The exact k nearest on the host alone.
+pub fn exact_nearest(grid: &Grid, q: &Query, k: u64) -> NearestSum {
+    let cyl = Cylinder::new(&q.seg, q.r);
+    let mut m: Vec<(f64, u32, DVec3)> = Vec::new();
+    for_each_member(grid, q, |i| m.push(ranked(grid, &cyl, i as u32)));
+    let k = (k as usize).min(m.len());
+    let mut out = NearestSum {
+        k: k as u64,
+        ..Default::default()
+    };
+    add_nearest(&mut m, k, &mut out);
+    out
+}

@@ -1,0 +1,241 @@
+//! The one definition of everything the host and the kernels share: constants and the
+//! structs of every buffer. The WGSL prelude (`prelude()`) is generated from the same
+//! macro invocations that define the Rust structs, and is prepended to
+//! `shaders/common.wgsl` and every kernel at load time, so the two sides cannot drift.
+//! Every struct has only 4-byte scalar fields (no vec3: its 16-byte alignment differs
+//! between Rust and WGSL); `tests/shaders.rs` checks naga's offsets against Rust's.
+
+use bytemuck::{Pod, Zeroable};
+
+/// Most points per work item: the bound of the evaluation kernel's loop.
+pub const CHUNK: u32 = 256;
+/// Invocations per workgroup of the per-item and per-query kernels.
+pub const WG: u32 = 64;
+/// Elements per workgroup of the prefix scan.
+pub const SCAN_WG: u32 = 256;
+/// Most loop iterations (rows, cells, chunks together) of one query's grid walk; a walk
+/// that needs more is answered on the host. Below the 65,535 total iterations after which
+/// lavapipe silently stops an invocation.
+pub const MAX_WALK: u32 = 60_000;
+/// Most work items one query may have (the reduction loop's bound, same reason).
+pub const MAX_QUERY_ITEMS: u32 = 60_000;
+/// Histogram bins per query for the exact k nearest.
+pub const NBINS: u32 = 64;
+/// `Plan::cut` meaning "every member is below the cut".
+pub const ALL_BELOW: u32 = NBINS;
+/// Words of the control buffer before the flag entries: [0] items needed by the batch,
+/// [1] flags appended, [2..4] unused.
+pub const CTL_HEAD: u32 = 4;
+/// Flag kinds (bit 31 of a flag's first word): the point lies within the f32 error bound
+/// of a boundary (membership or side for the host to decide in f64), or it is a member in
+/// the k-nearest cut band (for the host to rank).
+pub const FLAG_BOUNDARY: u32 = 0;
+pub const FLAG_CANDIDATE: u32 = 1 << 31;
+/// `QResult::status` bit: the grid walk hit `MAX_WALK`, or the query has more than
+/// `MAX_QUERY_ITEMS` items; the host answers the query.
+pub const STATUS_HOST: u32 = 1;
+
+/// Kernel modes (`Params::mode`).
+pub const MODE_COUNT: u32 = 0;
+pub const MODE_EMIT: u32 = 1;
+pub const MODE_STATS: u32 = 2;
+pub const MODE_STATS_SIDES: u32 = 3;
+pub const MODE_COVERAGE: u32 = 4;
+pub const MODE_HIST: u32 = 5;
+pub const MODE_BELOW: u32 = 6;
+
+/// Defines a `#[repr(C)]` Pod struct of 4-byte fields and its WGSL text (`Name::WGSL`),
+/// with `Name::FIELDS` (name, byte offset) for the layout test.
+macro_rules! shared {
+    ($(#[$m:meta])* struct $name:ident { $($(#[$fm:meta])* $field:ident : $rty:ty => $wty:literal),* $(,)? }) => {
+        $(#[$m])*
+        #[repr(C)]
+        #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+        pub struct $name { $($(#[$fm])* pub $field: $rty),* }
+        impl $name {
+            pub const WGSL: &'static str = concat!(
+                "struct ", stringify!($name), " {\n",
+                $("    ", stringify!($field), ": ", $wty, ",\n",)*
+                "}\n"
+            );
+            pub const FIELDS: &'static [(&'static str, usize)] =
+                &[$((stringify!($field), std::mem::offset_of!($name, $field))),*];
+        }
+    };
+}
+
+shared! {
+    /// One cylinder query as the kernels see it, in cell units relative to the grid's
+    /// origin: `P1 = i + f` (an integer cell and an f32 fraction), so that a kernel
+    /// subtracts its cell's integer corner exactly; the direction `d` also as `dh + dl`,
+    /// where `dh` has 12 significant bits so that `dh * t` is exact for a `t` of 12 bits:
+    /// the axis point a kernel starts from is then accurate to f32 near its own cell,
+    /// however far that is from `P1`.
+    struct GQuery {
+        ix: i32 => "i32", iy: i32 => "i32", iz: i32 => "i32",
+        /// `L / cell`.
+        len: f32 => "f32",
+        fx: f32 => "f32", fy: f32 => "f32", fz: f32 => "f32",
+        /// `(r / cell)^2`; -1: the query has no members (invalid segment or radius); -2: the
+        /// host answers it (too far from the grid for the kernels' arithmetic).
+        r2: f32 => "f32",
+        dx: f32 => "f32", dy: f32 => "f32", dz: f32 => "f32",
+        /// `(plane - P1)·d / cell`.
+        mid: f32 => "f32",
+        dhx: f32 => "f32", dhy: f32 => "f32", dhz: f32 => "f32",
+        /// `r / cell`.
+        r: f32 => "f32",
+        dlx: f32 => "f32", dly: f32 => "f32", dlz: f32 => "f32",
+        /// Bound on the f32 error of positions and axial coordinates (cell units).
+        eps: f32 => "f32",
+        /// Bound on the f32 error of squared distances.
+        e2: f32 => "f32",
+        /// k of the k-nearest batch.
+        k: u32 => "u32",
+        pad0: u32 => "u32",
+        pad1: u32 => "u32",
+    }
+}
+
+shared! {
+    /// A work item: query slot, grid cell and a chunk `start..start + count` of its sorted
+    /// points (no chunk crosses a part of the point store).
+    struct Item {
+        query: u32 => "u32",
+        cell: u32 => "u32",
+        start: u32 => "u32",
+        count: u32 => "u32",
+    }
+}
+
+shared! {
+    /// One item's sums over its members (cell units).
+    struct Partial {
+        count: u32 => "u32",
+        side: u32 => "u32",
+        d2: f32 => "f32",
+        ox: f32 => "f32",
+        oy: f32 => "f32",
+        oz: f32 => "f32",
+        pad0: u32 => "u32",
+        pad1: u32 => "u32",
+    }
+}
+
+shared! {
+    /// One query's result: its sums as compensated f32 pairs (value + error), which the
+    /// host adds in f64.
+    struct QResult {
+        count: u32 => "u32",
+        side: u32 => "u32",
+        /// Work items of the query.
+        items: u32 => "u32",
+        /// `STATUS_*` bits.
+        status: u32 => "u32",
+        d2: f32 => "f32", d2_c: f32 => "f32",
+        ox: f32 => "f32", ox_c: f32 => "f32",
+        oy: f32 => "f32", oy_c: f32 => "f32",
+        oz: f32 => "f32", oz_c: f32 => "f32",
+    }
+}
+
+shared! {
+    /// The k-nearest plan of one query: members below `lo` are certainly among the k
+    /// nearest, members up to `hi` are candidates for the host to rank.
+    struct Plan {
+        /// Histogram bin of the k-th distance, or `ALL_BELOW`.
+        cut: u32 => "u32",
+        /// Members the device found certain (the histogram's total).
+        total: u32 => "u32",
+        lo: f32 => "f32",
+        hi: f32 => "f32",
+        /// Sure members in the bins below the cut, and up to it inclusive.
+        before: u32 => "u32",
+        upto: u32 => "u32",
+        pad0: u32 => "u32",
+        pad1: u32 => "u32",
+    }
+}
+
+shared! {
+    /// The uniform of every dispatch (one 256-byte slot each).
+    struct Params {
+        /// Queries of the sub-batch (scan: elements of the level).
+        n: u32 => "u32",
+        mode: u32 => "u32",
+        /// Part of the point store this dispatch reads, its first sorted index and length.
+        part: u32 => "u32",
+        part_base: u32 => "u32",
+        part_len: u32 => "u32",
+        dims_x: u32 => "u32", dims_y: u32 => "u32", dims_z: u32 => "u32",
+        /// Capacity of the item and flag buffers (entries).
+        item_cap: u32 => "u32",
+        flag_cap: u32 => "u32",
+        /// Most workgroups along x (dispatches beyond are tiled in 2D).
+        max_x: u32 => "u32",
+        /// Scan: first element of the level and of its block sums.
+        base: u32 => "u32",
+        sums: u32 => "u32",
+        /// Index of the batch's item total in the scan buffer.
+        total: u32 => "u32",
+        pad0: u32 => "u32",
+        pad1: u32 => "u32",
+    }
+}
+
+/// Bytes between the uniform slots of consecutive dispatches.
+pub const PARAMS_SLOT: u64 = 256;
+
+/// The generated WGSL prelude: constants and structs.
+pub fn prelude() -> String {
+    let consts = [
+        ("CHUNK", CHUNK),
+        ("WG", WG),
+        ("SCAN_WG", SCAN_WG),
+        ("MAX_WALK", MAX_WALK),
+        ("MAX_QUERY_ITEMS", MAX_QUERY_ITEMS),
+        ("NBINS", NBINS),
+        ("ALL_BELOW", ALL_BELOW),
+        ("CTL_HEAD", CTL_HEAD),
+        ("FLAG_BOUNDARY", FLAG_BOUNDARY),
+        ("FLAG_CANDIDATE", FLAG_CANDIDATE),
+        ("STATUS_HOST", STATUS_HOST),
+        ("MODE_COUNT", MODE_COUNT),
+        ("MODE_EMIT", MODE_EMIT),
+        ("MODE_STATS", MODE_STATS),
+        ("MODE_STATS_SIDES", MODE_STATS_SIDES),
+        ("MODE_COVERAGE", MODE_COVERAGE),
+        ("MODE_HIST", MODE_HIST),
+        ("MODE_BELOW", MODE_BELOW),
+    ];
+    let mut s = String::from("// Generated from src/engine/gpu/layout.rs: do not edit here.\n");
+    for (name, v) in consts {
+        s += &format!("const {name}: u32 = {v}u;\n");
+    }
+    for st in [
+        GQuery::WGSL,
+        Item::WGSL,
+        Partial::WGSL,
+        QResult::WGSL,
+        Plan::WGSL,
+        Params::WGSL,
+    ] {
+        s += st;
+    }
+    s
+}
+
+/// (name, size, fields with their offsets) of one shared struct.
+pub type Layout = (&'static str, usize, &'static [(&'static str, usize)]);
+
+/// Every shared struct, for the layout test.
+pub fn layouts() -> Vec<Layout> {
+    vec![
+        ("GQuery", std::mem::size_of::<GQuery>(), GQuery::FIELDS),
+        ("Item", std::mem::size_of::<Item>(), Item::FIELDS),
+        ("Partial", std::mem::size_of::<Partial>(), Partial::FIELDS),
+        ("QResult", std::mem::size_of::<QResult>(), QResult::FIELDS),
+        ("Plan", std::mem::size_of::<Plan>(), Plan::FIELDS),
+        ("Params", std::mem::size_of::<Params>(), Params::FIELDS),
+    ]
+}

@@ -1,0 +1,173 @@
+//! Steps 6 and 8: merge (duplication) and join (discontinuity) inside a group of segments,
+//! each loop restarting after every success.
+//!
+//! Step 8 runs, inside each cluster of step 7, the merge loop to its end and then the join
+//! loop; step 6 runs the join alone on every pair of each input line. A loop scans the pairs
+//! `(i, j)`, `i < j`, of the group's current list and applies the first pair that passes;
+//! the result takes the place of `i`, `j` is removed and the scan starts again; the loop
+//! ends when a full scan finds nothing.
+//!
+//! - [`rules`]: the merge and join tests of the paper, pure functions of two segments and
+//!   the engine's answers about them.
+//! - [`sequential`]: the restart loops exactly as stated, one query at a time: the
+//!   executable definition.
+//! - `rounds`: the same loops for every group at once, one engine batch per round, with a
+//!   memo of decisions across restarts; [`merge_join`] and [`collinear_merge`] run it, and
+//!   tests check it against [`sequential`] segment for segment.
+
+mod rounds;
+pub mod rules;
+pub mod sequential;
+
+use crate::engine::{CylStats, Engine, EngineError};
+use crate::geom::{LineSet, Segment};
+use crate::refine::{Fixes, Params, Settings};
+use std::collections::HashMap;
+
+/// Pairs one group may list in its first round. A group whose list runs out without a
+/// success doubles it, so a huge cluster costs a few more rounds, not a huge batch.
+const FIRST_BUDGET: usize = 1024;
+
+/// A segment of a group with its input line and, once asked, its cylinder's stats.
+#[derive(Clone, Copy, Debug)]
+struct Item {
+    seg: Segment,
+    group: u32,
+    /// `X(seg, r)` (count and squared-distance sum) once a batch has answered it.
+    stats: Option<CylStats>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Mode {
+    /// Step 8: merge on overlapping pairs, then join on the others.
+    Cluster,
+    /// Step 6: join on every pair.
+    Collinear,
+}
+
+/// The parameters every decision reads.
+#[derive(Clone, Copy)]
+struct Ctx<'a> {
+    mode: Mode,
+    r: f64,
+    p: &'a Params,
+    fixes: &'a Fixes,
+}
+
+impl<'a> Ctx<'a> {
+    fn new(mode: Mode, s: &'a Settings) -> Self {
+        Ctx {
+            mode,
+            r: s.radius(),
+            p: s.params(),
+            fixes: s.fixes(),
+        }
+    }
+}
+
+fn items_of(lines: &LineSet, idx: &[usize]) -> Vec<Item> {
+    idx.iter()
+        .map(|&k| Item {
+            seg: lines.segments[k],
+            group: lines.group(k),
+            stats: None,
+        })
+        .collect()
+}
+
+fn line_set(items: impl Iterator<Item = Item>, grouped: bool) -> LineSet {
+    let (segments, groups): (Vec<Segment>, Vec<u32>) = items.map(|it| (it.seg, it.group)).unzip();
+    LineSet {
+        segments,
+        groups: grouped.then_some(groups),
+    }
+}
+
+/// Step 8: merge, then join, inside each cluster (indices into `lines`, e.g. from
+/// [`super::cluster::cluster`]). The result lists the clusters' segments in cluster order;
+/// a merged or joined segment takes the group of the first of its pair.
+///
+/// # Panics
+/// If a cluster names a segment index `>= lines.len()`.
+pub fn merge_join(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    clusters: &[Vec<usize>],
+    s: &Settings,
+) -> Result<LineSet, EngineError> {
+    merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET)
+}
+
+fn merge_join_budget(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    clusters: &[Vec<usize>],
+    s: &Settings,
+    budget: usize,
+) -> Result<LineSet, EngineError> {
+    let cx = Ctx::new(Mode::Cluster, s);
+    let mut machines: Vec<rounds::Machine> = clusters
+        .iter()
+        .map(|c| rounds::Machine::new(items_of(lines, c), Mode::Cluster, budget))
+        .collect();
+    rounds::run(engine, &mut machines, cx)?;
+    Ok(line_set(
+        machines.into_iter().flat_map(|m| m.items),
+        lines.groups.is_some(),
+    ))
+}
+
+/// The members of each input line, lines in order of their first segment.
+fn input_lines(groups: &[u32]) -> Vec<Vec<usize>> {
+    let mut slot: HashMap<u32, usize> = HashMap::new();
+    let mut members: Vec<Vec<usize>> = Vec::new();
+    for (i, &g) in groups.iter().enumerate() {
+        let k = *slot.entry(g).or_insert_with(|| {
+            members.push(Vec::new());
+            members.len() - 1
+        });
+        members[k].push(i);
+    }
+    members
+}
+
+/// Puts each input line's result in the place of its first segment.
+fn in_input_order(lines: &LineSet, members: &[Vec<usize>], mut results: Vec<Vec<Item>>) -> LineSet {
+    let mut first: Vec<Option<usize>> = vec![None; lines.len()];
+    for (k, m) in members.iter().enumerate() {
+        first[m[0]] = Some(k);
+    }
+    let mut out = Vec::with_capacity(lines.len());
+    for k in first.into_iter().flatten() {
+        out.append(&mut results[k]);
+    }
+    line_set(out.into_iter(), true)
+}
+
+/// Step 6: inside each input line with two or more segments, the join on every pair,
+/// restarting after each success. A line's result takes the place of its first segment;
+/// ungrouped input (or `p.collinear_merge` off) comes back unchanged.
+pub fn collinear_merge(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    s: &Settings,
+) -> Result<LineSet, EngineError> {
+    let Some(groups) = &lines.groups else {
+        return Ok(lines.clone());
+    };
+    if !s.params().collinear_merge {
+        return Ok(lines.clone());
+    }
+    let members = input_lines(groups);
+    let cx = Ctx::new(Mode::Collinear, s);
+    let mut machines: Vec<rounds::Machine> = members
+        .iter()
+        .map(|m| rounds::Machine::new(items_of(lines, m), Mode::Collinear, FIRST_BUDGET))
+        .collect();
+    rounds::run(engine, &mut machines, cx)?;
+    let results = machines.into_iter().map(|m| m.items).collect();
+    Ok(in_input_order(lines, &members, results))
+}
+
+#[cfg(test)]
+mod tests;
