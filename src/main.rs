@@ -17,6 +17,7 @@ use std::process::ExitCode;
   linegs-gpu eval --gaussians point_cloud.ply --lines refined.obj --radii 0.02,0.05,0.1,0.2 --plot sweep.png
   linegs-gpu info point_cloud.ply
   linegs-gpu convert model.spz -o model.ply
+  linegs-gpu batch scenes.csv -o results --skip-existing
 
 Exit codes: 0 success, 1 failure (GPU, I/O), 2 bad input or usage.")]
 struct Cli {
@@ -44,6 +45,9 @@ enum Command {
     Synth(cmd::synth::SynthArgs),
     /// Draw Gaussian centers and one or two segment sets to a PNG (and an HTML viewer).
     Render(cmd::render::RenderArgs),
+    /// Refine every scene of a manifest (CSV) into its own folder, a shard per process
+    /// (Slurm array), and summarize them in the columns of the paper's Table I.
+    Batch(cmd::batch::BatchArgs),
     /// Time whole runs on synthetic scenes of given sizes, per stage, CPU and GPU.
     Bench(cmd::bench::BenchArgs),
 }
@@ -84,6 +88,7 @@ fn main() -> ExitCode {
         Command::Synth(a) => cmd::synth::run(a),
         Command::Render(a) => cmd::render::run(a),
         Command::Bench(a) => cmd::bench::run(a, verbose),
+        Command::Batch(a) => cmd::batch::run(a, verbose),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -92,6 +92,24 @@ pub struct LoadOptions {
     pub lines: io::LineOptions,
 }
 
+/// Reads a Gaussian model with `opts` (checked first).
+pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianCloud, RunError> {
+    if let Some(o) = opts.min_opacity {
+        if !(0.0..=1.0).contains(&o) {
+            return Err(RunError::Input(format!(
+                "--min-opacity {o}: expected an opacity in [0, 1]"
+            )));
+        }
+    }
+    Ok(io::read_gaussians(
+        path,
+        &PlyOptions {
+            min_opacity: opts.min_opacity,
+            strict: opts.strict,
+        },
+    )?)
+}
+
 /// The Gaussian centers and the line segments of one scene, in memory, with what loading
 /// them found (counts, drops, warnings).
 #[derive(Clone, Debug)]
@@ -115,20 +133,7 @@ impl Scene {
     /// Reads the Gaussians (`point_cloud.ply` or any format of SPEC 6) and the lines.
     pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
         let t = Instant::now();
-        if let Some(o) = opts.min_opacity {
-            if !(0.0..=1.0).contains(&o) {
-                return Err(RunError::Input(format!(
-                    "--min-opacity {o}: expected an opacity in [0, 1]"
-                )));
-            }
-        }
-        let mut cloud = io::read_gaussians(
-            gaussians,
-            &PlyOptions {
-                min_opacity: opts.min_opacity,
-                strict: opts.strict,
-            },
-        )?;
+        let mut cloud = read_gaussians(gaussians, opts)?;
         // Normals for the edge fit (PLY with rotations and scales). A frame transform
         // would have to turn them too: with one, the edge fit uses the centers only.
         let normals = if opts.transform.is_some() {
