@@ -67,3 +67,9 @@ fi
 # off there, so the GPU engine's garbage-filled buffers are switched on by name.
 export LINEGS_GPU_GARBAGE=1
 phase cargo test --release --locked "$@"
+# The Python package (`linegs`): opt in with LINEGS_TEST_PYTHON=1. pyo3's macros enable
+# syn and once_cell features that the main build does not use, so today the binding
+# recompiles most dependencies once more (see README, Python); too slow for every run.
+if [ "${LINEGS_TEST_PYTHON:-0}" = 1 ]; then
+  scripts/test-python.sh
+fi

@@ -17,6 +17,7 @@ use std::process::ExitCode;
   linegs-gpu eval --gaussians point_cloud.ply --lines refined.obj --radii 0.02,0.05,0.1,0.2 --plot sweep.png
   linegs-gpu info point_cloud.ply
   linegs-gpu convert model.spz -o model.ply
+  linegs-gpu batch scenes.csv -o results --skip-existing
 
 Exit codes: 0 success, 1 failure (GPU, I/O), 2 bad input or usage.")]
 struct Cli {
@@ -30,9 +31,9 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Refine line segments against the Gaussian centers and report before/after metrics.
-    Refine(cmd::refine::RefineArgs),
+    Refine(Box<cmd::refine::RefineArgs>),
     /// Measure line segments against the Gaussian centers (the paper's metrics).
-    Eval(cmd::eval::EvalArgs),
+    Eval(Box<cmd::eval::EvalArgs>),
     /// Describe a Gaussian model or line file: format, counts, bounding box, properties.
     Info(cmd::info::InfoArgs),
     /// Convert a Gaussian model to a standard PLY, or lines to another line format.
@@ -44,6 +45,9 @@ enum Command {
     Synth(cmd::synth::SynthArgs),
     /// Draw Gaussian centers and one or two segment sets to a PNG (and an HTML viewer).
     Render(cmd::render::RenderArgs),
+    /// Refine every scene of a manifest (CSV) into its own folder, a shard per process
+    /// (Slurm array), and summarize them in the columns of the paper's Table I.
+    Batch(cmd::batch::BatchArgs),
     /// Time whole runs on synthetic scenes of given sizes, per stage, CPU and GPU.
     Bench(cmd::bench::BenchArgs),
 }
@@ -76,14 +80,15 @@ fn main() -> ExitCode {
     let _runtime_dir = private_runtime_dir();
     let verbose = cli.verbose;
     let result = match cli.command {
-        Command::Refine(a) => cmd::refine::run(a, verbose),
-        Command::Eval(a) => cmd::eval::run(a, verbose),
+        Command::Refine(a) => cmd::refine::run(*a, verbose),
+        Command::Eval(a) => cmd::eval::run(*a, verbose),
         Command::Info(a) => cmd::info::run(a),
         Command::Convert(a) => cmd::convert::run(a),
         Command::Demo(a) => cmd::demo::run(a, verbose),
         Command::Synth(a) => cmd::synth::run(a),
         Command::Render(a) => cmd::render::run(a),
         Command::Bench(a) => cmd::bench::run(a, verbose),
+        Command::Batch(a) => cmd::batch::run(a, verbose),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -93,6 +93,24 @@ pub struct LoadOptions {
     pub lines: io::LineOptions,
 }
 
+/// Reads a Gaussian model with `opts` (checked first).
+pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianCloud, RunError> {
+    if let Some(o) = opts.min_opacity {
+        if !(0.0..=1.0).contains(&o) {
+            return Err(RunError::Input(format!(
+                "--min-opacity {o}: expected an opacity in [0, 1]"
+            )));
+        }
+    }
+    Ok(io::read_gaussians(
+        path,
+        &PlyOptions {
+            min_opacity: opts.min_opacity,
+            strict: opts.strict,
+        },
+    )?)
+}
+
 /// The Gaussian centers and the line segments of one scene, in memory, with what loading
 /// them found (counts, drops, warnings).
 #[derive(Clone, Debug)]
@@ -104,6 +122,10 @@ pub struct Scene {
     pub warnings: Vec<String>,
     /// Seconds spent reading the files (0 for arrays).
     pub load_seconds: f64,
+    /// Each Gaussian's surface normal (its shortest axis; zero where it is not flat), in
+    /// the order of `gaussians`, where the file has rotations and scales (the edge fit's
+    /// corner test). Read by a second pass over the PLY.
+    pub normals: Option<Vec<[f32; 3]>>,
     /// What the scene is, when it was made rather than read (the demo's synthetic scene).
     pub description: Option<String>,
 }
@@ -112,20 +134,15 @@ impl Scene {
     /// Reads the Gaussians (`point_cloud.ply` or any format of SPEC 6) and the lines.
     pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
         let t = Instant::now();
-        if let Some(o) = opts.min_opacity {
-            if !(0.0..=1.0).contains(&o) {
-                return Err(RunError::Input(format!(
-                    "--min-opacity {o}: expected an opacity in [0, 1]"
-                )));
-            }
-        }
-        let mut cloud = io::read_gaussians(
-            gaussians,
-            &PlyOptions {
-                min_opacity: opts.min_opacity,
-                strict: opts.strict,
-            },
-        )?;
+        let mut cloud = read_gaussians(gaussians, opts)?;
+        // Normals for the edge fit (PLY with rotations and scales). A frame transform
+        // would have to turn them too: with one, the edge fit uses the centers only.
+        let normals = if opts.transform.is_some() {
+            None
+        } else {
+            io::read_gaussian_normals(gaussians, opts.min_opacity)?
+                .filter(|n| n.len() == cloud.centers.len())
+        };
         if let Some(t) = &opts.transform {
             t.apply(&mut cloud.centers);
         }
@@ -151,6 +168,7 @@ impl Scene {
             input,
             warnings,
             load_seconds: t.elapsed().as_secs_f64(),
+            normals,
             description: None,
         })
     }
@@ -222,6 +240,7 @@ impl Scene {
             input,
             warnings,
             load_seconds: 0.0,
+            normals: None,
             description: None,
         })
     }
@@ -241,6 +260,8 @@ pub struct Refiner {
     engine: Box<dyn Engine>,
     notes: Vec<String>,
     stages: Vec<Stage>,
+    /// Per-Gaussian attributes of the working set for the edge fit (none by default).
+    attrs: refine::fit::Attributes,
 }
 
 impl Refiner {
@@ -282,6 +303,7 @@ impl Refiner {
             engine,
             notes,
             stages,
+            attrs: refine::fit::Attributes::default(),
         })
     }
 
@@ -320,6 +342,23 @@ impl Refiner {
         eval::sweep(self.engine(), segments, s.eval(), s.r_l(), radii)
     }
 
+    /// Gives the edge fit the Gaussians' `normals` (order of `gaussians`, the arrays this
+    /// refiner was built from with `segments`); `false` when the counts differ.
+    pub fn set_normals(
+        &mut self,
+        gaussians: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        segments: &[Segment],
+    ) -> bool {
+        match refine::fit::Attributes::for_working_set(gaussians, normals, segments) {
+            Some(a) if a.normals.as_ref().map(Vec::len) == Some(self.n_box()) => {
+                self.attrs = a;
+                true
+            }
+            _ => false,
+        }
+    }
+
     /// Before-evaluation, the steps of SPEC 3 and after-evaluation, calling `on_stage`
     /// after each stage.
     pub fn refine(
@@ -343,9 +382,13 @@ impl Refiner {
         let t = Instant::now();
         let before = self.evaluate(&lines.segments)?;
         push(Stage::since("evaluate_before", lines.len(), t), &mut stages);
-        let refined = refine::run_steps(self.engine(), lines, &self.settings, |name, n, t| {
-            push(Stage::since(name, n, t), &mut stages)
-        })?;
+        let (refined, steps) = refine::run_steps_noted(
+            self.engine(),
+            lines,
+            &self.attrs,
+            &self.settings,
+            |name, n, t| push(Stage::since(name, n, t), &mut stages),
+        )?;
         let t = Instant::now();
         let after = self.evaluate(&refined.segments)?;
         push(
@@ -357,6 +400,7 @@ impl Refiner {
             before,
             after,
             stages,
+            steps,
         })
     }
 }
@@ -368,6 +412,8 @@ pub struct Refined {
     pub before: Metrics,
     pub after: Metrics,
     pub stages: Vec<Stage>,
+    /// Step 4's shifts, the edge fit's counts and segment length per stage.
+    pub steps: refine::StepNotes,
 }
 
 /// One run's parameters and what to measure beyond the paper's metrics.
@@ -415,9 +461,13 @@ impl Job {
     /// Refines `scene` (SPEC 3) and reports (SPEC 7).
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
         let t = Instant::now();
-        let refiner = self.refiner(scene)?;
+        let mut refiner = self.refiner(scene)?;
         if let Some(msg) = self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
             return Err(RunError::FrameMismatch(msg));
+        }
+        let mut normals_unused = false;
+        if let Some(n) = &scene.normals {
+            normals_unused = !refiner.set_normals(&scene.gaussians, n, &scene.lines.segments);
         }
         let out = refiner.refine(&scene.lines, on_stage)?;
         let sweep = self.sweep_of(&refiner, &scene.lines.segments, Some(&out.lines.segments))?;
@@ -433,6 +483,13 @@ impl Job {
         let mut report = Report::new("refine", scene, &refiner, out.before);
         report.stages.extend(out.stages);
         report.after = Some(out.after);
+        if normals_unused {
+            report
+                .warnings
+                .push("the Gaussians' normals did not line up with their centers; the edge fit uses the centers only".into());
+        }
+        report.warnings.extend(out.steps.warnings.iter().cloned());
+        report.refine = Some(out.steps);
         report.sweep = sweep;
         report.ground_truth = ground_truth;
         report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();

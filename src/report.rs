@@ -68,6 +68,9 @@ pub struct Report {
     pub after: Option<Metrics>,
     pub sweep: Option<Sweep>,
     pub ground_truth: Option<GroundTruth>,
+    /// `refine`: step 4's per-segment shifts (units of r; a warning when systematic), the
+    /// edge fit's counts and segment length removed per stage.
+    pub refine: Option<crate::refine::StepNotes>,
     /// What the scene is when it was made, not read (the demo's synthetic scene).
     pub scene: Option<String>,
     /// What choosing the engine said (which adapter `auto` picked, or why the CPU).
@@ -112,6 +115,7 @@ impl Report {
             after: None,
             sweep: None,
             ground_truth: None,
+            refine: None,
             scene: scene.description.clone(),
             notes: r.notes().to_vec(),
             warnings: scene.warnings.clone(),

@@ -154,7 +154,7 @@ fn refine_writes_output_and_a_report_with_every_key() {
 }
 
 /// The top-level keys of every report (refine, eval, demo, each batch scene): one shape.
-const REPORT_KEYS: [&str; 20] = [
+const REPORT_KEYS: [&str; 21] = [
     "tool",
     "version",
     "command",
@@ -172,6 +172,7 @@ const REPORT_KEYS: [&str; 20] = [
     "after",
     "sweep",
     "ground_truth",
+    "refine",
     "scene",
     "notes",
     "warnings",

@@ -1,5 +1,6 @@
 //! Subcommands. Each parses its arguments, calls the library, and prints.
 
+pub mod batch;
 pub mod bench;
 pub mod convert;
 pub mod demo;

@@ -83,6 +83,21 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             metrics_table(&[("before", &r.before), ("after", after)])
         );
     }
+    if let Some(steps) = &r.refine {
+        for w in &steps.warnings {
+            eprintln!("warning: {w}");
+        }
+        if let Some(sh) = &steps.shifts {
+            println!(
+                "step 4 (--fit {}) moved {} of {} segments: median {:.3} r, 90th percentile {:.3} r",
+                steps.fit.name(),
+                sh.moved,
+                scene.lines.len(),
+                sh.median_r,
+                sh.p90_r
+            );
+        }
+    }
     println!("wrote {} in {:.2} s", a.output.display(), r.total_seconds);
     if let Some(rp) = &a.report {
         println!("wrote {}", rp.display());

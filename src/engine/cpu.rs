@@ -1,7 +1,7 @@
 //! The CPU engine: rayon over queries, exact f64 tests on the grid's rows. Each query sums
 //! its points in grid order, so results do not depend on the thread count.
 
-use super::{Counters, Coverage, CylStats, Engine, EngineError, NearestSum, Query, Want};
+use super::{Counters, Coverage, CylStats, Engine, EngineError, Member, NearestSum, Query, Want};
 use crate::geom::{p64, Cylinder};
 use crate::index::Grid;
 use glam::DVec3;
@@ -80,6 +80,36 @@ impl CpuEngine {
     }
 }
 
+/// [`Engine::members`] over `grid` on the host, f64; also the GPU engine's answer (the
+/// per-point output has no kernel: it is O(members) to read back either way).
+pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
+    queries
+        .par_iter()
+        .with_min_len(8)
+        .map(|q| {
+            let mut out = Vec::new();
+            if !q.seg.is_valid() {
+                return out;
+            }
+            let cyl = Cylinder::new(&q.seg, q.r);
+            grid.visit_rows(&q.seg, q.r, |row| {
+                let range = grid.row_range(&row);
+                let start = range.start;
+                for (j, p) in grid.points[range].iter().enumerate() {
+                    if let Some((t, offset)) = cyl.test(p64(*p)) {
+                        out.push(Member {
+                            id: grid.ids[start + j],
+                            t,
+                            offset,
+                        });
+                    }
+                }
+            });
+            out
+        })
+        .collect()
+}
+
 impl Engine for CpuEngine {
     fn backend(&self) -> &'static str {
         "cpu"
@@ -143,6 +173,11 @@ impl Engine for CpuEngine {
                 },
             )
             .collect())
+    }
+
+    fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
+        self.count_batch(queries.len());
+        Ok(members_of(&self.grid, queries))
     }
 
     fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {

@@ -111,6 +111,17 @@ impl Coverage {
     }
 }
 
+/// One member of `X(s, r)`, for steps that need per-point data (the edge fit).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Member {
+    /// Index of the point in the working set (the order the engine was built from).
+    pub id: u32,
+    /// Axial position `t1 = (p-P1)·d`.
+    pub t: f64,
+    /// Perpendicular offset `v = (p-P1) - t1 d`.
+    pub offset: DVec3,
+}
+
 /// Work counters, for tests that prove batching and upload-once.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Counters {
@@ -144,6 +155,10 @@ pub trait Engine: Send + Sync {
     fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError>;
     /// For query `i`, sums over its `k[i]` members nearest to the line.
     fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError>;
+    /// The members of every query, each list in grid order (so the same for every thread
+    /// count and both engines). Per-point output is O(members), not O(queries): use it only
+    /// where sums cannot answer (the edge fit's robust estimates).
+    fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError>;
     /// The union of all members of the batch.
     fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError>;
     fn counters(&self) -> Counters;

@@ -10,6 +10,7 @@ mod info;
 mod input;
 mod limap;
 mod lines;
+mod normals;
 mod npy;
 mod output;
 mod ply;
@@ -31,6 +32,7 @@ pub use input::STREAM_LIMIT;
 pub use lines::{
     parse_lines, parse_lines_with, read_lines, read_lines_with, LineFile, LineFormat, LineOptions,
 };
+pub use normals::read_gaussian_normals;
 pub use output::OutputSet;
 pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
 pub use spz::encode_spz;

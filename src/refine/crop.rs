@@ -120,6 +120,24 @@ pub fn crop(
         }
     }
     let mut ends: Vec<(f64, f64)> = segments.iter().map(|s| (0.0, s.length())).collect();
+    if p.crop_extend > 0.0 {
+        // The ends that crop left alone: their windows are dense.
+        let mut sparse = vec![[false; 2]; segments.len()];
+        for s in &searches {
+            sparse[s.seg][usize::from(!s.first)] = true;
+        }
+        let dense: Vec<(usize, bool)> = (0..segments.len())
+            .flat_map(|i| [(i, true), (i, false)])
+            .filter(|&(i, first)| !sparse[i][usize::from(!first)])
+            .collect();
+        for (i, first, u) in extend(engine, segments, &dense, &mid_density, r, p)? {
+            if first {
+                ends[i].0 = -u;
+            } else {
+                ends[i].1 = segments[i].length() + u;
+            }
+        }
+    }
     for s in &searches {
         let t = 0.5 * (s.a + s.b);
         if s.first {
@@ -141,5 +159,111 @@ pub fn crop(
                 )
             }
         })
+        .collect())
+}
+
+/// One dense end marching outward: `u` is how far past the end it has got.
+#[derive(Clone, Copy, Debug)]
+struct March {
+    seg: usize,
+    first: bool,
+    u: f64,
+    /// Bisection interval once a sparse window was met.
+    bisect: Option<(f64, f64)>,
+    probes: u32,
+    /// Windows marched so far; bounded by [`MAX_MARCH_STEPS`].
+    steps: u32,
+    done: bool,
+}
+
+/// Most windows one end marches outward: the march is otherwise bounded only by
+/// `crop_extend / (2 x crop_probe_half)`, which a tiny probe makes arbitrarily large.
+const MAX_MARCH_STEPS: u32 = 256;
+
+/// `--crop-extend`: each dense end `(segment, is_p1)` moves outward along its line while
+/// the next window of `2 h` past it is dense (density >= `crop_ratio x` the middle
+/// density of the pre-crop segment), at most `crop_extend x L`; the first sparse window is
+/// bisected as the crop's search is. Returns `(segment, is_p1, distance past the end)` for
+/// the ends that moved. One batch per round over all ends still moving.
+fn extend(
+    engine: &dyn Engine,
+    segments: &[Segment],
+    dense: &[(usize, bool)],
+    mid_density: &[f64],
+    r: f64,
+    p: &crate::refine::Params,
+) -> Result<Vec<(usize, bool, f64)>, EngineError> {
+    let mut m: Vec<March> = dense
+        .iter()
+        .filter(|&&(i, _)| mid_density[i] > 0.0)
+        .map(|&(seg, first)| March {
+            seg,
+            first,
+            u: 0.0,
+            bisect: None,
+            probes: 0,
+            steps: 0,
+            done: false,
+        })
+        .collect();
+    // The window `[u0, u1]` past an end, as a segment along the line.
+    let window = |k: &March, u0: f64, u1: f64| {
+        let s = &segments[k.seg];
+        let (end, out) = if k.first {
+            (s.p1, -s.dir())
+        } else {
+            (s.p2, s.dir())
+        };
+        Segment::new(end + out * u0, end + out * u1)
+    };
+    loop {
+        let active: Vec<usize> = (0..m.len()).filter(|&j| !m[j].done).collect();
+        if active.is_empty() {
+            break;
+        }
+        let queries: Vec<Query> = active
+            .iter()
+            .map(|&j| {
+                let k = &m[j];
+                let h = p.crop_probe_half() * segments[k.seg].length();
+                match k.bisect {
+                    None => Query::new(window(k, k.u, k.u + 2.0 * h), r),
+                    Some((a, b)) => {
+                        let c = 0.5 * (a + b);
+                        Query::new(window(k, c - h, c + h), r)
+                    }
+                }
+            })
+            .collect();
+        let res = engine.stats(&queries, Want::COUNT)?;
+        for (&j, st) in active.iter().zip(&res) {
+            let k = &mut m[j];
+            let l = segments[k.seg].length();
+            let h = p.crop_probe_half() * l;
+            let limit = p.crop_extend * l;
+            let is_dense = super::density(st.count, 2.0 * h) >= p.crop_ratio * mid_density[k.seg];
+            match k.bisect {
+                None if is_dense => {
+                    k.u = (k.u + 2.0 * h).min(limit);
+                    k.steps += 1;
+                    k.done = k.u >= limit || k.steps >= MAX_MARCH_STEPS;
+                }
+                None => k.bisect = Some((k.u, (k.u + 2.0 * h).min(limit))),
+                Some((a, b)) => {
+                    let c = 0.5 * (a + b);
+                    let (a, b) = if is_dense { (c, b) } else { (a, c) };
+                    k.probes += 1;
+                    k.bisect = Some((a, b));
+                    if k.probes >= p.crop_max_probes || b - a < p.crop_min_interval {
+                        k.u = 0.5 * (a + b);
+                        k.done = true;
+                    }
+                }
+            }
+        }
+    }
+    Ok(m.into_iter()
+        .filter(|k| k.u > 0.0)
+        .map(|k| (k.seg, k.first, k.u))
         .collect())
 }

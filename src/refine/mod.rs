@@ -3,16 +3,20 @@
 
 pub mod params;
 
-pub use params::{auto_radius, EvalParams, Fixes, Params, Profile, RadiusArg, RlMode, Settings};
+pub use params::{
+    auto_radius, EvalParams, Fit, Fixes, Params, Profile, RadiusArg, RlMode, Settings,
+};
 
 pub mod cluster;
 pub mod crop;
+pub mod fit;
 pub mod mergejoin;
 pub mod outliers;
 pub mod translate;
 
 use crate::engine::{Engine, EngineError};
-use crate::geom::LineSet;
+use crate::geom::{LineSet, Segment};
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// `rho = N / L` (0 when `L = 0`).
@@ -24,13 +28,90 @@ pub fn density(count: u64, length: f64) -> f64 {
     }
 }
 
+/// How far step 4 moved the segments, in units of r (each segment: the mean of its two
+/// endpoints' moves).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Shifts {
+    pub median_r: f64,
+    pub p90_r: f64,
+    pub max_r: f64,
+    /// Segments that moved more than 1e-3 r.
+    pub moved: usize,
+    /// The median move is a quarter of r or more: the Gaussians' ridge sits off the lines
+    /// systematically.
+    pub systematic: bool,
+}
+
+impl Shifts {
+    /// Moves from `before` to `after` (same length and order), `None` when empty.
+    pub fn between(before: &[Segment], after: &[Segment], r: f64) -> Option<Shifts> {
+        let mut m: Vec<f64> = before
+            .iter()
+            .zip(after)
+            .map(|(a, b)| 0.5 * ((b.p1 - a.p1).length() + (b.p2 - a.p2).length()) / r)
+            .collect();
+        if m.is_empty() {
+            return None;
+        }
+        m.sort_by(f64::total_cmp);
+        let q = |f: f64| m[((f * (m.len() - 1) as f64).round() as usize).min(m.len() - 1)];
+        let median_r = q(0.5);
+        Some(Shifts {
+            median_r,
+            p90_r: q(0.9),
+            max_r: m[m.len() - 1],
+            moved: m.iter().filter(|&&x| x > 1e-3).count(),
+            systematic: median_r >= 0.25,
+        })
+    }
+}
+
+/// Total segment length after one stage, and what the stage removed.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StageLength {
+    pub name: String,
+    pub length: f64,
+    /// Length before the stage minus length after (negative when it grew).
+    pub removed: f64,
+}
+
+/// What the steps did beyond the segment counts (the report's `refine` section).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StepNotes {
+    pub fit: Fit,
+    pub shifts: Option<Shifts>,
+    /// Engine batches of the edge fit (0 for the other fits).
+    pub fit_iterations: u32,
+    /// Edge fit: segments placed on two faces' corner, on a ridge, and left (unclear).
+    pub fit_corner: usize,
+    pub fit_ridge: usize,
+    pub fit_unclear: usize,
+    pub lengths: Vec<StageLength>,
+    pub warnings: Vec<String>,
+}
+
+fn total_length(s: &[Segment]) -> f64 {
+    s.iter().map(Segment::length).sum()
+}
+
 /// Steps 4–9 in order, calling `stage(name, segments_out, started)` after each.
 pub fn run_steps(
     engine: &dyn Engine,
     input: &LineSet,
     s: &Settings,
-    mut stage: impl FnMut(&str, usize, Instant),
+    stage: impl FnMut(&str, usize, Instant),
 ) -> Result<LineSet, EngineError> {
+    Ok(run_steps_noted(engine, input, &fit::Attributes::default(), s, stage)?.0)
+}
+
+/// [`run_steps`] with the Gaussians' attributes (normals for the edge fit) and the notes.
+pub fn run_steps_noted(
+    engine: &dyn Engine,
+    input: &LineSet,
+    attrs: &fit::Attributes,
+    s: &Settings,
+    mut stage: impl FnMut(&str, usize, Instant),
+) -> Result<(LineSet, StepNotes), EngineError> {
     let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let mut lines = input.clone();
     if fixes.order_endpoints {
@@ -40,18 +121,69 @@ pub fn run_steps(
             }
         }
     }
+    let mut notes = StepNotes {
+        fit: fixes.fit,
+        shifts: None,
+        fit_iterations: 0,
+        fit_corner: 0,
+        fit_ridge: 0,
+        fit_unclear: 0,
+        lengths: Vec::new(),
+        warnings: Vec::new(),
+    };
+    let mut last_len = total_length(&lines.segments);
+    let mut note_len = |name: &str, segs: &[Segment], notes: &mut StepNotes| {
+        let l = total_length(segs);
+        notes.lengths.push(StageLength {
+            name: name.to_string(),
+            length: l,
+            removed: last_len - l,
+        });
+        last_len = l;
+    };
+
     let t = Instant::now();
-    lines.segments = translate::translate(engine, &lines.segments, r, p.translate_keep)?;
+    let moved = match fixes.fit {
+        Fit::Paper => translate::translate(engine, &lines.segments, r, p.translate_keep)?,
+        Fit::None => lines.segments.clone(),
+        Fit::Edge => {
+            let f = fit::fit_edges(engine, &lines.segments, attrs, r, p)?;
+            notes.fit_iterations = f.iterations;
+            let count = |h| f.how.iter().filter(|&&x| x == h).count();
+            notes.fit_corner = count(fit::How::Corner);
+            notes.fit_ridge = count(fit::How::Ridge);
+            notes.fit_unclear = count(fit::How::Unclear);
+            f.segments
+        }
+    };
+    notes.shifts = Shifts::between(&lines.segments, &moved, r);
+    if let Some(s) = &notes.shifts {
+        // The edge fit moves lines onto edges on purpose; the published step follows the
+        // Gaussians wherever they sit.
+        if s.systematic && fixes.fit == Fit::Paper {
+            notes.warnings.push(format!(
+                "--fit paper: the median segment moved {:.2} r (90th percentile {:.2} r): the \
+                 Gaussians' ridge sits off the lines, so this step trades the lines' own \
+                 position for closeness to the Gaussians (and the paper's score); compare \
+                 --fit none and --fit edge",
+                s.median_r, s.p90_r
+            ));
+        }
+    }
+    lines.segments = moved;
+    note_len("translate", &lines.segments, &mut notes);
     stage("translate", lines.len(), t);
 
     let t = Instant::now();
     let o = outliers::outliers(engine, &lines.segments, r, p.outlier_ratio)?;
     lines = lines.select(&o.kept);
+    note_len("outliers", &lines.segments, &mut notes);
     stage("outliers", lines.len(), t);
 
     if p.collinear_merge && lines.groups.is_some() {
         let t = Instant::now();
         lines = mergejoin::collinear_merge(engine, &lines, s)?;
+        note_len("collinear_merge", &lines.segments, &mut notes);
         stage("collinear_merge", lines.len(), t);
     }
 
@@ -61,10 +193,12 @@ pub fn run_steps(
 
     let t = Instant::now();
     lines = mergejoin::merge_join(engine, &lines, &clusters, s)?;
+    note_len("merge_join", &lines.segments, &mut notes);
     stage("merge_join", lines.len(), t);
 
     let t = Instant::now();
     lines.segments = crop::crop(engine, &lines.segments, s)?;
+    note_len("crop", &lines.segments, &mut notes);
     stage("crop", lines.len(), t);
-    Ok(lines)
+    Ok((lines, notes))
 }

@@ -16,6 +16,31 @@ pub enum Profile {
     Reference,
 }
 
+/// Where step 4 moves each line (`--fit`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Fit {
+    /// The published step: the mean offset of the nearest `translate_keep` of the points.
+    /// It follows the Gaussians: use it to reproduce the paper, or to represent the
+    /// Gaussians themselves.
+    Paper,
+    /// Onto the edge the Gaussians describe (two faces' intersection where normals exist,
+    /// else the dense ridge; no move where neither is clear), iterated to convergence.
+    Edge,
+    /// No move.
+    None,
+}
+
+impl Fit {
+    pub fn name(self) -> &'static str {
+        match self {
+            Fit::Paper => "paper",
+            Fit::Edge => "edge",
+            Fit::None => "none",
+        }
+    }
+}
+
 /// Denominator of `R_L` (SPEC 5).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -87,6 +112,13 @@ fn finite(s: &str) -> Result<f64, String> {
     }
 }
 
+fn extend_factor(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (0.0..=10.0).contains(&v) => Ok(v),
+        _ => Err(format!("expected a number in [0, 10], got `{s}`")),
+    }
+}
+
 fn fraction(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
@@ -139,6 +171,28 @@ pub struct Params {
     /// Translate: fraction of the points nearest to the line whose mean offset moves it.
     #[arg(long, default_value_t = 0.4, value_parser = fraction)]
     pub translate_keep: f64,
+    /// Step 4: `paper` (mean offset of the nearest translate-keep, the published step: to
+    /// reproduce the paper, or to put the lines where the Gaussians are), `edge` (fit the
+    /// edge: two faces' corner where the model has normals, else the dense ridge, iterated;
+    /// to put the lines on the true edges) or `none`. Default: the profile's (`edge` for
+    /// default, `paper` for reference).
+    #[arg(long, value_enum)]
+    pub fit: Option<Fit>,
+    /// Edge fit: most iterations (one engine batch each).
+    #[arg(long, default_value_t = 12)]
+    pub fit_iterations: u32,
+    /// Edge fit: largest turn of a line per iteration (degrees).
+    #[arg(long, default_value_t = 3.0, value_parser = positive)]
+    pub fit_max_turn_deg: f64,
+    /// Edge fit: largest total move of an endpoint, in units of r.
+    #[arg(long, default_value_t = 2.0, value_parser = positive)]
+    pub fit_max_move: f64,
+    /// Edge fit: final width of the ridge kernel, in units of r.
+    #[arg(long, default_value_t = 0.25, value_parser = positive)]
+    pub fit_bandwidth: f64,
+    /// Edge fit: fewest points under the kernel (or per face family) for a move.
+    #[arg(long, default_value_t = 8)]
+    pub fit_min_points: u32,
 
     /// Outliers: drop segments with density <= ratio x mean density; -1 uses
     /// max(mean - 2 std, 0).
@@ -205,6 +259,13 @@ pub struct Params {
     /// holding the end out past the corner.
     #[arg(long, value_parser = positive)]
     pub crop_probe_half: Option<f64>,
+    /// Crop: also extend an end whose window is dense, along the line, while windows past
+    /// it stay dense, by at most this x L (0: never extend, the paper's crop). Windows of
+    /// 2 x the probe half length march outward, one batch per step, and the last is
+    /// bisected; a corner stops the march, since past it the cylinder holds only the
+    /// other edge's cross-section. 0 to 10; at most 256 windows an end.
+    #[arg(long, default_value_t = 0.0, value_parser = extend_factor)]
+    pub crop_extend: f64,
     /// Crop: most probes of the binary search, 1 to 64 (after 53 halvings an f64
     /// interval cannot shrink further, so more would only spin).
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=64))]
@@ -255,6 +316,12 @@ impl Default for Params {
             profile: Profile::Default,
             radius: RadiusArg::Fixed(0.03),
             translate_keep: 0.4,
+            fit: None,
+            fit_iterations: 12,
+            fit_max_turn_deg: 3.0,
+            fit_max_move: 2.0,
+            fit_bandwidth: 0.25,
+            fit_min_points: 8,
             outlier_ratio: 0.2,
             collinear_merge: true,
             cluster_min_weight: 0.4,
@@ -273,6 +340,7 @@ impl Default for Params {
             crop_mid_frac: 0.6,
             crop_ratio: 0.5,
             crop_probe_half: None,
+            crop_extend: 0.0,
             crop_max_probes: 10,
             crop_min_interval: 1e-4,
             fix_cluster_distance: None,
@@ -298,6 +366,7 @@ pub struct Fixes {
     pub crop_density: bool,
     pub order_endpoints: bool,
     pub r_l: RlMode,
+    pub fit: Fit,
 }
 
 /// The parameters resolved once, for one run: the profile's fixes applied and the
@@ -422,6 +491,7 @@ impl Params {
             join_gap: self.fix_join_gap.unwrap_or(on),
             crop_density: self.fix_crop_density.unwrap_or(on),
             order_endpoints: self.order_endpoints.unwrap_or(!on),
+            fit: self.fit.unwrap_or(if on { Fit::Edge } else { Fit::Paper }),
             r_l: self
                 .eval
                 .r_l
@@ -439,6 +509,8 @@ mod tests {
         let d = Params::default().fixes();
         assert!(d.cluster_distance && d.merge_extent && d.join_order && d.join_gap);
         assert!(d.crop_density && !d.order_endpoints && d.r_l == RlMode::Paper);
+        assert_eq!(d.fit, Fit::Edge);
+        assert_eq!(Params::reference().fixes().fit, Fit::Paper);
         assert!(d.merge_overlap && !Params::reference().fixes().merge_overlap);
         let r = Params::reference().fixes();
         assert!(!r.cluster_distance && !r.merge_extent && !r.join_order && !r.join_gap);

@@ -347,6 +347,13 @@ impl Engine for GpuEngine {
         Ok(out)
     }
 
+    /// Documented fallback: answered on the host over the same grid by the CPU engine's
+    /// code (no kernel writes per-point lists; reading them back is O(members) anyway).
+    fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
+        self.count_batch(queries.len());
+        Ok(super::cpu::members_of(&self.grid, queries))
+    }
+
     fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {
         self.count_batch(queries.len());
         let n = self.grid.len();

@@ -1,0 +1,193 @@
+"""linegs: refine noisy 3D line segments with the Gaussian centers of a trained 3D Gaussian
+Splatting model (the LineGS method), on the CPU or the GPU.
+
+The Python face of ``linegs-gpu``: the same library entry point as the command line, so
+``refine`` returns exactly the segments that ``linegs-gpu refine`` writes, and the report
+dict has the shape of ``linegs-gpu refine --report`` (SPEC 7).
+
+>>> import linegs
+>>> g = linegs.read_gaussians("point_cloud.ply")          # (N, 3) float32
+>>> lines = linegs.read_lines("Line3D++.obj")             # (M, 2, 3) float64
+>>> refined, report = linegs.refine(g, lines, radius=0.05)
+>>> report["after"]["score"]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _linegs
+from ._linegs import InputError, LinegsError
+
+__all__ = [
+    "InputError",
+    "LinegsError",
+    "PARAMS",
+    "evaluate",
+    "read_gaussians",
+    "read_lines",
+    "refine",
+    "write_lines",
+]
+__version__: str = _linegs.__version__
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+#: Every refinement parameter ``refine`` accepts as a keyword (the command line's
+#: ``--kebab-case`` options with underscores), e.g. ``translate_keep``, ``fix_join_gap``.
+PARAMS: Tuple[str, ...] = tuple(_linegs.param_names())
+
+
+def _warn(warnings: Sequence[str]) -> None:
+    import warnings as w
+
+    for msg in warnings:
+        w.warn(msg, stacklevel=3)
+
+
+def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, strict: bool = False) -> np.ndarray:
+    """The Gaussian centers of a 3DGS model (PLY, SuperSplat, SPZ, .splat): ``(N, 3)``
+    float32.
+
+    ``min_opacity`` keeps only Gaussians with ``sigmoid(opacity) >= min_opacity``. Centers
+    that are NaN or infinite are skipped with a warning (an error with ``strict=True``).
+    Raises :class:`InputError` naming the file and the place for a bad file.
+    """
+    data, warnings = _linegs.read_gaussians(os.fspath(path), min_opacity, strict)
+    _warn(warnings)
+    return np.frombuffer(data, dtype=np.float32).reshape(-1, 3).copy()
+
+
+def read_lines(path: PathLike, *, groups: bool = False) -> Any:
+    """Line segments of any supported format (Line3D++ ``.txt``/``.obj``/``.stl``, LIMAP
+    ``.npy``, plain text, edge PLY): ``(M, 2, 3)`` float64, endpoints ``[:, 0]`` and
+    ``[:, 1]``. Degenerate segments are dropped with a warning.
+
+    With ``groups=True`` returns ``(segments, groups)``, where ``groups`` is the input
+    line of each segment (``(M,)`` uint32; Line3D++ ``.txt``) or ``None``; pass it on to
+    :func:`refine` so the collinear merge sees the lines, as the command line does.
+    """
+    data, g, warnings = _linegs.read_lines(os.fspath(path))
+    _warn(warnings)
+    segs = np.frombuffer(data, dtype=np.float64).reshape(-1, 2, 3).copy()
+    if groups:
+        return segs, (None if g is None else np.asarray(g, dtype=np.uint32))
+    return segs
+
+
+def write_lines(path: PathLike, segments: Any) -> None:
+    """Writes ``(K, 2, 3)`` segments; the format follows the extension (``.obj``, ``.stl``,
+    ``.ply``, ``.txt``, ``.npy``), atomically."""
+    _linegs.write_lines(os.fspath(path), _segments(segments, "segments"))
+
+
+def _points(a: Any) -> bytes:
+    a = np.asarray(a)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InputError(f"gaussians: expected an (N, 3) array of centers, got shape {a.shape}")
+    return np.ascontiguousarray(a, dtype=np.float32).tobytes()
+
+
+def _segments(a: Any, what: str) -> bytes:
+    a = np.asarray(a)
+    if a.ndim == 2 and a.shape[1] == 6:
+        a = a.reshape(-1, 2, 3)
+    if a.ndim != 3 or a.shape[1:] != (2, 3):
+        raise InputError(f"{what}: expected an (M, 2, 3) array of segments, got shape {a.shape}")
+    return np.ascontiguousarray(a, dtype=np.float64).tobytes()
+
+
+def _args(params: Dict[str, Any]) -> list:
+    unknown = sorted(set(params) - set(PARAMS))
+    if unknown:
+        raise TypeError(
+            f"unexpected keyword argument{'s' if len(unknown) > 1 else ''} "
+            f"{', '.join(repr(u) for u in unknown)}; the parameters are: {', '.join(PARAMS)}"
+        )
+    out = []
+    for k, v in params.items():
+        if v is None:
+            continue
+        if isinstance(v, bool):
+            v = "true" if v else "false"
+        elif isinstance(v, float):
+            v = repr(v)
+        # `--name=value`, so that a negative number is a value, not a flag
+        out.append(f"--{k.replace('_', '-')}={v}")
+    return out
+
+
+def refine(
+    gaussians: Any,
+    segments: Any,
+    *,
+    radius: Union[float, str] = 0.03,
+    eval_radius: float = 0.1,
+    profile: str = "default",
+    backend: str = "auto",
+    groups: Any = None,
+    gt: Any = None,
+    radii: Optional[Sequence[float]] = None,
+    **params: Any,
+) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """Refines ``segments`` ``(M, 2, 3)`` against the Gaussian ``(N, 3)`` centers (LineGS:
+    translate, outliers, collinear merge, cluster, merge and join, crop) and returns the
+    refined ``(K, 2, 3)`` float64 segments and the report dict (``before``/``after``
+    metrics, ``stages``, ``params``, ...), the same as ``linegs-gpu refine``.
+
+    ``radius``: the cylinder radius in scene units, or ``"auto"``. ``profile``:
+    ``"default"`` (the paper's intent) or ``"reference"`` (the authors' code).
+    ``backend``: ``"auto"``, ``"gpu"`` or ``"cpu"``. ``groups``: the input line of each
+    segment (see :func:`read_lines`). ``gt``: ground-truth edges for the ABC-NEF metrics
+    (``report["ground_truth"]``). ``radii``: a radius sweep (``report["sweep"]``).
+    Every other parameter of :data:`PARAMS` is a keyword, e.g. ``translate_keep=0.4``.
+
+    The computation runs without the GIL. Raises :class:`InputError` for bad arrays or
+    options (with the command line's messages), :class:`LinegsError` otherwise.
+    """
+    args = _args(dict(radius=radius, eval_radius=eval_radius, profile=profile, **params))
+    g = None if groups is None else [int(x) for x in np.asarray(groups).ravel()]
+    data, report = _linegs.refine(
+        _points(gaussians),
+        _segments(segments, "segments"),
+        g,
+        args,
+        backend,
+        None if gt is None else _segments(gt, "gt"),
+        None if radii is None else [float(r) for r in radii],
+    )
+    return np.frombuffer(data, dtype=np.float64).reshape(-1, 2, 3).copy(), json.loads(report)
+
+
+def evaluate(
+    gaussians: Any,
+    segments: Any,
+    *,
+    eval_radius: float = 0.1,
+    gt: Any = None,
+    compare: Any = None,
+    radii: Optional[Sequence[float]] = None,
+    profile: str = "default",
+    backend: str = "auto",
+    **params: Any,
+) -> Dict[str, Any]:
+    """The paper's metrics of ``segments`` (E_rms, R_covered, R_L, score) at
+    ``eval_radius``, as ``linegs-gpu eval --json``: ``report["before"]`` for
+    ``segments``, ``report["after"]`` for ``compare`` (measured on the same working set),
+    ``report["ground_truth"]`` against ``gt``, ``report["sweep"]`` at ``radii``.
+    Keywords as for :func:`refine` (``unit_scale``, ``score_lambda``, ``r_l``, ...)."""
+    args = _args(dict(eval_radius=eval_radius, profile=profile, **params))
+    report = _linegs.evaluate(
+        _points(gaussians),
+        _segments(segments, "segments"),
+        args,
+        backend,
+        None if compare is None else _segments(compare, "compare"),
+        None if gt is None else _segments(gt, "gt"),
+        None if radii is None else [float(r) for r in radii],
+    )
+    return json.loads(report)

@@ -1,0 +1,252 @@
+//! The native half of the `linegs` Python package: thin wrappers over
+//! [`linegs_gpu::pipeline`], the entry point the command line uses too. Arrays cross as
+//! native-endian bytes (`f32` Gaussians, `f64` segments) that the Python half converts
+//! with numpy; every computation runs with the GIL released.
+
+use clap::{Args, CommandFactory as _, FromArgMatches};
+use linegs_gpu::engine::select::Backend;
+use linegs_gpu::geom::{LineSet, Segment};
+use linegs_gpu::io;
+use linegs_gpu::pipeline::{self, Job, LoadOptions, RunError, Scene};
+use linegs_gpu::refine::Params;
+use pyo3::create_exception;
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use std::path::PathBuf;
+
+create_exception!(
+    _linegs,
+    InputError,
+    PyValueError,
+    "Bad input: an unreadable or malformed file, an invalid array or option (the command \
+     line's exit code 2)."
+);
+create_exception!(
+    _linegs,
+    LinegsError,
+    PyRuntimeError,
+    "A failure that is not the input's fault: the GPU, the file system."
+);
+
+fn to_py(e: RunError) -> PyErr {
+    if e.is_input_error() {
+        InputError::new_err(e.to_string())
+    } else {
+        LinegsError::new_err(e.to_string())
+    }
+}
+
+fn io_to_py(e: io::Error) -> PyErr {
+    to_py(RunError::Io(e))
+}
+
+fn points(bytes: &[u8]) -> Vec<[f32; 3]> {
+    bytes
+        .chunks_exact(12)
+        .map(|c| {
+            let f = |i: usize| f32::from_ne_bytes(c[i..i + 4].try_into().expect("4 bytes"));
+            [f(0), f(4), f(8)]
+        })
+        .collect()
+}
+
+fn segments(bytes: &[u8]) -> Vec<Segment> {
+    bytes
+        .chunks_exact(48)
+        .map(|c| {
+            let f = |i: usize| f64::from_ne_bytes(c[8 * i..8 * i + 8].try_into().expect("8 bytes"));
+            Segment::from_arrays([f(0), f(1), f(2)], [f(3), f(4), f(5)])
+        })
+        .collect()
+}
+
+fn segment_bytes(segs: &[Segment]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(segs.len() * 48);
+    for s in segs {
+        for v in [s.p1, s.p2] {
+            for x in [v.x, v.y, v.z] {
+                out.extend_from_slice(&x.to_ne_bytes());
+            }
+        }
+    }
+    out
+}
+
+/// The long names of every parameter (`translate_keep`, ...), as `refine` accepts them.
+#[pyfunction]
+fn param_names() -> Vec<String> {
+    Params::augment_args(clap::Command::new("refine"))
+        .get_arguments()
+        .filter_map(|a| a.get_long().map(|l| l.replace('-', "_")))
+        .collect()
+}
+
+/// Parameters from command-line style arguments (`["--radius", "0.05", ...]`), with the
+/// command line's checks and messages.
+fn params(args: Vec<String>) -> PyResult<Params> {
+    #[derive(clap::Parser)]
+    #[command(name = "linegs", no_binary_name = true)]
+    struct P {
+        #[command(flatten)]
+        params: Params,
+    }
+    let m = P::command().try_get_matches_from(args).map_err(|e| {
+        let text = e.render().to_string();
+        let first = text.lines().next().unwrap_or("invalid parameters");
+        InputError::new_err(first.trim_start_matches("error: ").to_string())
+    })?;
+    let p = P::from_arg_matches(&m).map_err(|e| InputError::new_err(e.to_string()))?;
+    Ok(p.params)
+}
+
+fn backend(name: &str) -> PyResult<Backend> {
+    <Backend as clap::ValueEnum>::from_str(name, true).map_err(|_| {
+        InputError::new_err(format!("backend `{name}`: expected `auto`, `gpu` or `cpu`"))
+    })
+}
+
+fn scene(gaussians: &[u8], segs: &[u8], groups: Option<Vec<u32>>) -> Result<Scene, RunError> {
+    let segments = segments(segs);
+    if let Some(g) = &groups {
+        if g.len() != segments.len() {
+            return Err(RunError::Input(format!(
+                "groups: {} entries for {} segments",
+                g.len(),
+                segments.len()
+            )));
+        }
+    }
+    Scene::from_arrays(points(gaussians), LineSet { segments, groups })
+}
+
+/// `(bytes of N x 3 f32, warnings)`.
+#[pyfunction]
+#[pyo3(signature = (path, min_opacity = None, strict = false))]
+fn read_gaussians(
+    py: Python<'_>,
+    path: PathBuf,
+    min_opacity: Option<f64>,
+    strict: bool,
+) -> PyResult<(Py<PyBytes>, Vec<String>)> {
+    let opts = LoadOptions {
+        min_opacity,
+        strict,
+        ..LoadOptions::default()
+    };
+    let cloud = py
+        .detach(|| pipeline::read_gaussians(&path, &opts))
+        .map_err(to_py)?;
+    let bytes: Vec<u8> = cloud
+        .centers
+        .iter()
+        .flatten()
+        .flat_map(|x| x.to_ne_bytes())
+        .collect();
+    Ok((PyBytes::new(py, &bytes).unbind(), cloud.warnings))
+}
+
+/// `(bytes of M x 2 x 3 f64, groups or None, warnings)`.
+#[pyfunction]
+fn read_lines(
+    py: Python<'_>,
+    path: PathBuf,
+) -> PyResult<(Py<PyBytes>, Option<Vec<u32>>, Vec<String>)> {
+    let f = py.detach(|| io::read_lines(&path)).map_err(io_to_py)?;
+    let bytes = segment_bytes(&f.lines.segments);
+    Ok((
+        PyBytes::new(py, &bytes).unbind(),
+        f.lines.groups,
+        f.warnings,
+    ))
+}
+
+#[pyfunction]
+fn write_lines(py: Python<'_>, path: PathBuf, segments_f64: &[u8]) -> PyResult<()> {
+    py.detach(|| {
+        let segs = segments(segments_f64);
+        if let Some(i) = segs
+            .iter()
+            .position(|s| !(s.p1.is_finite() && s.p2.is_finite()))
+        {
+            return Err(RunError::Input(format!(
+                "{}: segment {i} has a NaN or infinite coordinate",
+                path.display()
+            )));
+        }
+        io::check_line_output(&path)?;
+        io::write_lines(&path, &segs)?;
+        Ok(())
+    })
+    .map_err(to_py)
+}
+
+/// `(bytes of K x 2 x 3 f64, report JSON)`.
+#[pyfunction]
+#[pyo3(signature = (gaussians_f32, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None))]
+#[allow(clippy::too_many_arguments)]
+fn refine(
+    py: Python<'_>,
+    gaussians_f32: &[u8],
+    segments_f64: &[u8],
+    groups: Option<Vec<u32>>,
+    args: Vec<String>,
+    backend_name: &str,
+    gt_f64: Option<&[u8]>,
+    sweep: Option<Vec<f64>>,
+) -> PyResult<(Py<PyBytes>, String)> {
+    let job = Job {
+        sweep,
+        gt: gt_f64.map(segments),
+        ..Job::new(params(args)?, backend(backend_name)?)
+    };
+    let (bytes, report) = py
+        .detach(|| {
+            let s = scene(gaussians_f32, segments_f64, groups)?;
+            let out = job.refine(&s, |_| {})?;
+            Ok::<_, RunError>((segment_bytes(&out.lines.segments), out.report.to_json()))
+        })
+        .map_err(to_py)?;
+    Ok((PyBytes::new(py, &bytes).unbind(), report))
+}
+
+/// The report JSON of `eval` (before: the segments; after: `compare`).
+#[pyfunction]
+#[pyo3(signature = (gaussians_f32, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None))]
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    py: Python<'_>,
+    gaussians_f32: &[u8],
+    segments_f64: &[u8],
+    args: Vec<String>,
+    backend_name: &str,
+    compare_f64: Option<&[u8]>,
+    gt_f64: Option<&[u8]>,
+    sweep: Option<Vec<f64>>,
+) -> PyResult<String> {
+    let job = Job {
+        sweep,
+        gt: gt_f64.map(segments),
+        ..Job::new(params(args)?, backend(backend_name)?)
+    };
+    py.detach(|| {
+        let s = scene(gaussians_f32, segments_f64, None)?;
+        let compare = compare_f64.map(|c| LineSet::new(segments(c)));
+        Ok::<_, RunError>(job.evaluate(&s, compare.as_ref())?.to_json())
+    })
+    .map_err(to_py)
+}
+
+#[pymodule]
+fn _linegs(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("InputError", m.py().get_type::<InputError>())?;
+    m.add("LinegsError", m.py().get_type::<LinegsError>())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_function(wrap_pyfunction!(param_names, m)?)?;
+    m.add_function(wrap_pyfunction!(read_gaussians, m)?)?;
+    m.add_function(wrap_pyfunction!(read_lines, m)?)?;
+    m.add_function(wrap_pyfunction!(write_lines, m)?)?;
+    m.add_function(wrap_pyfunction!(refine, m)?)?;
+    m.add_function(wrap_pyfunction!(evaluate, m)?)?;
+    Ok(())
+}

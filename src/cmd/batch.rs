@@ -1,0 +1,99 @@
+use super::input_error;
+use anyhow::Result;
+use clap::Args;
+use linegs_gpu::batch::{self, BatchOptions, Manifest, Shard, Status};
+use linegs_gpu::engine::select::Backend;
+use linegs_gpu::refine::Params;
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+#[command(after_help = "Manifest (CSV, paths relative to it):
+  name,gaussians,lines,gt,radius,eval_radius
+  chair,chair/point_cloud.ply,chair/Line3D++.txt,,0.05,
+  abc_00000006,abc/6/gaussians.ply,abc/6/lines.obj,abc/6/gt.txt,0.01,0.02
+
+Slurm: `sbatch --array=0-3 ...` with `linegs-gpu batch m.csv -o out` in each task runs a
+quarter of the scenes each; rerun with --skip-existing afterwards to fill in the summary.")]
+pub struct BatchArgs {
+    /// The manifest: a CSV with a header `name,gaussians,lines` and optionally `gt`,
+    /// `radius`, `eval_radius` (a scene's values override the options), one scene a row.
+    #[arg(value_name = "MANIFEST.csv")]
+    pub manifest: PathBuf,
+    /// Output folder: `<name>/refined.<format>` and `<name>/report.json` per scene
+    /// (`<name>/error.txt` when it failed), `summary.csv` and `summary.md`.
+    #[arg(short, long, value_name = "OUTDIR")]
+    pub output: PathBuf,
+    /// Leave the scenes that already have a report (resume an interrupted run).
+    #[arg(long)]
+    pub skip_existing: bool,
+    /// Run every n-th scene starting at the i-th (0-based), e.g. `1/4`. Default: from
+    /// SLURM_ARRAY_TASK_ID / SLURM_ARRAY_TASK_COUNT (minus SLURM_ARRAY_TASK_MIN) when
+    /// they are set, else all scenes.
+    #[arg(long, value_name = "i/n")]
+    pub shard: Option<Shard>,
+    /// Format of the refined segments: obj, stl, ply, txt or npy.
+    #[arg(long, default_value = "obj")]
+    pub format: String,
+    /// Which engine answers the cylinder queries: `auto`, `gpu` or `cpu`.
+    #[arg(long, value_enum, default_value_t = Backend::Auto)]
+    pub backend: Backend,
+    #[command(flatten)]
+    pub params: Params,
+}
+
+pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
+    let shard = match a.shard {
+        Some(s) => s,
+        None => Shard::from_env(|k| std::env::var(k).ok())
+            .map_err(input_error)?
+            .unwrap_or_default(),
+    };
+    let m = Manifest::read(&a.manifest)?;
+    let mine = (0..m.entries.len()).filter(|&i| shard.includes(i)).count();
+    println!(
+        "{}: {} scenes, shard {}/{} runs {mine}",
+        a.manifest.display(),
+        m.entries.len(),
+        shard.index,
+        shard.count
+    );
+    let opts = BatchOptions {
+        params: a.params,
+        backend: a.backend,
+        shard,
+        skip_existing: a.skip_existing,
+        format: a.format.trim_start_matches('.').to_string(),
+    };
+    let mut k = 0;
+    let results = batch::run(&m, &a.output, &opts, |e, st| {
+        k += 1;
+        match st {
+            Status::Done { seconds } => println!("[{k}/{mine}] {}: done in {seconds:.2} s", e.name),
+            Status::Skipped => println!("[{k}/{mine}] {}: skipped (it has a report)", e.name),
+            Status::Failed(msg) => {
+                println!("[{k}/{mine}] {}: FAILED", e.name);
+                eprintln!("error: {}: {msg}", e.name);
+            }
+        }
+        if verbose {
+            println!("  {}", batch::scene_dir(&a.output, &e.name).display());
+        }
+    })?;
+    let s = batch::summarize(&m, &a.output);
+    println!(
+        "wrote {} and summary.md: {} of {} scenes finished",
+        a.output.join("summary.csv").display(),
+        s.finished,
+        s.rows.len()
+    );
+    let failed = results
+        .iter()
+        .filter(|(_, st)| matches!(st, Status::Failed(_)))
+        .count();
+    if failed > 0 {
+        anyhow::bail!(
+            "{failed} of {mine} scenes of this shard failed (see their error.txt and the summary)"
+        );
+    }
+    Ok(())
+}

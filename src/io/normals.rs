@@ -1,0 +1,141 @@
+//! The surface normals of a 3DGS model: each Gaussian's shortest axis (rotation
+//! `rot_0..3` = w x y z, log scales `scale_0..2`), for the edge fit. Kept apart from the
+//! center reader: it is needed only by `--fit edge`, and it reads three times the data.
+
+use std::fs::File;
+use std::path::Path;
+
+use super::chunked::{Chunked, CHUNK};
+use super::error::Error;
+use super::ply::{parse_header, Body, PropKind};
+
+/// Unit normals of the Gaussians that [`super::read_gaussians`] keeps with the same
+/// `min_opacity` (finite centers, opacity cut), in the same order; `None` when the file
+/// has no rotation and scale properties (then there are no normals to use).
+pub fn read_gaussian_normals(
+    path: &Path,
+    min_opacity: Option<f64>,
+) -> Result<Option<Vec<[f32; 3]>>, Error> {
+    let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
+    let file_len = file
+        .metadata()
+        .map_err(|e| Error::io(path, "read metadata of", e))?
+        .len();
+    let mut ch = Chunked::new(file, CHUNK.min(file_len as usize + 1), 0);
+    ch.fill().map_err(|e| Error::io(path, "read", e))?;
+    let head = ch.available();
+    if !head.starts_with(b"ply") {
+        return Ok(None);
+    }
+    let header = parse_header(path, head, head.len() as u64 == file_len)?;
+    let header_lines = head[..header.len].iter().filter(|&&b| b == b'\n').count();
+    ch.consume(header.len);
+    let Some(vi) = header.element("vertex") else {
+        return Ok(None);
+    };
+    let vertex = &header.elements[vi];
+    let scalar = |name: &str| {
+        vertex
+            .prop(name)
+            .filter(|&i| matches!(vertex.props[i].kind, PropKind::Scalar(_)))
+    };
+    let mut wanted = Vec::new();
+    for name in [
+        "x", "y", "z", "rot_0", "rot_1", "rot_2", "rot_3", "scale_0", "scale_1", "scale_2",
+    ] {
+        match scalar(name) {
+            Some(i) => wanted.push(i),
+            None => return Ok(None),
+        }
+    }
+    if min_opacity.is_some() {
+        match scalar("opacity") {
+            Some(i) => wanted.push(i),
+            None => return Ok(None),
+        }
+    }
+    let mut body = Body::new(ch, &header, header_lines);
+    for elem in &header.elements[..vi] {
+        body.skip(path, elem)?;
+    }
+    let mut out = Vec::with_capacity(vertex.count);
+    body.for_each(path, vertex, &wanted, |_, v| {
+        let c = [v[0] as f32, v[1] as f32, v[2] as f32];
+        if !c.iter().all(|x| x.is_finite()) {
+            return Ok(());
+        }
+        if let Some(t) = min_opacity {
+            let alpha = 1.0 / (1.0 + (-(v[10] as f32 as f64)).exp());
+            if alpha.is_nan() || alpha < t {
+                return Ok(());
+            }
+        }
+        out.push(shortest_axis([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]]));
+        Ok(())
+    })?;
+    Ok(Some(out))
+}
+
+/// The rotation's column of the smallest scale (log scales, as 3DGS stores them); zero for a
+/// degenerate quaternion, or a Gaussian that is not flat (its shortest axis is not 1.5x
+/// shorter than the next: no surface normal to speak of).
+pub fn shortest_axis(q: [f64; 4], scale: [f64; 3]) -> [f32; 3] {
+    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    if n.is_nan() || n <= 0.0 || !n.is_finite() {
+        return [0.0; 3];
+    }
+    let [w, x, y, z] = q.map(|c| c / n);
+    // Columns of the rotation matrix of (w, x, y, z).
+    let cols = [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y + w * z),
+            2.0 * (x * z - w * y),
+        ],
+        [
+            2.0 * (x * y - w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z + w * x),
+        ],
+        [
+            2.0 * (x * z + w * y),
+            2.0 * (y * z - w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ];
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| scale[a].total_cmp(&scale[b]));
+    if scale[order[0]].is_nan() || scale[order[0]] + 1.5f64.ln() > scale[order[1]] {
+        return [0.0; 3];
+    }
+    cols[order[0]].map(|c| c as f32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_normal_is_the_rotated_shortest_axis() {
+        // identity: the axis of the smallest scale
+        assert_eq!(
+            shortest_axis([1.0, 0.0, 0.0, 0.0], [0.0, -3.0, 0.0]),
+            [0.0, 1.0, 0.0]
+        );
+        // 90 degrees about z maps x to y
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let n = shortest_axis([h, 0.0, 0.0, h], [-5.0, 0.0, 0.0]);
+        assert!((n[0]).abs() < 1e-6 && (n[1] - 1.0).abs() < 1e-6 && n[2].abs() < 1e-6);
+        // unnormalized quaternions are normalized; degenerate ones give no normal
+        assert_eq!(
+            shortest_axis([2.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0]),
+            [0.0, 0.0, 1.0]
+        );
+        assert_eq!(shortest_axis([0.0; 4], [0.0, 0.0, -1.0]), [0.0; 3]);
+        // a round Gaussian has no normal
+        assert_eq!(
+            shortest_axis([1.0, 0.0, 0.0, 0.0], [-2.0, -2.1, -2.0]),
+            [0.0; 3]
+        );
+    }
+}

@@ -1,0 +1,409 @@
+//! Step 4 beyond the paper: where the line goes. `--fit paper` is the published translation
+//! (mean offset of the nearest 40%, [`super::translate`]); `--fit none` leaves the lines;
+//! `--fit edge` estimates the edge itself from the Gaussians in the cylinder and moves the
+//! line onto it, iterated to convergence with one engine batch per iteration for all
+//! segments still moving.
+//!
+//! One iteration, per segment (in the frame of its current line: axial `t`, 2D offset `q`
+//! in the plane perpendicular to `d`):
+//! - **Two faces** (only where the Gaussians carry normals, a flat Gaussian's shortest
+//!   axis): the normals that lie across the line fall into two families 20° or more apart;
+//!   each family's plane is fitted robustly (median offset along its mean normal) in each
+//!   half of the segment, and the two planes' intersection in each half gives the line.
+//! - **Ridge** otherwise: a line `q = a + b (t - t̄)` fitted by iteratively reweighted least
+//!   squares with a Gaussian kernel on the residual whose width shrinks from `r/2` to
+//!   `fit_bandwidth x r` — mode seeking, so a shell of face Gaussians around a dense ridge
+//!   does not pull the line off it the way a mean does.
+//! - **Neither clear** (too few points carry the kernel's weight): no move.
+//!
+//! Each step moves a line by at most `0.5 r` and turns it by at most `fit_max_turn_deg`
+//! (and so that neither end moves more than `r/4` by the turn);
+//! its total move stays within `fit_max_move x r` (default 2) of where it started, so a
+//! line is never carried over to another edge.
+
+use crate::engine::{Engine, EngineError, Member, Query};
+use crate::geom::Segment;
+use crate::refine::Params;
+use glam::{DVec2, DVec3};
+
+/// Per-point attributes of the working set (index = working-set id), where the file has them.
+#[derive(Clone, Debug, Default)]
+pub struct Attributes {
+    /// Unit surface normal of each Gaussian (its shortest axis).
+    pub normals: Option<Vec<[f32; 3]>>,
+}
+
+impl Attributes {
+    /// Per-Gaussian `normals` (same order as `centers`) cut to the working set of
+    /// `segments` by the same box test as [`crate::index::WorkingSet::new`]; `None` when
+    /// the counts differ.
+    pub fn for_working_set(
+        centers: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        segments: &[Segment],
+    ) -> Option<Attributes> {
+        if centers.len() != normals.len() {
+            return None;
+        }
+        let bounds = crate::geom::Aabb::of_segments(segments).grown(0.1);
+        let kept = centers
+            .iter()
+            .zip(normals)
+            .filter(|(c, _)| !bounds.is_empty() && bounds.contains(crate::geom::p64(**c)))
+            .map(|(_, n)| *n)
+            .collect();
+        Some(Attributes {
+            normals: Some(kept),
+        })
+    }
+}
+
+/// What the fit did to one segment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum How {
+    Corner,
+    Ridge,
+    Unclear,
+}
+
+pub struct FitResult {
+    pub segments: Vec<Segment>,
+    /// How each segment's last move was decided.
+    pub how: Vec<How>,
+    /// Engine batches used.
+    pub iterations: u32,
+}
+
+/// Two perpendicular unit vectors across `d`.
+fn basis(d: DVec3) -> (DVec3, DVec3) {
+    let a = if d.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
+    let e1 = (a - d * a.dot(d)).normalize();
+    (e1, d.cross(e1))
+}
+
+/// The line model `q(t) = a + b (t - t0)` in a segment's cross-section frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct LineFit {
+    t0: f64,
+    a: DVec2,
+    b: DVec2,
+}
+
+/// Weighted least squares of `q` on `t`; `None` without weight or axial spread.
+fn weighted_line(pts: &[(f64, DVec2)], w: &[f64]) -> Option<LineFit> {
+    let sw: f64 = w.iter().sum();
+    if sw <= 0.0 {
+        return None;
+    }
+    let t0 = pts.iter().zip(w).map(|(p, w)| p.0 * w).sum::<f64>() / sw;
+    let a = pts.iter().zip(w).map(|(p, w)| p.1 * *w).sum::<DVec2>() / sw;
+    let mut stt = 0.0;
+    let mut stq = DVec2::ZERO;
+    for (p, w) in pts.iter().zip(w) {
+        let dt = p.0 - t0;
+        stt += w * dt * dt;
+        stq += (p.1 - a) * (w * dt);
+    }
+    let b = if stt > 1e-300 { stq / stt } else { DVec2::ZERO };
+    Some(LineFit { t0, a, b })
+}
+
+/// The ridge: first its position by mean shift of the cross-section offsets (a Gaussian
+/// kernel whose width shrinks to `fit_bandwidth x r`), then its direction by a
+/// kernel-weighted fit of offset against axial position around that position. Returns the
+/// fit and the weight (effective number of points) under the final kernel. Position first:
+/// a line fitted freely through two parallel ridges can settle crossing them.
+fn ridge(pts: &[(f64, DVec2)], r: f64, p: &Params) -> Option<(LineFit, f64)> {
+    if pts.is_empty() {
+        return None;
+    }
+    let h_min = p.fit_bandwidth * r;
+    // Starting at half the radius keeps the line on its own ridge when another lies
+    // within r; a ridge that is the only one in the cylinder is reached from there, as
+    // the kernel's mean is a mean of points.
+    let mut h = (0.5 * r).max(h_min);
+    let mut c = DVec2::ZERO;
+    let mut w = vec![0.0; pts.len()];
+    for _ in 0..100 {
+        for (wi, (_, q)) in w.iter_mut().zip(pts) {
+            *wi = (-(*q - c).length_squared() / (2.0 * h * h)).exp();
+        }
+        let sw: f64 = w.iter().sum();
+        if sw <= 0.0 {
+            return None;
+        }
+        let next = pts.iter().zip(&w).map(|(p, w)| p.1 * *w).sum::<DVec2>() / sw;
+        let moved = (next - c).length();
+        c = next;
+        if h > h_min {
+            h = (h * 0.8).max(h_min);
+        } else if moved < 1e-5 * r {
+            break;
+        }
+    }
+    let mut fit = LineFit {
+        t0: 0.0,
+        a: c,
+        b: DVec2::ZERO,
+    };
+    for (wi, (_, q)) in w.iter_mut().zip(pts) {
+        *wi = (-(*q - c).length_squared() / (2.0 * h_min * h_min)).exp();
+    }
+    let weight: f64 = w.iter().sum();
+    if let Some(f) = weighted_line(pts, &w) {
+        fit = f;
+    }
+    Some((fit, weight))
+}
+
+/// Median of `v` (sorts it).
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Two surface-normal families across the line: their mean normals (2D, unit) and members.
+/// Normals are sign-free, so they are clustered by doubled angle (2-means).
+fn families(normals: &[DVec2], min_points: usize) -> Option<[(DVec2, Vec<usize>); 2]> {
+    let dbl: Vec<DVec2> = normals
+        .iter()
+        .map(|n| DVec2::new(n.x * n.x - n.y * n.y, 2.0 * n.x * n.y))
+        .collect();
+    if dbl.len() < 2 * min_points {
+        return None;
+    }
+    // Seeds: the first normal and the one farthest from it in doubled angle.
+    let c0 = dbl[0];
+    let far = dbl
+        .iter()
+        .copied()
+        .max_by(|a, b| (*a - c0).length().total_cmp(&(*b - c0).length()))?;
+    let mut c = [c0, far];
+    let mut label = vec![0usize; dbl.len()];
+    for _ in 0..20 {
+        for (l, u) in label.iter_mut().zip(&dbl) {
+            *l = usize::from((*u - c[1]).length_squared() < (*u - c[0]).length_squared());
+        }
+        let mut s = [DVec2::ZERO; 2];
+        for (l, u) in label.iter().zip(&dbl) {
+            s[*l] += *u;
+        }
+        let next = [s[0].normalize_or_zero(), s[1].normalize_or_zero()];
+        if next == c {
+            break;
+        }
+        c = next;
+    }
+    let out: [(DVec2, Vec<usize>); 2] = [0, 1].map(|k| {
+        // Back from doubled angle to a normal direction.
+        let ang = 0.5 * c[k].y.atan2(c[k].x);
+        let members = (0..dbl.len()).filter(|&i| label[i] == k).collect();
+        (DVec2::new(ang.cos(), ang.sin()), members)
+    });
+    // 20° or more apart: cos(2 x 20°) in doubled angle.
+    let apart = c[0].dot(c[1]) < (40f64).to_radians().cos();
+    (apart && out.iter().all(|f| f.1.len() >= min_points)).then_some(out)
+}
+
+/// The corner of two face families in the points `sel` (indices into `pts`).
+fn corner(
+    pts: &[(f64, DVec2)],
+    fam: &[(DVec2, Vec<usize>); 2],
+    sel: impl Fn(f64) -> bool,
+    min_points: usize,
+) -> Option<DVec2> {
+    let mut c = [0.0; 2];
+    for (ck, (n, members)) in c.iter_mut().zip(fam) {
+        let n = *n;
+        let mut off: Vec<f64> = members
+            .iter()
+            .filter(|&&i| sel(pts[i].0))
+            .map(|&i| n.dot(pts[i].1))
+            .collect();
+        if off.len() < min_points {
+            return None;
+        }
+        *ck = median(&mut off);
+    }
+    let (n1, n2) = (fam[0].0, fam[1].0);
+    let det = n1.x * n2.y - n1.y * n2.x;
+    if det.abs() < 1e-9 {
+        return None;
+    }
+    Some(DVec2::new(
+        (c[0] * n2.y - c[1] * n1.y) / det,
+        (n1.x * c[1] - n2.x * c[0]) / det,
+    ))
+}
+
+/// The corner line of two face families, from the corners of the two halves (a single
+/// corner, no turn, when a half has too few points).
+fn two_planes(
+    pts: &[(f64, DVec2)],
+    normals: &[DVec2],
+    keep: &[usize],
+    len: f64,
+    min_points: usize,
+) -> Option<LineFit> {
+    let fam = families(normals, min_points)?;
+    // Family members index `normals`, which are the points `keep`.
+    let sub: Vec<(f64, DVec2)> = keep.iter().map(|&i| pts[i]).collect();
+    let all = corner(&sub, &fam, |_| true, min_points)?;
+    let half = 0.5 * len;
+    match (
+        corner(&sub, &fam, |t| t < half, min_points),
+        corner(&sub, &fam, |t| t >= half, min_points),
+    ) {
+        (Some(c1), Some(c2)) => Some(LineFit {
+            t0: half,
+            a: 0.5 * (c1 + c2),
+            b: (c2 - c1) / half,
+        }),
+        _ => Some(LineFit {
+            t0: half,
+            a: all,
+            b: DVec2::ZERO,
+        }),
+    }
+}
+
+/// One segment's next position from its members, or `None` (stay).
+fn step(
+    s: &Segment,
+    members: &[Member],
+    attrs: &Attributes,
+    r: f64,
+    p: &Params,
+) -> (Option<LineFit>, How) {
+    let d = s.dir();
+    let (e1, e2) = basis(d);
+    let pts: Vec<(f64, DVec2)> = members
+        .iter()
+        .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
+        .collect();
+    let min_points = p.fit_min_points as usize;
+    if let Some(ns) = &attrs.normals {
+        // Normals across the line (a face through the edge): |n·d| < sin 30°; a Gaussian
+        // with no normal (zero) is left out.
+        let mut keep = Vec::new();
+        let mut n2 = Vec::new();
+        for (i, m) in members.iter().enumerate() {
+            let n = crate::geom::p64(ns[m.id as usize]);
+            let across = DVec2::new(n.dot(e1), n.dot(e2));
+            if across.length() > 0.866 {
+                keep.push(i);
+                n2.push(across.normalize());
+            }
+        }
+        if let Some(f) = two_planes(&pts, &n2, &keep, s.length(), min_points) {
+            if f.a.length() <= r {
+                return (Some(f), How::Corner);
+            }
+        }
+    }
+    match ridge(&pts, r, p) {
+        Some((f, weight)) if weight >= min_points as f64 => (Some(f), How::Ridge),
+        _ => (None, How::Unclear),
+    }
+}
+
+/// Applies `f` to `s` with the per-step bounds; returns the new segment and how far it moved
+/// (largest endpoint move).
+fn apply(s: &Segment, f: &LineFit, origin: &Segment, r: f64, p: &Params) -> (Segment, f64) {
+    let d = s.dir();
+    let (e1, e2) = basis(d);
+    let lift = |v: DVec2| e1 * v.x + e2 * v.y;
+    let l = s.length();
+    // A turn moves each end by at most r/4 per step, and by at most fit_max_turn_deg.
+    let max_slope = p.fit_max_turn_deg.to_radians().tan().min(0.5 * r / l);
+    let mut b = f.b;
+    if b.length() > max_slope {
+        b *= max_slope / b.length();
+    }
+    let mut a = f.a + b * (0.5 * l - f.t0); // offset at the midpoint
+    let step_max = 0.5 * r;
+    if a.length() > step_max {
+        a *= step_max / a.length();
+    }
+    let m1 = lift(a - b * (0.5 * l));
+    let m2 = lift(a + b * (0.5 * l));
+    let mut out = Segment::new(s.p1 + m1, s.p2 + m2);
+    // Stay within fit_max_move x r of the start: scale the total move back.
+    let limit = p.fit_max_move * r;
+    let total = (out.p1 - origin.p1)
+        .length()
+        .max((out.p2 - origin.p2).length());
+    if total > limit {
+        let k = limit / total;
+        out = Segment::new(
+            origin.p1 + (out.p1 - origin.p1) * k,
+            origin.p2 + (out.p2 - origin.p2) * k,
+        );
+    }
+    let moved = (out.p1 - s.p1).length().max((out.p2 - s.p2).length());
+    (out, moved)
+}
+
+/// `--fit edge`: every segment moved onto the edge its Gaussians describe.
+pub fn fit_edges(
+    engine: &dyn Engine,
+    segments: &[Segment],
+    attrs: &Attributes,
+    r: f64,
+    p: &Params,
+) -> Result<FitResult, EngineError> {
+    let mut cur = segments.to_vec();
+    let mut how = vec![How::Unclear; cur.len()];
+    let mut active: Vec<usize> = (0..cur.len()).filter(|&i| cur[i].is_valid()).collect();
+    let mut iterations = 0;
+    while !active.is_empty() && iterations < p.fit_iterations {
+        iterations += 1;
+        let queries: Vec<Query> = active.iter().map(|&i| Query::new(cur[i], r)).collect();
+        let members = engine.members(&queries)?;
+        let mut next = Vec::with_capacity(active.len());
+        for (&i, m) in active.iter().zip(&members) {
+            let (f, h) = step(&cur[i], m, attrs, r, p);
+            how[i] = h;
+            if let Some(f) = f {
+                let (s, moved) = apply(&cur[i], &f, &segments[i], r, p);
+                cur[i] = s;
+                if moved > 1e-3 * r {
+                    next.push(i);
+                }
+            }
+        }
+        active = next;
+    }
+    Ok(FitResult {
+        segments: cur,
+        how,
+        iterations,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_doubled_angle_keeps_the_families_sign_free() {
+        // Normals of two perpendicular faces, half of them flipped.
+        let mut n = Vec::new();
+        for i in 0..20 {
+            let s = if i % 2 == 0 { 1.0 } else { -1.0 };
+            n.push(DVec2::new(s, 0.0));
+            n.push(DVec2::new(0.0, s));
+        }
+        let f = families(&n, 5).unwrap();
+        assert_eq!(f[0].1.len(), 20);
+        assert_eq!(f[1].1.len(), 20);
+        assert!(f[0].0.dot(f[1].0).abs() < 1e-9);
+        // one family only: no corner
+        assert!(families(&n.iter().step_by(2).copied().collect::<Vec<_>>(), 5).is_none());
+    }
+}

@@ -1,0 +1,216 @@
+//! `linegs-gpu batch`: a manifest of small synthetic scenes run as two shards (one from
+//! Slurm's variables), resumed with `--skip-existing`, and a failing scene that does not
+//! stop the others.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_linegs-gpu"));
+    c.args(args);
+    for k in [
+        "SLURM_ARRAY_TASK_ID",
+        "SLURM_ARRAY_TASK_COUNT",
+        "SLURM_ARRAY_TASK_MIN",
+    ] {
+        c.env_remove(k);
+    }
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().unwrap()
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+/// Three toy scenes in `dir/s1..s3` (the first with ground truth) and their manifest.
+fn scenes(dir: &Path) -> PathBuf {
+    for i in 1..=3 {
+        let s = dir.join(format!("s{i}"));
+        std::fs::create_dir(&s).unwrap();
+        let (g, l, gt) = (s.join("g.ply"), s.join("l.txt"), s.join("gt.obj"));
+        let seed = i.to_string();
+        let o = run(
+            &[
+                "synth",
+                "toy",
+                "-o",
+                g.to_str().unwrap(),
+                "--lines-out",
+                l.to_str().unwrap(),
+                "--gt-out",
+                gt.to_str().unwrap(),
+                "-n",
+                "3000",
+                "--seed",
+                &seed,
+            ],
+            &[],
+        );
+        assert!(o.status.success(), "{}", text(&o.stderr));
+    }
+    let m = dir.join("scenes.csv");
+    std::fs::write(
+        &m,
+        "name,gaussians,lines,gt,radius,eval_radius\n\
+         first,s1/g.ply,s1/l.txt,s1/gt.obj,,\n\
+         second,s2/g.ply,s2/l.txt,,0.04,0.12\n\
+         third,s3/g.ply,s3/l.txt,,,\n",
+    )
+    .unwrap();
+    m
+}
+
+fn summary_rows(out: &Path) -> Vec<Vec<String>> {
+    std::fs::read_to_string(out.join("summary.csv"))
+        .unwrap()
+        .lines()
+        .map(|l| l.split(',').map(str::to_string).collect())
+        .collect()
+}
+
+#[test]
+fn two_shards_then_a_resume_give_every_scene_and_a_summary_with_a_mean() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    let out = dir.path().join("out");
+    let (ms, os) = (m.to_str().unwrap(), out.to_str().unwrap());
+    let o = run(
+        &["batch", ms, "-o", os, "--shard", "0/2", "--backend", "cpu"],
+        &[],
+    );
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert!(out.join("first/report.json").is_file() && out.join("third/report.json").is_file());
+    assert!(!out.join("second").exists());
+    // the second shard from Slurm's array variables
+    let o = run(
+        &["batch", ms, "-o", os, "--backend", "cpu"],
+        &[
+            ("SLURM_ARRAY_TASK_ID", "1"),
+            ("SLURM_ARRAY_TASK_COUNT", "2"),
+        ],
+    );
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert!(
+        text(&o.stdout).contains("shard 1/2 runs 1"),
+        "{}",
+        text(&o.stdout)
+    );
+    let before = std::fs::read(out.join("first/report.json")).unwrap();
+    let o = run(
+        &["batch", ms, "-o", os, "--skip-existing", "--backend", "cpu"],
+        &[],
+    );
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert_eq!(
+        text(&o.stdout).matches("skipped").count(),
+        3,
+        "{}",
+        text(&o.stdout)
+    );
+    assert_eq!(
+        std::fs::read(out.join("first/report.json")).unwrap(),
+        before
+    );
+
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["first", "second", "summary.csv", "summary.md", "third"]
+    );
+    for s in ["first", "second", "third"] {
+        assert!(out.join(s).join("refined.obj").is_file(), "{s}");
+    }
+    // the manifest's per-scene radius reached the run
+    let r: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("second/report.json")).unwrap()).unwrap();
+    assert_eq!(r["radius"], 0.04);
+    assert_eq!(r["before"]["radius"], 0.12);
+
+    let rows = summary_rows(&out);
+    assert_eq!(rows.len(), 5, "header, three scenes, mean");
+    let col = |name: &str| rows[0].iter().position(|c| c == name).unwrap();
+    assert_eq!(rows[1][0], "first");
+    assert_eq!(rows[4][0], "mean");
+    for row in &rows[1..4] {
+        assert_eq!(row[col("status")], "ok");
+        let b: f64 = row[col("score_before")].parse().unwrap();
+        let a: f64 = row[col("score_after")].parse().unwrap();
+        let imp: f64 = row[col("score_improvement_pct")].parse().unwrap();
+        assert!((imp - 100.0 * (a - b) / b).abs() < 1e-9);
+    }
+    let mean = |k: &str| -> f64 {
+        rows[1..4]
+            .iter()
+            .map(|r| r[col(k)].parse::<f64>().unwrap())
+            .sum::<f64>()
+            / 3.0
+    };
+    let m_score: f64 = rows[4][col("score_after")].parse().unwrap();
+    assert!((m_score - mean("score_after")).abs() < 1e-9);
+    // ground truth where the manifest gives it, empty elsewhere
+    assert!(rows[1][col("gt_accuracy_after")].parse::<f64>().is_ok());
+    assert_eq!(rows[2][col("gt_accuracy_after")], "");
+    let md = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        md.contains("| **mean** |") && md.contains("3 of 3 scenes finished"),
+        "{md}"
+    );
+}
+
+#[test]
+fn a_failing_scene_is_reported_and_the_others_finish() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    std::fs::write(dir.path().join("s2/l.txt"), "3\n1 2 3\n").unwrap();
+    let out = dir.path().join("out");
+    let o = run(
+        &[
+            "batch",
+            m.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--backend",
+            "cpu",
+        ],
+        &[],
+    );
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
+    assert!(
+        text(&o.stderr).contains("1 of 3 scenes"),
+        "{}",
+        text(&o.stderr)
+    );
+    assert!(out.join("first/report.json").is_file() && out.join("third/report.json").is_file());
+    let err = std::fs::read_to_string(out.join("second/error.txt")).unwrap();
+    assert!(err.contains("l.txt"), "{err}");
+    let rows = summary_rows(&out);
+    assert_eq!(rows.len(), 5);
+    assert!(
+        rows[2][1].trim_start_matches('"').starts_with("failed: "),
+        "{:?}",
+        rows[2]
+    );
+    assert!(rows[4][1].contains("mean of 2"), "{:?}", rows[4]);
+    // a bad manifest is the user's input: exit 2, nothing written
+    let bad = dir.path().join("bad.csv");
+    std::fs::write(&bad, "name,lines\nx,l.txt\n").unwrap();
+    let o2 = dir.path().join("out2");
+    let o = run(
+        &["batch", bad.to_str().unwrap(), "-o", o2.to_str().unwrap()],
+        &[],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        text(&o.stderr).contains("bad.csv: line 1"),
+        "{}",
+        text(&o.stderr)
+    );
+    assert!(!o2.exists());
+}

@@ -1,0 +1,122 @@
+//! `--fit edge` on scenes built for it: the corner of two faces, a ridge 0.9 r away, a
+//! slightly turned edge, and a neighbouring edge that must not capture the line.
+
+mod common;
+
+use common::*;
+use glam::DVec3;
+use linegs_gpu::geom::Segment;
+use linegs_gpu::refine::fit::{fit_edges, Attributes, How};
+use linegs_gpu::refine::{translate, Params};
+
+const R: f64 = 0.03;
+
+/// Largest distance of the two endpoints from the x axis (the true edge in every scene).
+fn off_axis(s: &Segment) -> f64 {
+    let d = |p: DVec3| (p.y * p.y + p.z * p.z).sqrt();
+    d(s.p1).max(d(s.p2))
+}
+
+fn edge_params() -> Params {
+    Params::default()
+}
+
+/// Flat Gaussians on the faces z = 0 (y in [0, 1.5 r]) and y = 0 (z in [0, 1.5 r]) meeting
+/// at the x axis, with their normals (the shortest axis).
+fn l_shape(n: usize, rng: &mut Lcg) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    let mut pts = Vec::new();
+    let mut normals = Vec::new();
+    for i in 0..n {
+        let x = rng.f();
+        let w = 1.5 * R * rng.f();
+        let jitter = 0.02 * R * (rng.f() - 0.5);
+        if i % 2 == 0 {
+            pts.push([x as f32, w as f32, jitter as f32]);
+            normals.push([0.0, 0.0, 1.0]);
+        } else {
+            pts.push([x as f32, jitter as f32, w as f32]);
+            normals.push([0.0, -1.0, 0.0]);
+        }
+    }
+    (pts, normals)
+}
+
+#[test]
+fn two_face_families_give_the_corner_not_the_centroid() {
+    let mut rng = Lcg(11);
+    let (pts, normals) = l_shape(6000, &mut rng);
+    let input = seg([0.0, 0.3 * R, 0.3 * R], [1.0, 0.3 * R, 0.3 * R]);
+    let e = cpu_engine(&pts, &[input], R);
+    let attrs = Attributes {
+        normals: Some(normals),
+    };
+    let f = fit_edges(&e, &[input], &attrs, R, &edge_params()).unwrap();
+    assert_eq!(f.how[0], How::Corner);
+    assert!(off_axis(&f.segments[0]) < 0.05 * R, "{:?}", f.segments[0]);
+    // The published step goes to the faces' centroid, inside the angle.
+    let paper = translate::translate(&e, &[input], R, 0.4).unwrap();
+    assert!(off_axis(&paper[0]) > 0.2 * R, "{:?}", paper[0]);
+    // Without normals there is no corner to fit.
+    let f = fit_edges(&e, &[input], &Attributes::default(), R, &edge_params()).unwrap();
+    assert_ne!(f.how[0], How::Corner);
+}
+
+#[test]
+fn an_edge_nine_tenths_of_r_away_is_reached() {
+    let mut rng = Lcg(12);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 4000, 0.004, &mut rng);
+    let input = seg([0.0, 0.9 * R, 0.0], [1.0, 0.9 * R, 0.0]);
+    let e = cpu_engine(&pts, &[input], R);
+    let f = fit_edges(&e, &[input], &Attributes::default(), R, &edge_params()).unwrap();
+    assert_eq!(f.how[0], How::Ridge);
+    assert!(off_axis(&f.segments[0]) < 0.1 * R, "{:?}", f.segments[0]);
+    assert!(f.iterations > 1, "one batch per iteration until it settles");
+    // the published single step stops short of it
+    let paper = translate::translate(&e, &[input], R, 0.4).unwrap();
+    assert!(
+        off_axis(&paper[0]) > off_axis(&f.segments[0]),
+        "{:?}",
+        paper[0]
+    );
+}
+
+#[test]
+fn a_slightly_turned_edge_is_turned_onto_its_ridge() {
+    let mut rng = Lcg(13);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 4000, 0.004, &mut rng);
+    // 0.6 r off at one end, -0.6 r at the other: about 2 degrees.
+    let input = seg([0.0, 0.6 * R, 0.0], [1.0, -0.6 * R, 0.0]);
+    let e = cpu_engine(&pts, &[input], R);
+    let f = fit_edges(&e, &[input], &Attributes::default(), R, &edge_params()).unwrap();
+    assert!(off_axis(&f.segments[0]) < 0.1 * R, "{:?}", f.segments[0]);
+    // a translation cannot turn it
+    let paper = translate::translate(&e, &[input], R, 0.4).unwrap();
+    assert!(off_axis(&paper[0]) > 0.4 * R, "{:?}", paper[0]);
+}
+
+#[test]
+fn a_neighbouring_edge_does_not_capture_the_line() {
+    let mut rng = Lcg(14);
+    let own = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let other = seg([0.0, 0.8 * R, 0.0], [1.0, 0.8 * R, 0.0]);
+    let mut pts = edge_points(&own, 3000, 0.003, &mut rng);
+    pts.extend(edge_points(&other, 3000, 0.003, &mut rng));
+    let input = seg([0.0, 0.1 * R, 0.0], [1.0, 0.1 * R, 0.0]);
+    let e = cpu_engine(&pts, &[input], R);
+    let f = fit_edges(&e, &[input], &Attributes::default(), R, &edge_params()).unwrap();
+    assert!(off_axis(&f.segments[0]) < 0.1 * R, "{:?}", f.segments[0]);
+}
+
+#[test]
+fn a_segment_with_no_gaussians_stays_and_says_so() {
+    let mut rng = Lcg(15);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 500, 0.004, &mut rng);
+    let lonely = seg([0.0, 0.5, 0.5], [1.0, 0.5, 0.5]);
+    let e = cpu_engine(&pts, &[edge, lonely], R);
+    let f = fit_edges(&e, &[lonely], &Attributes::default(), R, &edge_params()).unwrap();
+    assert_eq!(f.segments[0], lonely);
+    assert_eq!(f.how[0], How::Unclear);
+}
