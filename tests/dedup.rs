@@ -45,10 +45,11 @@ fn check_engine(bare: &dyn Engine, wrapped: &Dedup) {
         bare.nearest(&q, &k).unwrap()
     );
     assert_eq!(wrapped.coverage(&q).unwrap(), bare.coverage(&q).unwrap());
-    // 4 stats and 1 coverage batch of <= 30 queries, 1 nearest batch of <= 60.
+    assert_eq!(wrapped.members(&q).unwrap(), bare.members(&q).unwrap());
+    // 4 stats, 1 coverage and 1 members batch of <= 30 queries, 1 nearest batch of <= 60.
     let answered = wrapped.counters().queries - before;
-    assert!(answered <= 5 * 30 + 60, "{answered} queries answered");
-    assert!(wrapped.asked() >= 6 * 400);
+    assert!(answered <= 6 * 30 + 60, "{answered} queries answered");
+    assert!(wrapped.asked() >= 7 * 400);
 }
 
 fn scene_grid() -> (Vec<[f32; 3]>, Arc<Grid>) {

@@ -5,8 +5,8 @@
 //!
 //! An engine's answer to a query is a function of that query's bits alone (both engines
 //! answer each query on its own, summing its points in grid order), so the answers equal
-//! those of asking the whole batch, bit for bit. Coverage is a union: duplicates add
-//! nothing to it. Duplicated input segments (Line3D++ and LIMAP outputs in busy areas,
+//! those of asking the whole batch, bit for bit (`members` lists are cloned to each
+//! copy). Coverage is a union: duplicates add nothing to it. Duplicated input segments (Line3D++ and LIMAP outputs in busy areas,
 //! merged multi-run files) make every step ask the same cylinder many times; with this
 //! wrapper each step's cost grows with the distinct segments, not the copies.
 //!
@@ -14,7 +14,7 @@
 //! and a NaN query equals only its own bit pattern. A batch without duplicates goes to
 //! the inner engine as it is, without a copy.
 
-use super::{Counters, Coverage, CylStats, Engine, EngineError, NearestSum, Query, Want};
+use super::{Counters, Coverage, CylStats, Engine, EngineError, Member, NearestSum, Query, Want};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -76,8 +76,8 @@ impl Groups {
         self.first.iter().map(|&i| queries[i]).collect()
     }
 
-    fn fan_out<T: Copy>(&self, answers: &[T]) -> Vec<T> {
-        self.of.iter().map(|&d| answers[d]).collect()
+    fn fan_out<T: Clone>(&self, answers: &[T]) -> Vec<T> {
+        self.of.iter().map(|&d| answers[d].clone()).collect()
     }
 
     /// An error about distinct query `d` names its first occurrence in the batch.
@@ -170,6 +170,20 @@ impl Engine for Dedup {
         }
     }
 
+    fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
+        self.count(queries.len());
+        match Groups::of(queries, None) {
+            None => self.inner.members(queries),
+            Some(g) => {
+                let a = self
+                    .inner
+                    .members(&g.queries(queries))
+                    .map_err(|e| g.error(e))?;
+                Ok(g.fan_out(&a))
+            }
+        }
+    }
+
     fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {
         self.count(queries.len());
         match Groups::of(queries, None) {
@@ -231,6 +245,13 @@ mod tests {
                 .unwrap()
                 .push(q.iter().zip(k).map(|(q, k)| (*q, *k)).collect());
             self.cpu.nearest(q, k)
+        }
+        fn members(&self, q: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
+            self.seen
+                .lock()
+                .unwrap()
+                .push(q.iter().map(|q| (*q, 0)).collect());
+            self.cpu.members(q)
         }
         fn coverage(&self, q: &[Query]) -> Result<Coverage, EngineError> {
             self.seen
@@ -342,8 +363,9 @@ mod tests {
         }
         assert_eq!(d.nearest(&q, &k).unwrap(), direct.nearest(&q, &k).unwrap());
         assert_eq!(d.coverage(&q).unwrap(), direct.coverage(&q).unwrap());
+        assert_eq!(d.members(&q).unwrap(), direct.members(&q).unwrap());
         let seen = seen.lock().unwrap();
-        assert_eq!(seen.len(), 6);
+        assert_eq!(seen.len(), 7);
         let once = distinct(&q, &zeros);
         assert!(once.len() < q.len() / 3, "{} distinct", once.len());
         for (b, batch) in seen.iter().enumerate() {
@@ -356,7 +378,7 @@ mod tests {
             let bits = |v: &[(Query, u64)]| v.iter().map(|(q, k)| key(q, *k)).collect::<Vec<_>>();
             assert_eq!(bits(batch), bits(&want), "batch {b}");
         }
-        assert_eq!(d.asked(), 6 * q.len() as u64);
+        assert_eq!(d.asked(), 7 * q.len() as u64);
         assert_eq!(
             d.counters().queries,
             seen.iter().map(|b| b.len() as u64).sum::<u64>()
