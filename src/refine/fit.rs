@@ -363,14 +363,41 @@ pub fn fit_edges(
     let mut iterations = 0;
     while !active.is_empty() && iterations < p.fit_iterations {
         iterations += 1;
-        let queries: Vec<Query> = active.iter().map(|&i| Query::new(cur[i], r)).collect();
+        // Exact copies (the same segment now and at the start) fit alike: each distinct
+        // one is asked and fitted once and its result given to its copies (issue #9).
+        let mut seen: std::collections::HashMap<[u64; 12], usize> = Default::default();
+        let mut uniq: Vec<usize> = Vec::new();
+        let of: Vec<usize> = active
+            .iter()
+            .map(|&i| {
+                let (a, b) = (cur[i], segments[i]);
+                let key = [a.p1, a.p2, b.p1, b.p2]
+                    .map(|v| v.to_array().map(f64::to_bits))
+                    .concat();
+                *seen
+                    .entry(key.try_into().expect("12 words"))
+                    .or_insert_with(|| {
+                        uniq.push(i);
+                        uniq.len() - 1
+                    })
+            })
+            .collect();
+        let queries: Vec<Query> = uniq.iter().map(|&i| Query::new(cur[i], r)).collect();
         let members = engine.members(&queries)?;
+        let fitted: Vec<(Option<(Segment, f64)>, How)> = uniq
+            .iter()
+            .zip(&members)
+            .map(|(&i, m)| {
+                let (f, h) = step(&cur[i], m, attrs, r, p);
+                (f.map(|f| apply(&cur[i], &f, &segments[i], r, p)), h)
+            })
+            .collect();
+        drop(members);
         let mut next = Vec::with_capacity(active.len());
-        for (&i, m) in active.iter().zip(&members) {
-            let (f, h) = step(&cur[i], m, attrs, r, p);
+        for (&i, &d) in active.iter().zip(&of) {
+            let (res, h) = fitted[d];
             how[i] = h;
-            if let Some(f) = f {
-                let (s, moved) = apply(&cur[i], &f, &segments[i], r, p);
+            if let Some((s, moved)) = res {
                 cur[i] = s;
                 if moved > 1e-3 * r {
                     next.push(i);
