@@ -582,7 +582,7 @@ fn outputs_with_the_wrong_extension_are_refused_up_front() {
                 "cpu".into(),
             ],
             "s.pdf",
-            ".png or .svg",
+            ".png, .svg",
         ),
     ];
     for (args, name, ext) in &cases {

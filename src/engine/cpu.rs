@@ -105,6 +105,10 @@ pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
                     }
                 }
             });
+            // Working-set order, not grid order: the grid's layout follows the working
+            // box, so a far segment would otherwise reorder the members (and the fit's
+            // sums) of every other segment in the last bits.
+            out.sort_unstable_by_key(|m| m.id);
             out
         })
         .collect()

@@ -155,8 +155,8 @@ pub trait Engine: Send + Sync {
     fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError>;
     /// For query `i`, sums over its `k[i]` members nearest to the line.
     fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError>;
-    /// The members of every query, each list in grid order (so the same for every thread
-    /// count and both engines). Per-point output is O(members), not O(queries): use it only
+    /// The members of every query, each list in working-set order (ascending `id`: the
+    /// same for every thread count, both engines and every grid layout). Per-point output is O(members), not O(queries): use it only
     /// where sums cannot answer (the edge fit's robust estimates).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError>;
     /// The union of all members of the batch.
