@@ -214,6 +214,21 @@ impl Error {
         }
     }
 
+    /// A Gaussian center with a NaN or infinite coordinate under `--strict` (without it,
+    /// every reader skips such Gaussians with one warning).
+    pub(crate) fn strict_center(path: &Path, pos: Position, c: [f32; 3]) -> Self {
+        let bad = c
+            .iter()
+            .copied()
+            .find(|v| !v.is_finite())
+            .unwrap_or(f32::NAN);
+        let mut e = Error::non_finite(path, pos, "Gaussian center", bad as f64);
+        if let Error::NonFinite { hint, .. } = &mut e {
+            *hint = "; without --strict such Gaussians are skipped with a warning";
+        }
+        e
+    }
+
     pub(crate) fn unknown(path: &Path, why: impl Into<String>) -> Self {
         Error::UnknownFormat {
             path: path.to_path_buf(),

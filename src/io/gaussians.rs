@@ -305,16 +305,7 @@ impl<'a> Sink<'a> {
         if !c.iter().all(|v| v.is_finite()) {
             let pos = pos();
             if self.strict {
-                let bad = c
-                    .iter()
-                    .copied()
-                    .find(|v| !v.is_finite())
-                    .unwrap_or(f32::NAN);
-                let mut e = Error::non_finite(self.path, pos, "Gaussian center", bad as f64);
-                if let Error::NonFinite { hint, .. } = &mut e {
-                    *hint = "; without --strict such Gaussians are skipped with a warning";
-                }
-                return Err(e);
+                return Err(Error::strict_center(self.path, pos, c));
             }
             self.nonfinite += 1;
             self.first_nonfinite.get_or_insert(pos);

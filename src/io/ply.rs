@@ -803,16 +803,7 @@ impl Collect<'_> {
         if !(c[0].is_finite() && c[1].is_finite() && c[2].is_finite()) {
             let pos = loc();
             if self.strict {
-                let bad = c
-                    .iter()
-                    .copied()
-                    .find(|v| !v.is_finite())
-                    .unwrap_or(f32::NAN);
-                let mut e = Error::non_finite(self.path, pos, "Gaussian center", bad as f64);
-                if let Error::NonFinite { hint, .. } = &mut e {
-                    *hint = "; without --strict such Gaussians are skipped with a warning";
-                }
-                return Err(e);
+                return Err(Error::strict_center(self.path, pos, c));
             }
             self.nonfinite += 1;
             self.first_nonfinite.get_or_insert(pos);
