@@ -229,6 +229,33 @@ impl Error {
         e
     }
 
+    /// No Gaussian of a non-empty model survived the skips: says how many each skip took.
+    pub(crate) fn none_usable(
+        path: &Path,
+        total: usize,
+        nonfinite: usize,
+        low: usize,
+        min_opacity: Option<f64>,
+    ) -> Self {
+        let mut why = Vec::new();
+        if nonfinite > 0 {
+            why.push(format!("{nonfinite} with a NaN or infinite center"));
+        }
+        if low > 0 {
+            why.push(format!(
+                "{low} below --min-opacity {}",
+                min_opacity.unwrap_or(0.0)
+            ));
+        }
+        Error::no_data(
+            path,
+            format!(
+                "none of the {total} Gaussians is usable ({})",
+                why.join(", ")
+            ),
+        )
+    }
+
     pub(crate) fn unknown(path: &Path, why: impl Into<String>) -> Self {
         Error::UnknownFormat {
             path: path.to_path_buf(),
@@ -275,4 +302,16 @@ impl Error {
             _ => true,
         }
     }
+}
+
+/// The one warning for Gaussians skipped for a NaN or infinite center.
+pub(crate) fn skipped_centers_warning(path: &Path, n: usize, first: Option<&Position>) -> String {
+    let first = first
+        .map(|p| format!(" (first at {p})"))
+        .unwrap_or_default();
+    format!(
+        "{}: skipped {n} Gaussian{} whose center is NaN or infinite{first}; --strict makes this an error",
+        path.display(),
+        if n == 1 { "" } else { "s" },
+    )
 }

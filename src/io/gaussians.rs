@@ -334,39 +334,22 @@ impl<'a> Sink<'a> {
     ) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
         let mut warnings = std::mem::take(&mut self.warnings);
         if self.nonfinite > 0 {
-            let first = self
-                .first_nonfinite
-                .as_ref()
-                .map(|p| format!(" (first at {p})"))
-                .unwrap_or_default();
-            warnings.push(format!(
-                "{}: skipped {} Gaussian{} whose center is NaN or infinite{first}; --strict makes this an error",
-                self.path.display(),
+            warnings.push(super::error::skipped_centers_warning(
+                self.path,
                 self.nonfinite,
-                if self.nonfinite == 1 { "" } else { "s" },
+                self.first_nonfinite.as_ref(),
             ));
         }
         if total == 0 {
             return Err(Error::no_data(self.path, "the model has no Gaussians"));
         }
         if self.centers.is_empty() {
-            let mut why = Vec::new();
-            if self.nonfinite > 0 {
-                why.push(format!("{} with a NaN or infinite center", self.nonfinite));
-            }
-            if self.low > 0 {
-                why.push(format!(
-                    "{} below --min-opacity {}",
-                    self.low,
-                    self.min_opacity.unwrap_or(0.0)
-                ));
-            }
-            return Err(Error::no_data(
+            return Err(Error::none_usable(
                 self.path,
-                format!(
-                    "none of the {total} Gaussians is usable ({})",
-                    why.join(", ")
-                ),
+                total,
+                self.nonfinite,
+                self.low,
+                self.min_opacity,
             ));
         }
         self.centers.shrink_to_fit();

@@ -1032,37 +1032,19 @@ fn gaussians_from<R: Read>(
     body.finish(path, Some(file_len))?;
 
     if col.nonfinite > 0 {
-        let first = col
-            .first_nonfinite
-            .as_ref()
-            .map(|p| format!(" (first at {p})"))
-            .unwrap_or_default();
-        warnings.push(format!(
-            "{}: skipped {} Gaussian{} whose center is NaN or infinite{first}; --strict makes this an error",
-            path.display(),
+        warnings.push(super::error::skipped_centers_warning(
+            path,
             col.nonfinite,
-            if col.nonfinite == 1 { "" } else { "s" },
+            col.first_nonfinite.as_ref(),
         ));
     }
     if col.centers.is_empty() {
-        let mut why = Vec::new();
-        if col.nonfinite > 0 {
-            why.push(format!("{} with a NaN or infinite center", col.nonfinite));
-        }
-        if col.low > 0 {
-            why.push(format!(
-                "{} below --min-opacity {}",
-                col.low,
-                opts.min_opacity.unwrap_or(0.0)
-            ));
-        }
-        return Err(Error::no_data(
+        return Err(Error::none_usable(
             path,
-            format!(
-                "none of the {} Gaussians is usable ({})",
-                vertex.count,
-                why.join(", ")
-            ),
+            vertex.count,
+            col.nonfinite,
+            col.low,
+            opts.min_opacity,
         ));
     }
     col.centers.shrink_to_fit();
