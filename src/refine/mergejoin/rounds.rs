@@ -111,10 +111,11 @@ impl Open {
     fn reopen(&mut self, h: usize, alive: &[bool]) {
         self.from[h] = h + 1;
         self.pending[h].clear();
-        for a in 0..h {
-            if alive[a] && self.from[a] > h {
-                if let Err(at) = self.pending[a].binary_search(&h) {
-                    self.pending[a].insert(at, h);
+        let rows = self.from.iter().zip(&mut self.pending).zip(alive);
+        for ((&from, pending), &alive) in rows.take(h) {
+            if alive && from > h {
+                if let Err(at) = pending.binary_search(&h) {
+                    pending.insert(at, h);
                 }
             }
         }
