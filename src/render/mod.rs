@@ -13,9 +13,7 @@ pub mod viewer;
 
 use glam::DVec3;
 use rayon::prelude::*;
-use resvg::tiny_skia::{
-    Color, LineCap, Paint, PathBuilder, Pixmap, Rect, Stroke, Transform,
-};
+use resvg::tiny_skia::{Color, LineCap, Paint, PathBuilder, Pixmap, Rect, Stroke, Transform};
 
 use crate::geom::Segment;
 
@@ -235,7 +233,14 @@ pub fn render_comparison(points: &[[f32; 3]], panels: &[Panel], width: u32, heig
             blit(&mut img, tile, *off);
         }
         let [vx, vy, vw, vh] = v.viewport;
-        stroke_rect(&mut img, vx.floor(), vy.floor(), vw.round(), vh.round(), FAINT);
+        stroke_rect(
+            &mut img,
+            vx.floor(),
+            vy.floor(),
+            vw.round(),
+            vh.round(),
+            FAINT,
+        );
         // A veil under the view's name keeps it readable over dense points.
         let name = VIEW_NAMES[k % 4];
         let (tx, ty) = (vx as f32 + 6.0, vy as f32 + 4.0);
@@ -308,7 +313,13 @@ fn stroke_rect(img: &mut Pixmap, x: f64, y: f64, w: f64, h: f64, c: [u8; 3]) {
 /// Strokes `segments` through `view` as one path: antialiased, `width` pixels wide,
 /// round caps. One path per layer, so where segments of a layer overlap the colour
 /// stays that layer's instead of darkening at each crossing.
-pub fn stroke_segments(img: &mut Pixmap, view: &View, segments: &[Segment], color: [u8; 3], width: f32) {
+pub fn stroke_segments(
+    img: &mut Pixmap,
+    view: &View,
+    segments: &[Segment],
+    color: [u8; 3],
+    width: f32,
+) {
     let mut pb = PathBuilder::new();
     for s in segments {
         if let Some([a, b]) = raster::project_segment(view, s.p1, s.p2, width as f64) {
@@ -324,7 +335,13 @@ pub fn stroke_segments(img: &mut Pixmap, view: &View, segments: &[Segment], colo
         line_cap: LineCap::Round,
         ..Stroke::default()
     };
-    img.stroke_path(&path, &paint(color, 1.0), &stroke, Transform::identity(), None);
+    img.stroke_path(
+        &path,
+        &paint(color, 1.0),
+        &stroke,
+        Transform::identity(),
+        None,
+    );
 }
 
 /// Legend text, colour, and whether the swatch stands for points (else a line).
@@ -347,7 +364,10 @@ const LEGEND_GAP: f32 = 18.0;
 
 /// The largest text size up to `max_px` at which the legend fits in `width`.
 fn legend_fit(entries: &[LegendEntry], width: f32, max_px: f32) -> f32 {
-    let text: f32 = entries.iter().map(|(t, _, _)| text::text_width(t, max_px)).sum();
+    let text: f32 = entries
+        .iter()
+        .map(|(t, _, _)| text::text_width(t, max_px))
+        .sum();
     let fixed = entries.len() as f32 * (SWATCH + 6.0 + LEGEND_GAP);
     if fixed + text <= width || text <= 0.0 {
         return max_px;
@@ -426,7 +446,14 @@ fn draw_panel_text(
     let ts = text::fit_size(panel.title, pw - 16.0, l.title_px, 7.0);
     let tw = text::text_width(panel.title, ts);
     let top = ((l.header_h as f32 - text::line_height(ts)) / 2.0).max(0.0);
-    text::draw_text(img, x0 + ((pw - tw) / 2.0).max(8.0), top, panel.title, INK, ts);
+    text::draw_text(
+        img,
+        x0 + ((pw - tw) / 2.0).max(8.0),
+        top,
+        panel.title,
+        INK,
+        ts,
+    );
 
     let mut y = (height as f64 - l.footer_h + 6.0) as f32;
     let s = sizes[0];
@@ -436,7 +463,15 @@ fn draw_panel_text(
         if *is_points {
             for k in 0..4 {
                 let dy = if k % 2 == 0 { -3.0 } else { 0.0 };
-                fill_rect(img, x + 2.0 + k as f32 * 5.0, mid + dy, 3.0, 3.0, *color, 1.0);
+                fill_rect(
+                    img,
+                    x + 2.0 + k as f32 * 5.0,
+                    mid + dy,
+                    3.0,
+                    3.0,
+                    *color,
+                    1.0,
+                );
             }
         } else {
             let mut pb = PathBuilder::new();
@@ -448,7 +483,13 @@ fn draw_panel_text(
                     line_cap: LineCap::Round,
                     ..Stroke::default()
                 };
-                img.stroke_path(&path, &paint(*color, 1.0), &stroke, Transform::identity(), None);
+                img.stroke_path(
+                    &path,
+                    &paint(*color, 1.0),
+                    &stroke,
+                    Transform::identity(),
+                    None,
+                );
             }
         }
         x = text::draw_text(img, x + SWATCH + 6.0, y, label, INK, s) + LEGEND_GAP;

@@ -602,7 +602,10 @@ mod tests {
             ..usvg::Options::default()
         };
         let tree = usvg::Tree::from_str(&svg, &opt).unwrap();
-        assert_eq!(tree.size().to_int_size(), usvg::Size::from_wh(600.0, 400.0).unwrap().to_int_size());
+        assert_eq!(
+            tree.size().to_int_size(),
+            usvg::Size::from_wh(600.0, 400.0).unwrap().to_int_size()
+        );
         // Every text element was laid out (a text with no font would have no glyphs).
         let mut texts = 0;
         let mut stack = vec![tree.root()];

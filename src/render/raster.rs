@@ -432,8 +432,14 @@ mod tests {
         let pa = view_project(&v, a).unwrap();
         // One end is the centre's projection; the other lies above it (towards the
         // camera's up offset) and inside the padded viewport, not flipped below.
-        assert!((p[0] - pa[0]).abs() < 1e-9 && (p[1] - pa[1]).abs() < 1e-9, "{p:?}");
-        assert!(q[1] < pa[1] && q[1] >= -2.0 - 1e-9 && (q[0] - pa[0]).abs() < 1e-6, "{q:?}");
+        assert!(
+            (p[0] - pa[0]).abs() < 1e-9 && (p[1] - pa[1]).abs() < 1e-9,
+            "{p:?}"
+        );
+        assert!(
+            q[1] < pa[1] && q[1] >= -2.0 - 1e-9 && (q[0] - pa[0]).abs() < 1e-6,
+            "{q:?}"
+        );
         // Wholly behind the camera: nothing.
         let behind = v.eye - v.forward;
         assert!(project_segment(&v, behind, behind - v.forward, 2.0).is_none());

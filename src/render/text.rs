@@ -128,7 +128,10 @@ mod tests {
         assert_eq!(faces[0].families[0].0, FONT_FAMILY);
         // A proportional face: "i" is narrower than "W"; widths scale with the size.
         assert!(text_width("i", 20.0) * 2.0 < text_width("W", 20.0));
-        let (a, b) = (text_width("E_rms 0.42 cm", 10.0), text_width("E_rms 0.42 cm", 20.0));
+        let (a, b) = (
+            text_width("E_rms 0.42 cm", 10.0),
+            text_width("E_rms 0.42 cm", 20.0),
+        );
         assert!((b - 2.0 * a).abs() < 0.01 * b, "{a} {b}");
         assert_eq!(text_width("", 12.0), 0.0);
         let s = fit_size("abcdefgh", 40.0, 18.0, 6.0);
