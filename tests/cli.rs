@@ -447,6 +447,13 @@ fn eval_sweeps_radii_compares_two_sets_and_plots() {
         .filter(|(a, b)| a != b)
         .count();
     assert_eq!(differ, 0, "the PNG differs from the SVG rendered afresh");
+    // ... and the text was set (a font that fails to load drops it from both alike):
+    // titles, tick labels and axis names are the only dark grey in the figure.
+    let ink = fresh
+        .chunks(3)
+        .filter(|p| p[0] == p[1] && p[1] == p[2] && p[0] < 90)
+        .count();
+    assert!(ink > 2000, "{ink} text pixels");
     let o = run(&[
         "eval",
         "--gaussians",
