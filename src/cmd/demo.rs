@@ -138,11 +138,13 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     );
     let series = [cb.series("before", &radii), ca.series("after", &radii)];
     let title = "synthetic toy scene: metrics against the evaluation radius";
-    let png = render::sweep_plot_png(&series, title, 1400, 900);
+    let (w, h) = render::PLOT_SIZE;
+    let doc = render::sweep_plot_svg(&series, title, w, h);
+    let png = render::svg_to_image(&doc)
+        .map_err(|e| anyhow::anyhow!("cannot render the sweep plot: {e}"))?;
     outs.write(&file("sweep.png"), |p| png.write_png(p))?;
-    let svg = render::sweep_plot_svg(&series, title);
     outs.write(&file("sweep.svg"), |p| {
-        io::write_bytes_atomic(p, svg.as_bytes())
+        io::write_bytes_atomic(p, doc.as_bytes())
     })?;
     let mline = |m: &eval::Metrics| {
         vec![
