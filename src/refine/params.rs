@@ -112,6 +112,13 @@ fn finite(s: &str) -> Result<f64, String> {
     }
 }
 
+fn nonnegative(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("expected a number >= 0, got `{s}`")),
+    }
+}
+
 fn extend_factor(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..=10.0).contains(&v) => Ok(v),
@@ -193,6 +200,23 @@ pub struct Params {
     /// Edge fit: fewest points under the kernel (or per face family) for a move.
     #[arg(long, default_value_t = 8)]
     pub fit_min_points: u32,
+    /// Edge fit: weight each Gaussian by its opacity (PLY `opacity`, after the sigmoid),
+    /// so that faint floaters pull less; the fewest-points test still counts points. No
+    /// effect where the model has no opacities or all are equal.
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
+    pub fit_opacity_weight: bool,
+    /// Leave out of refinement every Gaussian whose largest standard deviation
+    /// (`exp(max scale_i)`) exceeds this x r: a Gaussian wider than the cylinder cannot
+    /// place a line within r (large ones are surfaces and floaters). Needs a 3DGS PLY
+    /// with scales; 0: keep all. The run's own before/after metrics then use the cut set.
+    #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
+    pub max_scale: f64,
+    /// Drop a segment whose Gaussians' ridge bends across it by more than this x r (the
+    /// sagitta: the ridge's offset at the middle third against the mean of the end
+    /// thirds, each found by the edge fit's mean shift): it follows a curve, not a line.
+    /// Runs after crop; 0: off.
+    #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
+    pub max_sagitta: f64,
 
     /// Outliers: drop segments with density <= ratio x mean density; -1 uses
     /// max(mean - 2 std, 0).
@@ -322,6 +346,9 @@ impl Default for Params {
             fit_max_move: 2.0,
             fit_bandwidth: 0.25,
             fit_min_points: 8,
+            fit_opacity_weight: false,
+            max_scale: 0.0,
+            max_sagitta: 0.0,
             outlier_ratio: 0.2,
             collinear_merge: true,
             cluster_min_weight: 0.4,
