@@ -499,11 +499,15 @@ impl Job {
     /// exceeds `max_scale x r`, with how many were left out, or a warning when the model
     /// has no scales; `None` when the option is off.
     fn scale_cut(&self, scene: &Scene) -> Result<Option<(Scene, Result<usize, String>)>, RunError> {
-        let k = self.params.max_scale;
+        let k = self.params.max_scale();
         if k <= 0.0 {
             return Ok(None);
         }
         let Some(sc) = &scene.max_scale else {
+            // Not a warning when the user did not ask: most models carry no scales.
+            if self.params.max_scale.is_none() {
+                return Ok(None);
+            }
             return Ok(Some((
                 scene.clone(),
                 Err(format!(
@@ -534,9 +538,12 @@ impl Job {
         let gaussians = pick(&scene.gaussians);
         let cut = scene.gaussians.len() - gaussians.len();
         if gaussians.is_empty() {
-            return Err(RunError::Input(format!(
-                "--max-scale {k}: every Gaussian is wider than {limit} (largest standard \
-                 deviation); nothing would be left to refine with"
+            return Ok(Some((
+                scene.clone(),
+                Err(format!(
+                    "--max-scale {k}: every Gaussian is wider than {limit} (largest standard \
+                     deviation); none was left out"
+                )),
             )));
         }
         let out = Scene {

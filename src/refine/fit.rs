@@ -138,7 +138,12 @@ fn weighted_line(pts: &[(f64, DVec2)], w: &[f64]) -> Option<LineFit> {
 /// per-point weights `pw`, so that a weighting never turns "too few points" into enough).
 /// Each point counts with its weight `pw` (1, or its opacity) times the kernel's. Position
 /// first: a line fitted freely through two parallel ridges can settle crossing them.
-pub(crate) fn ridge(pts: &[(f64, DVec2)], pw: &[f64], r: f64, p: &Params) -> Option<(LineFit, f64)> {
+pub(crate) fn ridge(
+    pts: &[(f64, DVec2)],
+    pw: &[f64],
+    r: f64,
+    p: &Params,
+) -> Option<(LineFit, f64)> {
     if pts.is_empty() {
         return None;
     }

@@ -209,8 +209,9 @@ pub struct Params {
     /// (`exp(max scale_i)`) exceeds this x r: a Gaussian wider than the cylinder cannot
     /// place a line within r (large ones are surfaces and floaters). Needs a 3DGS PLY
     /// with scales; 0: keep all. The run's own before/after metrics then use the cut set.
-    #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
-    pub max_scale: f64,
+    /// Default: the profile's (1 for default, 0 for reference).
+    #[arg(long, value_parser = nonnegative)]
+    pub max_scale: Option<f64>,
     /// Drop a segment whose Gaussians' ridge bends across it by more than this x r (the
     /// sagitta: the ridge's offset at the middle third against the mean of the end
     /// thirds, each found by the edge fit's mean shift): it follows a curve, not a line.
@@ -347,7 +348,7 @@ impl Default for Params {
             fit_bandwidth: 0.25,
             fit_min_points: 8,
             fit_opacity_weight: false,
-            max_scale: 0.0,
+            max_scale: None,
             max_sagitta: 0.0,
             outlier_ratio: 0.2,
             collinear_merge: true,
@@ -506,6 +507,15 @@ impl Params {
     pub fn crop_probe_half(&self) -> f64 {
         self.crop_probe_half
             .unwrap_or(if self.fixes().crop_density { 0.03 } else { 0.1 })
+    }
+
+    /// `--max-scale` in effect: the user's, else the profile's (1 for default, 0 for
+    /// reference, which keeps every Gaussian as the authors' code does).
+    pub fn max_scale(&self) -> f64 {
+        self.max_scale.unwrap_or(match self.profile {
+            Profile::Default => 1.0,
+            Profile::Reference => 0.0,
+        })
     }
 
     pub fn fixes(&self) -> Fixes {
