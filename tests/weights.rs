@@ -209,3 +209,34 @@ fn a_segment_on_a_curve_is_measured_bent_and_dropped_and_a_straight_edge_kept() 
     assert_eq!(notes.curved_dropped, None);
     assert_eq!(out.len(), 2);
 }
+
+#[test]
+fn a_3dgs_ply_gives_each_gaussian_its_largest_scale_and_opacity() {
+    let dir = std::env::temp_dir().join(format!("linegs-weights-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("g.ply");
+    let centers = [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]];
+    // logits: sigmoid(0) = 0.5, sigmoid(2) = 0.88, sigmoid(-4) = 0.018
+    linegs_gpu::io::write_gaussians_3dgs(&path, &centers, Some(&[0.0, 2.0, -4.0])).unwrap();
+    let a = linegs_gpu::io::read_gaussian_attributes(&path, None)
+        .unwrap()
+        .unwrap();
+    // the writer's scales are log 0.01 on every axis
+    assert!(
+        a.max_scale.iter().all(|&s| (s - 0.01).abs() < 1e-6),
+        "{:?}",
+        a.max_scale
+    );
+    let o = a.opacity.unwrap();
+    let want = [0.5, 1.0 / (1.0 + (-2f32).exp()), 1.0 / (1.0 + 4f32.exp())];
+    assert!(
+        o.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-6),
+        "{o:?}"
+    );
+    // the same opacity cut as the center reader, in the same order
+    let cut = linegs_gpu::io::read_gaussian_attributes(&path, Some(0.4))
+        .unwrap()
+        .unwrap();
+    assert_eq!(cut.opacity.unwrap().len(), 2);
+    std::fs::remove_dir_all(&dir).ok();
+}
