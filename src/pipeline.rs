@@ -475,6 +475,9 @@ pub struct Outcome {
     pub report: Report,
 }
 
+/// `--max-scale`'s scene and what it did: how many Gaussians were left out, or why none.
+type ScaleCut = (Scene, Result<usize, String>);
+
 impl Job {
     /// The job with `params` on `backend`, nothing extra.
     pub fn new(params: Params, backend: Backend) -> Job {
@@ -498,7 +501,7 @@ impl Job {
     /// `--max-scale`: `scene` without the Gaussians whose largest standard deviation
     /// exceeds `max_scale x r`, with how many were left out, or a warning when the model
     /// has no scales; `None` when the option is off.
-    fn scale_cut(&self, scene: &Scene) -> Result<Option<(Scene, Result<usize, String>)>, RunError> {
+    fn scale_cut(&self, scene: &Scene) -> Result<Option<ScaleCut>, RunError> {
         let k = self.params.max_scale();
         if k <= 0.0 {
             return Ok(None);

@@ -12,6 +12,8 @@ use crate::refine::fit::{basis, ridge, Attributes};
 use crate::refine::Params;
 use glam::DVec2;
 
+type Third = (Vec<(f64, DVec2)>, Vec<f64>);
+
 /// Each segment's sagitta in units of r, or `None` where a third holds fewer than
 /// `fit_min_points` points under the ridge kernel (no judgement: the segment is kept).
 pub fn straightness(
@@ -29,7 +31,8 @@ pub fn straightness(
         .map(|(s, m)| {
             let (e1, e2) = basis(s.dir());
             let l = s.length();
-            let mut thirds: [(Vec<(f64, DVec2)>, Vec<f64>); 3] = Default::default();
+            // Per third: the members' (axial position, cross-section offset), and weights.
+            let mut thirds: [Third; 3] = Default::default();
             for x in m {
                 let k = ((3.0 * x.t / l).floor().max(0.0) as usize).min(2);
                 thirds[k]
