@@ -566,6 +566,7 @@ impl Job {
     /// Refines `scene` (SPEC 3) and reports (SPEC 7).
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
         let t = Instant::now();
+        let whole = scene;
         let cut = self.scale_cut(scene)?;
         let (scene, cut_note) = match &cut {
             Some((s, n)) => (s, Some(n.clone())),
@@ -584,8 +585,25 @@ impl Job {
                 &scene.lines.segments,
             );
         }
-        let out = refiner.refine(&scene.lines, on_stage)?;
-        let sweep = self.sweep_of(&refiner, &scene.lines.segments, Some(&out.lines.segments))?;
+        let mut out = refiner.refine(&scene.lines, on_stage)?;
+        let mut n_box = refiner.n_box();
+        // The scale cut serves the steps; the metrics are the whole model's, as `eval`
+        // measures them (one more grid over the uncut working set).
+        let measured = match &cut_note {
+            Some(Ok(n)) if *n > 0 => {
+                let m = self.refiner(whole)?;
+                out.before = m.evaluate(&whole.lines.segments)?;
+                out.after = m.evaluate(&out.lines.segments)?;
+                n_box = m.n_box();
+                Some(m)
+            }
+            _ => None,
+        };
+        let sweep = self.sweep_of(
+            measured.as_ref().unwrap_or(&refiner),
+            &scene.lines.segments,
+            Some(&out.lines.segments),
+        )?;
         let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
             before: gt::gt_metrics(&scene.lines.segments, g, gt::STEP, &gt::THRESHOLDS),
             after: Some(gt::gt_metrics(
@@ -596,6 +614,7 @@ impl Job {
             )),
         });
         let mut report = Report::new("refine", scene, &refiner, out.before);
+        report.input.n_box = n_box;
         report.stages.extend(out.stages);
         report.after = Some(out.after);
         if normals_unused {

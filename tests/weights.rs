@@ -88,6 +88,13 @@ fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
         "{:?}",
         out.lines.segments[0]
     );
+    // The metrics are the whole model's, as `eval` gives them.
+    let ev = Job::new(params.clone(), Backend::Cpu)
+        .evaluate(&scene, Some(&out.lines))
+        .unwrap();
+    assert_eq!(out.report.before, ev.before);
+    assert_eq!(out.report.after, ev.after);
+    assert_eq!(out.report.input.n_box, scene.gaussians.len());
     // Without the cut the wide band pulls the line onto itself.
     let keep_all = Params {
         max_scale: Some(0.0),

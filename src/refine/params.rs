@@ -208,14 +208,15 @@ pub struct Params {
     /// Leave out of refinement every Gaussian whose largest standard deviation
     /// (`exp(max scale_i)`) exceeds this x r: a Gaussian wider than the cylinder cannot
     /// place a line within r (large ones are surfaces and floaters). Needs a 3DGS PLY
-    /// with scales; 0: keep all. The run's own before/after metrics then use the cut set.
+    /// with scales; 0: keep all. The metrics (before/after) are still the whole model's.
     /// Default: the profile's (1 for default, 0 for reference).
     #[arg(long, value_parser = nonnegative)]
     pub max_scale: Option<f64>,
-    /// Drop a segment whose Gaussians' ridge bends across it by more than this x r (the
-    /// sagitta: the ridge's offset at the middle third against the mean of the end
-    /// thirds, each found by the edge fit's mean shift): it follows a curve, not a line.
-    /// Runs after crop; 0: off.
+    /// Drop a segment whose Gaussians' ridge bends across it by more than this x r: it
+    /// follows a curve, not a line. The ridge is found (the edge fit's mean shift) in each
+    /// third of the cylinder; the bend is the sagitta of the arc through the three, 9/4 of
+    /// the middle one's offset from the chord through the others. A third with too few
+    /// points is not judged. Runs after crop; 0: off.
     #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
     pub max_sagitta: f64,
 
