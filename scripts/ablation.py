@@ -4,7 +4,8 @@
 Usage: scripts/ablation.py NAME GAUSSIANS LINES GT|- RADIUS [label:"refine options" ...]
 e.g.   linegs-gpu synth toy -o toy_g.ply --lines-out toy_l.obj --gt-out toy_gt.obj
        scripts/ablation.py toy toy_g.ply toy_l.obj toy_gt.obj 0.03 "reference:--profile reference" \
-           "default:" "fit_paper:--fit paper" "fit_none:--fit none" "crop_extend1:--crop-extend 1"
+           "default:" "fit_paper:--fit paper" "fit_none:--fit none" "crop_extend1:--crop-extend 1" \
+           "max_scale0:--max-scale 0" "opacity_weight:--fit-opacity-weight true" "sagitta05:--max-sagitta 0.5"
 Binary: $B (default target/release/linegs-gpu); outputs in $OUT (default ablation-out/).
 """
 import json, subprocess, sys, os

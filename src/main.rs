@@ -47,7 +47,7 @@ enum Command {
     Render(cmd::render::RenderArgs),
     /// Refine every scene of a manifest (CSV) into its own folder, a shard per process
     /// (Slurm array), and summarize them in the columns of the paper's Table I.
-    Batch(cmd::batch::BatchArgs),
+    Batch(Box<cmd::batch::BatchArgs>),
     /// Time whole runs on synthetic scenes of given sizes, per stage, CPU and GPU.
     Bench(cmd::bench::BenchArgs),
 }
@@ -88,7 +88,7 @@ fn main() -> ExitCode {
         Command::Synth(a) => cmd::synth::run(a),
         Command::Render(a) => cmd::render::run(a),
         Command::Bench(a) => cmd::bench::run(a, verbose),
-        Command::Batch(a) => cmd::batch::run(a, verbose),
+        Command::Batch(a) => cmd::batch::run(*a, verbose),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -17,7 +17,7 @@ use crate::eval::{self, gt, Metrics};
 use crate::geom::{LineSet, Segment, MIN_LENGTH};
 use crate::index::{Grid, WorkingSet};
 use crate::io::{self, PlyOptions};
-use crate::refine::{self, Params, Settings};
+use crate::refine::{self, Params, RadiusArg, Settings};
 use crate::report::{GroundTruth, InputReport, Report, Sweep};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -126,6 +126,12 @@ pub struct Scene {
     /// the order of `gaussians`, where the file has rotations and scales (the edge fit's
     /// corner test). Read by a second pass over the PLY.
     pub normals: Option<Vec<[f32; 3]>>,
+    /// Each Gaussian's largest standard deviation (scene units), same order, where the
+    /// file has scales (`--max-scale`).
+    pub max_scale: Option<Vec<f32>>,
+    /// Each Gaussian's opacity in `[0, 1]`, same order, where the file has rotations,
+    /// scales and opacities (`--fit-opacity-weight`).
+    pub opacity: Option<Vec<f32>>,
     /// What the scene is, when it was made rather than read (the demo's synthetic scene).
     pub description: Option<String>,
 }
@@ -137,11 +143,14 @@ impl Scene {
         let mut cloud = read_gaussians(gaussians, opts)?;
         // Normals for the edge fit (PLY with rotations and scales). A frame transform
         // would have to turn them too: with one, the edge fit uses the centers only.
-        let normals = if opts.transform.is_some() {
-            None
-        } else {
-            io::read_gaussian_normals(gaussians, opts.min_opacity)?
-                .filter(|n| n.len() == cloud.centers.len())
+        let attrs = io::read_gaussian_attributes(gaussians, opts.min_opacity)?
+            .filter(|a| a.normals.len() == cloud.centers.len());
+        let (normals, max_scale, opacity) = match attrs {
+            // Opacities do not depend on the frame; normals would have to turn and scales
+            // to scale with it: with a transform only the opacities are used.
+            Some(a) if opts.transform.is_some() => (None, None, a.opacity),
+            Some(a) => (Some(a.normals), Some(a.max_scale), a.opacity),
+            None => (None, None, None),
         };
         if let Some(t) = &opts.transform {
             t.apply(&mut cloud.centers);
@@ -169,6 +178,8 @@ impl Scene {
             warnings,
             load_seconds: t.elapsed().as_secs_f64(),
             normals,
+            max_scale,
+            opacity,
             description: None,
         })
     }
@@ -241,6 +252,8 @@ impl Scene {
             warnings,
             load_seconds: 0.0,
             normals: None,
+            max_scale: None,
+            opacity: None,
             description: None,
         })
     }
@@ -350,13 +363,37 @@ impl Refiner {
         normals: &[[f32; 3]],
         segments: &[Segment],
     ) -> bool {
-        match refine::fit::Attributes::for_working_set(gaussians, normals, segments) {
-            Some(a) if a.normals.as_ref().map(Vec::len) == Some(self.n_box()) => {
-                self.attrs = a;
-                true
-            }
-            _ => false,
-        }
+        self.set_attributes(gaussians, Some(normals), None, segments)
+    }
+
+    /// Gives the edge fit the Gaussians' `normals` and `opacity` (each in the order of
+    /// `gaussians`, the arrays this refiner was built from with `segments`); `false` (and
+    /// nothing set) when a count differs.
+    pub fn set_attributes(
+        &mut self,
+        gaussians: &[[f32; 3]],
+        normals: Option<&[[f32; 3]]>,
+        opacity: Option<&[f32]>,
+        segments: &[Segment],
+    ) -> bool {
+        let n = self.n_box();
+        let normals = match normals {
+            Some(v) => match refine::fit::cut_to_working_set(gaussians, v, segments) {
+                Some(w) if w.len() == n => Some(w),
+                _ => return false,
+            },
+            None => None,
+        };
+        let opacity = match opacity {
+            Some(v) => match refine::fit::cut_to_working_set(gaussians, v, segments) {
+                Some(w) if w.len() == n => Some(w),
+                _ => return false,
+            },
+            None => None,
+        };
+        let a = refine::fit::Attributes { normals, opacity };
+        self.attrs = a;
+        true
     }
 
     /// Before-evaluation, the steps of SPEC 3 and after-evaluation, calling `on_stage`
@@ -438,6 +475,9 @@ pub struct Outcome {
     pub report: Report,
 }
 
+/// `--max-scale`'s scene and what it did: how many Gaussians were left out, or why none.
+type ScaleCut = (Scene, Result<usize, String>);
+
 impl Job {
     /// The job with `params` on `backend`, nothing extra.
     pub fn new(params: Params, backend: Backend) -> Job {
@@ -458,19 +498,112 @@ impl Job {
         )
     }
 
+    /// `--max-scale`: `scene` without the Gaussians whose largest standard deviation
+    /// exceeds `max_scale x r`, with how many were left out, or a warning when the model
+    /// has no scales; `None` when the option is off.
+    fn scale_cut(&self, scene: &Scene) -> Result<Option<ScaleCut>, RunError> {
+        let k = self.params.max_scale();
+        if k <= 0.0 {
+            return Ok(None);
+        }
+        let Some(sc) = &scene.max_scale else {
+            // Not a warning when the user did not ask: most models carry no scales.
+            if self.params.max_scale.is_none() {
+                return Ok(None);
+            }
+            return Ok(Some((
+                scene.clone(),
+                Err(format!(
+                    "--max-scale {k}: the Gaussians carry no scales (or a frame transform is \
+                     given); nothing was left out"
+                )),
+            )));
+        };
+        let r = match self.params.radius {
+            RadiusArg::Fixed(r) => r,
+            RadiusArg::Auto => {
+                let ws = crate::index::WorkingSet::new(&scene.gaussians, &scene.lines.segments);
+                Settings::resolve(self.params.clone(), &ws.points)
+                    .map_err(RunError::Input)?
+                    .radius()
+            }
+        };
+        let limit = k * r;
+        let keep: Vec<bool> = sc.iter().map(|&s| f64::from(s) <= limit).collect();
+        fn pick_of<T: Copy>(v: &[T], keep: &[bool]) -> Vec<T> {
+            v.iter()
+                .zip(keep)
+                .filter(|(_, &k)| k)
+                .map(|(x, _)| *x)
+                .collect()
+        }
+        let pick = |v: &[[f32; 3]]| pick_of(v, &keep);
+        let gaussians = pick(&scene.gaussians);
+        let cut = scene.gaussians.len() - gaussians.len();
+        if gaussians.is_empty() {
+            return Ok(Some((
+                scene.clone(),
+                Err(format!(
+                    "--max-scale {k}: every Gaussian is wider than {limit} (largest standard \
+                     deviation); none was left out"
+                )),
+            )));
+        }
+        let out = Scene {
+            gaussians,
+            normals: scene.normals.as_deref().map(pick),
+            max_scale: Some(pick_of(sc, &keep)),
+            opacity: scene.opacity.as_deref().map(|o| pick_of(o, &keep)),
+            lines: scene.lines.clone(),
+            input: scene.input.clone(),
+            warnings: scene.warnings.clone(),
+            load_seconds: scene.load_seconds,
+            description: scene.description.clone(),
+        };
+        Ok(Some((out, Ok(cut))))
+    }
+
     /// Refines `scene` (SPEC 3) and reports (SPEC 7).
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
         let t = Instant::now();
+        let whole = scene;
+        let cut = self.scale_cut(scene)?;
+        let (scene, cut_note) = match &cut {
+            Some((s, n)) => (s, Some(n.clone())),
+            None => (scene, None),
+        };
         let mut refiner = self.refiner(scene)?;
         if let Some(msg) = self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
             return Err(RunError::FrameMismatch(msg));
         }
         let mut normals_unused = false;
-        if let Some(n) = &scene.normals {
-            normals_unused = !refiner.set_normals(&scene.gaussians, n, &scene.lines.segments);
+        if scene.normals.is_some() || scene.opacity.is_some() {
+            normals_unused = !refiner.set_attributes(
+                &scene.gaussians,
+                scene.normals.as_deref(),
+                scene.opacity.as_deref(),
+                &scene.lines.segments,
+            );
         }
-        let out = refiner.refine(&scene.lines, on_stage)?;
-        let sweep = self.sweep_of(&refiner, &scene.lines.segments, Some(&out.lines.segments))?;
+        let mut out = refiner.refine(&scene.lines, on_stage)?;
+        let mut n_box = refiner.n_box();
+        // The scale cut serves the steps; the metrics are the whole model's, as `eval`
+        // measures them (one more grid over the uncut working set).
+        let measured = match &cut_note {
+            Some(Ok(n)) if *n > 0 => {
+                let m = self.refiner(whole)?;
+                out.before = m.evaluate(&whole.lines.segments)?;
+                out.after = m.evaluate(&out.lines.segments)?;
+                n_box = m.n_box();
+                Some(m)
+            }
+            _ => None,
+        };
+        let sweep = self.sweep_of(
+            measured.as_ref().unwrap_or(&refiner),
+            &scene.lines.segments,
+            Some(&out.lines.segments),
+        )?;
         let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
             before: gt::gt_metrics(&scene.lines.segments, g, gt::STEP, &gt::THRESHOLDS),
             after: Some(gt::gt_metrics(
@@ -481,6 +614,7 @@ impl Job {
             )),
         });
         let mut report = Report::new("refine", scene, &refiner, out.before);
+        report.input.n_box = n_box;
         report.stages.extend(out.stages);
         report.after = Some(out.after);
         if normals_unused {
@@ -489,7 +623,13 @@ impl Job {
                 .push("the Gaussians' normals did not line up with their centers; the edge fit uses the centers only".into());
         }
         report.warnings.extend(out.steps.warnings.iter().cloned());
-        report.refine = Some(out.steps);
+        let mut steps = out.steps;
+        match cut_note {
+            Some(Ok(n)) => steps.scale_cut = Some(n),
+            Some(Err(w)) => report.warnings.push(w),
+            None => {}
+        }
+        report.refine = Some(steps);
         report.sweep = sweep;
         report.ground_truth = ground_truth;
         report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();

@@ -9,6 +9,18 @@ use super::chunked::{Chunked, CHUNK};
 use super::error::Error;
 use super::ply::{parse_header, Body, PropKind};
 
+/// What a 3DGS PLY carries beyond the centers, per Gaussian kept by
+/// [`super::read_gaussians`] with the same `min_opacity`, in the same order.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GaussianAttributes {
+    /// Unit surface normal (shortest axis; zero where the Gaussian is not flat).
+    pub normals: Vec<[f32; 3]>,
+    /// Largest standard deviation `exp(max scale_i)` (scene units).
+    pub max_scale: Vec<f32>,
+    /// Opacity in `[0, 1]` (`sigmoid` of the stored logit), where the file has it.
+    pub opacity: Option<Vec<f32>>,
+}
+
 /// Unit normals of the Gaussians that [`super::read_gaussians`] keeps with the same
 /// `min_opacity` (finite centers, opacity cut), in the same order; `None` when the file
 /// has no rotation and scale properties (then there are no normals to use).
@@ -16,6 +28,16 @@ pub fn read_gaussian_normals(
     path: &Path,
     min_opacity: Option<f64>,
 ) -> Result<Option<Vec<[f32; 3]>>, Error> {
+    Ok(read_gaussian_attributes(path, min_opacity)?.map(|a| a.normals))
+}
+
+/// Normals, largest scales and opacities of the Gaussians [`super::read_gaussians`] keeps
+/// with the same `min_opacity`, in the same order; `None` when the file has no rotation
+/// and scale properties (or `min_opacity` is given and it has no opacity).
+pub fn read_gaussian_attributes(
+    path: &Path,
+    min_opacity: Option<f64>,
+) -> Result<Option<GaussianAttributes>, Error> {
     let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
     let file_len = file
         .metadata()
@@ -48,29 +70,42 @@ pub fn read_gaussian_normals(
             None => return Ok(None),
         }
     }
-    if min_opacity.is_some() {
-        match scalar("opacity") {
-            Some(i) => wanted.push(i),
-            None => return Ok(None),
+    let has_opacity = match scalar("opacity") {
+        Some(i) => {
+            wanted.push(i);
+            true
         }
-    }
+        None if min_opacity.is_some() => return Ok(None),
+        None => false,
+    };
     let mut body = Body::new(ch, &header, header_lines);
     for elem in &header.elements[..vi] {
         body.skip(path, elem)?;
     }
-    let mut out = Vec::with_capacity(vertex.count);
+    let mut out = GaussianAttributes {
+        normals: Vec::with_capacity(vertex.count),
+        max_scale: Vec::with_capacity(vertex.count),
+        opacity: has_opacity.then(|| Vec::with_capacity(vertex.count)),
+    };
     body.for_each(path, vertex, &wanted, |_, v| {
         let c = [v[0] as f32, v[1] as f32, v[2] as f32];
         if !c.iter().all(|x| x.is_finite()) {
             return Ok(());
         }
-        if let Some(t) = min_opacity {
-            let alpha = 1.0 / (1.0 + (-(v[10] as f32 as f64)).exp());
-            if alpha.is_nan() || alpha < t {
+        let alpha = has_opacity.then(|| 1.0 / (1.0 + (-(v[10] as f32 as f64)).exp()));
+        if let (Some(t), Some(a)) = (min_opacity, alpha) {
+            if a.is_nan() || a < t {
                 return Ok(());
             }
         }
-        out.push(shortest_axis([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]]));
+        out.normals
+            .push(shortest_axis([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]]));
+        let s = v[7].max(v[8]).max(v[9]).exp();
+        out.max_scale
+            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
+        if let (Some(o), Some(a)) = (&mut out.opacity, alpha) {
+            o.push(if a.is_nan() { 0.0 } else { a as f32 });
+        }
         Ok(())
     })?;
     Ok(Some(out))

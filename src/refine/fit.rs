@@ -31,6 +31,30 @@ use glam::{DVec2, DVec3};
 pub struct Attributes {
     /// Unit surface normal of each Gaussian (its shortest axis).
     pub normals: Option<Vec<[f32; 3]>>,
+    /// Opacity of each Gaussian in `[0, 1]`: the fit's per-point weight with
+    /// `--fit-opacity-weight`.
+    pub opacity: Option<Vec<f32>>,
+}
+
+/// `values` (one per center, same order) cut to the working set of `segments` by the same
+/// box test as [`crate::index::WorkingSet::new`]; `None` when the counts differ.
+pub fn cut_to_working_set<T: Copy>(
+    centers: &[[f32; 3]],
+    values: &[T],
+    segments: &[Segment],
+) -> Option<Vec<T>> {
+    if centers.len() != values.len() {
+        return None;
+    }
+    let bounds = crate::geom::Aabb::of_segments(segments).grown(0.1);
+    Some(
+        centers
+            .iter()
+            .zip(values)
+            .filter(|(c, _)| !bounds.is_empty() && bounds.contains(crate::geom::p64(**c)))
+            .map(|(_, n)| *n)
+            .collect(),
+    )
 }
 
 impl Attributes {
@@ -42,19 +66,18 @@ impl Attributes {
         normals: &[[f32; 3]],
         segments: &[Segment],
     ) -> Option<Attributes> {
-        if centers.len() != normals.len() {
-            return None;
-        }
-        let bounds = crate::geom::Aabb::of_segments(segments).grown(0.1);
-        let kept = centers
-            .iter()
-            .zip(normals)
-            .filter(|(c, _)| !bounds.is_empty() && bounds.contains(crate::geom::p64(**c)))
-            .map(|(_, n)| *n)
-            .collect();
         Some(Attributes {
-            normals: Some(kept),
+            normals: Some(cut_to_working_set(centers, normals, segments)?),
+            opacity: None,
         })
+    }
+
+    /// The fit's weight of working-set point `id`: its opacity where the attributes carry
+    /// opacities, else 1.
+    pub(crate) fn weight(&self, id: u32) -> f64 {
+        self.opacity
+            .as_ref()
+            .map_or(1.0, |o| f64::from(o[id as usize]))
     }
 }
 
@@ -75,7 +98,7 @@ pub struct FitResult {
 }
 
 /// Two perpendicular unit vectors across `d`.
-fn basis(d: DVec3) -> (DVec3, DVec3) {
+pub(crate) fn basis(d: DVec3) -> (DVec3, DVec3) {
     let a = if d.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
     let e1 = (a - d * a.dot(d)).normalize();
     (e1, d.cross(e1))
@@ -83,10 +106,10 @@ fn basis(d: DVec3) -> (DVec3, DVec3) {
 
 /// The line model `q(t) = a + b (t - t0)` in a segment's cross-section frame.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-struct LineFit {
-    t0: f64,
-    a: DVec2,
-    b: DVec2,
+pub(crate) struct LineFit {
+    pub(crate) t0: f64,
+    pub(crate) a: DVec2,
+    pub(crate) b: DVec2,
 }
 
 /// Weighted least squares of `q` on `t`; `None` without weight or axial spread.
@@ -111,9 +134,16 @@ fn weighted_line(pts: &[(f64, DVec2)], w: &[f64]) -> Option<LineFit> {
 /// The ridge: first its position by mean shift of the cross-section offsets (a Gaussian
 /// kernel whose width shrinks to `fit_bandwidth x r`), then its direction by a
 /// kernel-weighted fit of offset against axial position around that position. Returns the
-/// fit and the weight (effective number of points) under the final kernel. Position first:
-/// a line fitted freely through two parallel ridges can settle crossing them.
-fn ridge(pts: &[(f64, DVec2)], r: f64, p: &Params) -> Option<(LineFit, f64)> {
+/// fit and the number of points under the final kernel (kernel weights summed, without the
+/// per-point weights `pw`, so that a weighting never turns "too few points" into enough).
+/// Each point counts with its weight `pw` (1, or its opacity) times the kernel's. Position
+/// first: a line fitted freely through two parallel ridges can settle crossing them.
+pub(crate) fn ridge(
+    pts: &[(f64, DVec2)],
+    pw: &[f64],
+    r: f64,
+    p: &Params,
+) -> Option<(LineFit, f64)> {
     if pts.is_empty() {
         return None;
     }
@@ -125,8 +155,8 @@ fn ridge(pts: &[(f64, DVec2)], r: f64, p: &Params) -> Option<(LineFit, f64)> {
     let mut c = DVec2::ZERO;
     let mut w = vec![0.0; pts.len()];
     for _ in 0..100 {
-        for (wi, (_, q)) in w.iter_mut().zip(pts) {
-            *wi = (-(*q - c).length_squared() / (2.0 * h * h)).exp();
+        for ((wi, (_, q)), pw) in w.iter_mut().zip(pts).zip(pw) {
+            *wi = pw * (-(*q - c).length_squared() / (2.0 * h * h)).exp();
         }
         let sw: f64 = w.iter().sum();
         if sw <= 0.0 {
@@ -146,10 +176,12 @@ fn ridge(pts: &[(f64, DVec2)], r: f64, p: &Params) -> Option<(LineFit, f64)> {
         a: c,
         b: DVec2::ZERO,
     };
-    for (wi, (_, q)) in w.iter_mut().zip(pts) {
-        *wi = (-(*q - c).length_squared() / (2.0 * h_min * h_min)).exp();
+    let mut weight = 0.0;
+    for ((wi, (_, q)), pw) in w.iter_mut().zip(pts).zip(pw) {
+        let k = (-(*q - c).length_squared() / (2.0 * h_min * h_min)).exp();
+        weight += k;
+        *wi = pw * k;
     }
-    let weight: f64 = w.iter().sum();
     if let Some(f) = weighted_line(pts, &w) {
         fit = f;
     }
@@ -167,9 +199,29 @@ fn median(v: &mut [f64]) -> f64 {
     }
 }
 
+/// Weighted median of `(value, weight)` pairs: the smallest value whose cumulative weight
+/// reaches half the total; the plain [`median`] when all weights are equal.
+fn weighted_median(v: &mut [(f64, f64)]) -> f64 {
+    if v.iter().all(|x| x.1 == v[0].1) {
+        let mut vals: Vec<f64> = v.iter().map(|x| x.0).collect();
+        return median(&mut vals);
+    }
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let half = 0.5 * v.iter().map(|x| x.1).sum::<f64>();
+    let mut acc = 0.0;
+    for &(x, w) in v.iter() {
+        acc += w;
+        if acc >= half {
+            return x;
+        }
+    }
+    v[v.len() - 1].0
+}
+
 /// Two surface-normal families across the line: their mean normals (2D, unit) and members.
 /// Normals are sign-free, so they are clustered by doubled angle (2-means).
-fn families(normals: &[DVec2], min_points: usize) -> Option<[(DVec2, Vec<usize>); 2]> {
+/// Each normal counts with its weight `pw` in the families' means.
+fn families(normals: &[DVec2], pw: &[f64], min_points: usize) -> Option<[(DVec2, Vec<usize>); 2]> {
     let dbl: Vec<DVec2> = normals
         .iter()
         .map(|n| DVec2::new(n.x * n.x - n.y * n.y, 2.0 * n.x * n.y))
@@ -190,8 +242,8 @@ fn families(normals: &[DVec2], min_points: usize) -> Option<[(DVec2, Vec<usize>)
             *l = usize::from((*u - c[1]).length_squared() < (*u - c[0]).length_squared());
         }
         let mut s = [DVec2::ZERO; 2];
-        for (l, u) in label.iter().zip(&dbl) {
-            s[*l] += *u;
+        for ((l, u), w) in label.iter().zip(&dbl).zip(pw) {
+            s[*l] += *u * *w;
         }
         let next = [s[0].normalize_or_zero(), s[1].normalize_or_zero()];
         if next == c {
@@ -213,6 +265,7 @@ fn families(normals: &[DVec2], min_points: usize) -> Option<[(DVec2, Vec<usize>)
 /// The corner of two face families in the points `sel` (indices into `pts`).
 fn corner(
     pts: &[(f64, DVec2)],
+    pw: &[f64],
     fam: &[(DVec2, Vec<usize>); 2],
     sel: impl Fn(f64) -> bool,
     min_points: usize,
@@ -220,15 +273,15 @@ fn corner(
     let mut c = [0.0; 2];
     for (ck, (n, members)) in c.iter_mut().zip(fam) {
         let n = *n;
-        let mut off: Vec<f64> = members
+        let mut off: Vec<(f64, f64)> = members
             .iter()
             .filter(|&&i| sel(pts[i].0))
-            .map(|&i| n.dot(pts[i].1))
+            .map(|&i| (n.dot(pts[i].1), pw[i]))
             .collect();
         if off.len() < min_points {
             return None;
         }
-        *ck = median(&mut off);
+        *ck = weighted_median(&mut off);
     }
     let (n1, n2) = (fam[0].0, fam[1].0);
     let det = n1.x * n2.y - n1.y * n2.x;
@@ -245,19 +298,21 @@ fn corner(
 /// corner, no turn, when a half has too few points).
 fn two_planes(
     pts: &[(f64, DVec2)],
+    pw: &[f64],
     normals: &[DVec2],
     keep: &[usize],
     len: f64,
     min_points: usize,
 ) -> Option<LineFit> {
-    let fam = families(normals, min_points)?;
+    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
+    let fam = families(normals, &sub_w, min_points)?;
     // Family members index `normals`, which are the points `keep`.
     let sub: Vec<(f64, DVec2)> = keep.iter().map(|&i| pts[i]).collect();
-    let all = corner(&sub, &fam, |_| true, min_points)?;
+    let all = corner(&sub, &sub_w, &fam, |_| true, min_points)?;
     let half = 0.5 * len;
     match (
-        corner(&sub, &fam, |t| t < half, min_points),
-        corner(&sub, &fam, |t| t >= half, min_points),
+        corner(&sub, &sub_w, &fam, |t| t < half, min_points),
+        corner(&sub, &sub_w, &fam, |t| t >= half, min_points),
     ) {
         (Some(c1), Some(c2)) => Some(LineFit {
             t0: half,
@@ -287,6 +342,12 @@ fn step(
         .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
         .collect();
     let min_points = p.fit_min_points as usize;
+    // Per-point weights: opacities with --fit-opacity-weight, else 1.
+    let pw: Vec<f64> = if p.fit_opacity_weight {
+        members.iter().map(|m| attrs.weight(m.id)).collect()
+    } else {
+        vec![1.0; members.len()]
+    };
     if let Some(ns) = &attrs.normals {
         // Normals across the line (a face through the edge): |n·d| < sin 30°; a Gaussian
         // with no normal (zero) is left out.
@@ -300,13 +361,13 @@ fn step(
                 n2.push(across.normalize());
             }
         }
-        if let Some(f) = two_planes(&pts, &n2, &keep, s.length(), min_points) {
+        if let Some(f) = two_planes(&pts, &pw, &n2, &keep, s.length(), min_points) {
             if f.a.length() <= r {
                 return (Some(f), How::Corner);
             }
         }
     }
-    match ridge(&pts, r, p) {
+    match ridge(&pts, &pw, r, p) {
         Some((f, weight)) if weight >= min_points as f64 => (Some(f), How::Ridge),
         _ => (None, How::Unclear),
     }
@@ -426,11 +487,16 @@ mod tests {
             n.push(DVec2::new(s, 0.0));
             n.push(DVec2::new(0.0, s));
         }
-        let f = families(&n, 5).unwrap();
+        let f = families(&n, &[1.0; 40], 5).unwrap();
         assert_eq!(f[0].1.len(), 20);
         assert_eq!(f[1].1.len(), 20);
         assert!(f[0].0.dot(f[1].0).abs() < 1e-9);
         // one family only: no corner
-        assert!(families(&n.iter().step_by(2).copied().collect::<Vec<_>>(), 5).is_none());
+        assert!(families(
+            &n.iter().step_by(2).copied().collect::<Vec<_>>(),
+            &[1.0; 20],
+            5
+        )
+        .is_none());
     }
 }

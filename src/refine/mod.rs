@@ -12,6 +12,7 @@ pub mod crop;
 pub mod fit;
 pub mod mergejoin;
 pub mod outliers;
+pub mod straight;
 pub mod translate;
 
 use crate::engine::{Engine, EngineError};
@@ -87,6 +88,10 @@ pub struct StepNotes {
     pub fit_ridge: usize,
     pub fit_unclear: usize,
     pub lengths: Vec<StageLength>,
+    /// `--max-scale`: Gaussians left out as wider than `max_scale x r` (null when off).
+    pub scale_cut: Option<usize>,
+    /// `--max-sagitta`: segments dropped as curves (null when off).
+    pub curved_dropped: Option<usize>,
     pub warnings: Vec<String>,
 }
 
@@ -129,6 +134,8 @@ pub fn run_steps_noted(
         fit_ridge: 0,
         fit_unclear: 0,
         lengths: Vec::new(),
+        scale_cut: None,
+        curved_dropped: None,
         warnings: Vec::new(),
     };
     let mut last_len = total_length(&lines.segments);
@@ -200,5 +207,17 @@ pub fn run_steps_noted(
     lines.segments = crop::crop(engine, &lines.segments, s)?;
     note_len("crop", &lines.segments, &mut notes);
     stage("crop", lines.len(), t);
+
+    if p.max_sagitta > 0.0 {
+        let t = Instant::now();
+        let st = straight::straightness(engine, &lines.segments, attrs, r, p)?;
+        let kept: Vec<usize> = (0..lines.len())
+            .filter(|&i| st[i].is_none_or(|sag| sag <= p.max_sagitta))
+            .collect();
+        notes.curved_dropped = Some(lines.len() - kept.len());
+        lines = lines.select(&kept);
+        note_len("straightness", &lines.segments, &mut notes);
+        stage("straightness", lines.len(), t);
+    }
     Ok((lines, notes))
 }

@@ -112,6 +112,13 @@ fn finite(s: &str) -> Result<f64, String> {
     }
 }
 
+fn nonnegative(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("expected a number >= 0, got `{s}`")),
+    }
+}
+
 fn extend_factor(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..=10.0).contains(&v) => Ok(v),
@@ -193,6 +200,25 @@ pub struct Params {
     /// Edge fit: fewest points under the kernel (or per face family) for a move.
     #[arg(long, default_value_t = 8)]
     pub fit_min_points: u32,
+    /// Edge fit: weight each Gaussian by its opacity (PLY `opacity`, after the sigmoid),
+    /// so that faint floaters pull less; the fewest-points test still counts points. No
+    /// effect where the model has no opacities or all are equal.
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
+    pub fit_opacity_weight: bool,
+    /// Leave out of refinement every Gaussian whose largest standard deviation
+    /// (`exp(max scale_i)`) exceeds this x r: a Gaussian wider than the cylinder cannot
+    /// place a line within r (large ones are surfaces and floaters). Needs a 3DGS PLY
+    /// with scales; 0: keep all. The metrics (before/after) are still the whole model's.
+    /// Default: the profile's (1 for default, 0 for reference).
+    #[arg(long, value_parser = nonnegative)]
+    pub max_scale: Option<f64>,
+    /// Drop a segment whose Gaussians' ridge bends across it by more than this x r: it
+    /// follows a curve, not a line. The ridge is found (the edge fit's mean shift) in each
+    /// third of the cylinder; the bend is the sagitta of the arc through the three, 9/4 of
+    /// the middle one's offset from the chord through the others. A third with too few
+    /// points is not judged. Runs after crop; 0: off.
+    #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
+    pub max_sagitta: f64,
 
     /// Outliers: drop segments with density <= ratio x mean density; -1 uses
     /// max(mean - 2 std, 0).
@@ -322,6 +348,9 @@ impl Default for Params {
             fit_max_move: 2.0,
             fit_bandwidth: 0.25,
             fit_min_points: 8,
+            fit_opacity_weight: false,
+            max_scale: None,
+            max_sagitta: 0.0,
             outlier_ratio: 0.2,
             collinear_merge: true,
             cluster_min_weight: 0.4,
@@ -479,6 +508,15 @@ impl Params {
     pub fn crop_probe_half(&self) -> f64 {
         self.crop_probe_half
             .unwrap_or(if self.fixes().crop_density { 0.03 } else { 0.1 })
+    }
+
+    /// `--max-scale` in effect: the user's, else the profile's (1 for default, 0 for
+    /// reference, which keeps every Gaussian as the authors' code does).
+    pub fn max_scale(&self) -> f64 {
+        self.max_scale.unwrap_or(match self.profile {
+            Profile::Default => 1.0,
+            Profile::Reference => 0.0,
+        })
     }
 
     pub fn fixes(&self) -> Fixes {
