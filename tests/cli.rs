@@ -359,6 +359,34 @@ fn demo_writes_every_promised_file() {
     assert!(v["ground_truth"]["after"]["accuracy"].as_f64().is_some());
 }
 
+/// Renders an SVG document with resvg, text in `assets/fonts/DejaVuSans.ttf` (read from
+/// the repository, not the copy compiled into the binary): width, height and RGB bytes.
+fn render_svg_with_the_shipped_font(svg: &str) -> (u32, u32, Vec<u8>) {
+    use resvg::usvg;
+    let font =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/fonts/DejaVuSans.ttf"))
+            .unwrap();
+    let mut opt = usvg::Options {
+        font_family: "DejaVu Sans".into(),
+        ..usvg::Options::default()
+    };
+    opt.fontdb_mut().load_font_data(font);
+    let tree = usvg::Tree::from_str(svg, &opt).unwrap();
+    let size = tree.size().to_int_size();
+    let mut pix = resvg::tiny_skia::Pixmap::new(size.width(), size.height()).unwrap();
+    resvg::render(
+        &tree,
+        resvg::tiny_skia::Transform::identity(),
+        &mut pix.as_mut(),
+    );
+    let mut rgb = Vec::new();
+    for p in pix.pixels() {
+        assert_eq!(p.alpha(), 255, "the plot has an opaque background");
+        rgb.extend_from_slice(&[p.red(), p.green(), p.blue()]);
+    }
+    (size.width(), size.height(), rgb)
+}
+
 #[test]
 fn eval_sweeps_radii_compares_two_sets_and_plots() {
     let dir = tempfile::tempdir().unwrap();
@@ -399,6 +427,33 @@ fn eval_sweeps_radii_compares_two_sets_and_plots() {
         // coverage grows with the radius
         assert!(m[2]["coverage_pct"].as_f64() > m[0]["coverage_pct"].as_f64());
     }
+    // The PNG is the SVG (written by the other run, from the same metrics) rendered.
+    let svg = std::fs::read_to_string(dir.path().join("sweep.svg")).unwrap();
+    let (w, h, fresh) = render_svg_with_the_shipped_font(&svg);
+    assert_eq!((w, h), (1400, 900));
+    let dec = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(dir.path().join("sweep.png")).unwrap(),
+    ));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    assert_eq!(
+        (info.width, info.height, info.color_type),
+        (w, h, png::ColorType::Rgb)
+    );
+    let differ = buf[..info.buffer_size()]
+        .iter()
+        .zip(&fresh)
+        .filter(|(a, b)| a != b)
+        .count();
+    assert_eq!(differ, 0, "the PNG differs from the SVG rendered afresh");
+    // ... and the text was set (a font that fails to load drops it from both alike):
+    // titles, tick labels and axis names are the only dark grey in the figure.
+    let ink = fresh
+        .chunks(3)
+        .filter(|p| p[0] == p[1] && p[1] == p[2] && p[0] < 90)
+        .count();
+    assert!(ink > 2000, "{ink} text pixels");
     let o = run(&[
         "eval",
         "--gaussians",

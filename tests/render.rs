@@ -146,6 +146,70 @@ fn segment_pixels_lie_on_the_projection_in_all_four_views() {
     }
 }
 
+/// Whether `p` is a mix of `c` and white with `c`'s share strictly between 10% and 90%.
+fn blend_of(p: [u8; 3], c: [u8; 3]) -> bool {
+    // The share of `c` from the channel where `c` is furthest from white.
+    let k = (0..3).max_by_key(|&k| 255 - c[k] as i32).unwrap();
+    let span = 255.0 - c[k] as f64;
+    let a = (255.0 - p[k] as f64) / span;
+    let mix = |k: usize| 255.0 + (c[k] as f64 - 255.0) * a;
+    (0.1..0.9).contains(&a) && (0..3).all(|k| (p[k] as f64 - mix(k)).abs() <= 3.0)
+}
+
+#[test]
+fn segments_and_text_are_antialiased() {
+    // A slanted segment with no points: its edges blend into the background, while a
+    // hard-edged (aliased) line would only have the colour and white.
+    let seg = [Segment::from_arrays([-1.0, -0.3, 0.0], [1.0, 0.4, 0.2])];
+    let panels = [Panel {
+        title: "Antialiased title",
+        layers: vec![Layer {
+            name: "s",
+            segments: &seg,
+            color: REFINED,
+        }],
+        metrics: vec!["E_rms 0.42 cm".into()],
+    }];
+    let img = render_comparison(&[], &panels, 800, 600);
+    keep(&img, "antialiased.png");
+    let views = comparison_views(&[], &panels, 800, 600);
+    let top = views[0][0];
+    let a = view_project(&top, seg[0].p1).unwrap();
+    let b = view_project(&top, seg[0].p2).unwrap();
+    let (mut solid, mut rim) = (0, 0);
+    let [vx, vy, vw, vh] = top.viewport;
+    for y in (vy + 30.0) as u32..(vy + vh - 2.0) as u32 {
+        for x in (vx + 2.0) as u32..(vx + vw - 2.0) as u32 {
+            let d = dist_to_segment([x as f64 + 0.5, y as f64 + 0.5], a, b);
+            let p = img.pixel(x, y);
+            if d < 3.0 {
+                solid += close(p, REFINED, 2) as usize;
+                rim += blend_of(p, REFINED) as usize;
+            }
+        }
+    }
+    assert!(solid > 200, "{solid} solid pixels");
+    assert!(rim > 100, "{rim} edge pixels blended with the background");
+    // The title, above the views where nothing else is drawn: dark stems and grey rims.
+    let header = views[0][0].viewport[1] as u32;
+    let (mut dark, mut grey) = (0, 0);
+    for y in 0..header {
+        for x in 0..800 {
+            let p = img.pixel(x, y);
+            assert!(
+                p[0] == p[1] && p[1] == p[2],
+                "only ink and paper in the title"
+            );
+            dark += (p[0] < 80) as usize;
+            grey += (100..220).contains(&p[0]) as usize;
+        }
+    }
+    assert!(
+        dark > 100 && grey > 100,
+        "title: {dark} dark, {grey} grey pixels"
+    );
+}
+
 fn dist_to_segment(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
     let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
     let t = (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / (dx * dx + dy * dy)).clamp(0.0, 1.0);
@@ -252,7 +316,7 @@ fn sweep_plot_png_and_svg_show_before_and_after() {
             score: &s1,
         },
     ];
-    let img = sweep_plot_png(&series, "radius sweep, toy scene", 1200, 800);
+    let img = sweep_plot_png(&series, "radius sweep, toy scene", 1200, 800).unwrap();
     keep(&img, "sweep.png");
     assert_eq!((img.width, img.height), (1200, 800));
     for c in [INPUT, REFINED] {
@@ -263,7 +327,7 @@ fn sweep_plot_png_and_svg_show_before_and_after() {
             .count();
         assert!(n > 500, "{c:?}: {n} pixels");
     }
-    let svg = sweep_plot_svg(&series, "radius sweep, toy scene");
+    let svg = sweep_plot_svg(&series, "radius sweep, toy scene", 1200, 800);
     if let Some(dir) = std::env::var_os("LINEGS_RENDER_OUT") {
         std::fs::write(PathBuf::from(dir).join("sweep.svg"), &svg).unwrap();
     }

@@ -24,7 +24,7 @@ const REFINED: [u8; 3] = REFINED_COLOR;
 fn read_png(path: &Path) -> (u32, u32, Vec<[u8; 3]>) {
     let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
     let mut r = dec.read_info().unwrap();
-    let mut buf = vec![0; r.output_buffer_size()];
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
     let info = r.next_frame(&mut buf).unwrap();
     let ch = match info.color_type {
         png::ColorType::Rgb => 3,

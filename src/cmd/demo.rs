@@ -113,11 +113,12 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     );
     let series = [cb.series("before", &radii), ca.series("after", &radii)];
     let title = "synthetic toy scene: metrics against the evaluation radius";
-    render::sweep_plot_png(&series, title, 1400, 900).write_png(&file("sweep.png"))?;
-    io::write_bytes_atomic(
-        &file("sweep.svg"),
-        render::sweep_plot_svg(&series, title).as_bytes(),
-    )?;
+    let (w, h) = render::PLOT_SIZE;
+    let doc = render::sweep_plot_svg(&series, title, w, h);
+    render::svg_to_image(&doc)
+        .map_err(|e| anyhow::anyhow!("cannot render the sweep plot: {e}"))?
+        .write_png(&file("sweep.png"))?;
+    io::write_bytes_atomic(&file("sweep.svg"), doc.as_bytes())?;
     let mline = |m: &eval::Metrics| {
         vec![
             format!("{} segments", m.segments + m.skipped),

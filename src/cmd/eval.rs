@@ -94,11 +94,18 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             report.input.n_box
         );
         let svg = p.extension().is_some_and(|e| e.eq_ignore_ascii_case("svg"));
+        let (w, h) = render::PLOT_SIZE;
+        let doc = render::sweep_plot_svg(&series, &title, w, h);
         outs.write(p, |tmp| {
             if svg {
-                io::write_bytes_atomic(tmp, render::sweep_plot_svg(&series, &title).as_bytes())
+                io::write_bytes_atomic(tmp, doc.as_bytes())
             } else {
-                render::sweep_plot_png(&series, &title, 1400, 900).write_png(tmp)
+                render::svg_to_image(&doc)
+                    .map_err(|e| io::Error::Output {
+                        path: tmp.to_path_buf(),
+                        msg: format!("cannot render the plot: {e}"),
+                    })?
+                    .write_png(tmp)
             }
         })?;
         outs.commit()?;

@@ -1,12 +1,19 @@
 //! The radius-sweep figure (the paper's evaluation against the evaluation radius):
-//! E_rms, R_covered, R_L and score in four panels, one line per series (before, after),
-//! as SVG for papers and PNG for quick looks. One layout drives both back ends, so the
-//! two files show the same figure.
+//! E_rms, R_covered, R_L and score in four panels, one line per series (before, after).
+//! The figure is built once, as an SVG document (for papers); the PNG (for quick looks)
+//! is that document rendered by resvg, so the two files show the same figure, pixel for
+//! pixel, in the embedded DejaVu Sans.
 
 use std::fmt::Write as _;
 
-use super::font;
-use super::raster::{draw_line_px, Image};
+use resvg::tiny_skia::{Pixmap, Transform};
+use resvg::usvg;
+
+use super::raster::Image;
+use super::text;
+
+/// Size in pixels of the sweep figure the CLI and the demo write, as SVG and as PNG.
+pub const PLOT_SIZE: (u32, u32) = (1400, 900);
 
 /// One curve family: a label and the four metrics at each radius (`None` where a metric
 /// is undefined at that radius, e.g. no segment had a point; drawn as a gap).
@@ -43,15 +50,6 @@ enum Anchor {
     Start,
     Middle,
     End,
-}
-
-/// What the layout needs from a back end. `text` positions are the vertical centre.
-trait Canvas {
-    fn line(&mut self, pts: &[[f64; 2]], color: [u8; 3], width: f64);
-    fn dot(&mut self, at: [f64; 2], radius: f64, color: [u8; 3]);
-    fn text(&mut self, at: [f64; 2], text: &str, size: f64, anchor: Anchor, color: [u8; 3]);
-    /// Approximate advance of `text`, for laying out the legend.
-    fn text_width(&self, text: &str, size: f64) -> f64;
 }
 
 fn metric<'a>(s: &SweepSeries<'a>, m: usize) -> &'a [Option<f64>] {
@@ -162,7 +160,7 @@ impl PanelFrame {
     }
 }
 
-/// Text sizes in pixels (the PNG back end rounds them to multiples of 8).
+/// Text sizes in pixels per em.
 struct Sizes {
     title: f64,
     label: f64,
@@ -174,14 +172,14 @@ fn sizes(width: f64, height: f64) -> Sizes {
     if big {
         Sizes {
             title: 24.0,
-            label: 16.0,
-            tick: 16.0,
+            label: 17.0,
+            tick: 15.0,
         }
     } else {
         Sizes {
             title: 16.0,
-            label: 8.0,
-            tick: 8.0,
+            label: 12.0,
+            tick: 11.0,
         }
     }
 }
@@ -231,7 +229,7 @@ fn frames(series: &[SweepSeries], width: f64, height: f64) -> Vec<PanelFrame> {
 }
 
 /// Draws the whole figure on any back end.
-fn draw(c: &mut impl Canvas, series: &[SweepSeries], title: &str, width: f64, height: f64) {
+fn draw(c: &mut Svg, series: &[SweepSeries], title: &str, width: f64, height: f64) {
     let sz = sizes(width, height);
     c.text(
         [width / 2.0, sz.title],
@@ -260,14 +258,15 @@ fn draw(c: &mut impl Canvas, series: &[SweepSeries], title: &str, width: f64, he
     }
 }
 
-fn draw_panel(c: &mut impl Canvas, f: &PanelFrame, m: usize, series: &[SweepSeries], sz: &Sizes) {
+fn draw_panel(c: &mut Svg, f: &PanelFrame, m: usize, series: &[SweepSeries], sz: &Sizes) {
     let [ax, ay, aw, ah] = f.area;
     let (x_step, y_step) = (step_of(&f.x.2), step_of(&f.y.2));
     for &t in &f.y.2 {
         let y = f.map([f.x.0, t])[1];
         c.line(&[[ax, y], [ax + aw, y]], GRID, 1.0);
+        c.line(&[[ax - 5.0, y], [ax, y]], AXIS, 1.0);
         c.text(
-            [ax - 8.0, y],
+            [ax - 9.0, y],
             &tick_label(t, y_step),
             sz.tick,
             Anchor::End,
@@ -342,9 +341,7 @@ fn step_of(ticks: &[f64]) -> f64 {
     }
 }
 
-/// Width and height of the SVG figure (it scales freely; this sets the proportions).
-const SVG_SIZE: (f64, f64) = (1000.0, 720.0);
-
+/// An SVG document being written; its methods are the figure's drawing primitives.
 struct Svg {
     out: String,
 }
@@ -371,7 +368,7 @@ pub(crate) fn xml_escape(s: &str) -> String {
     o
 }
 
-impl Canvas for Svg {
+impl Svg {
     fn line(&mut self, pts: &[[f64; 2]], color: [u8; 3], width: f64) {
         let p: Vec<String> = pts
             .iter()
@@ -395,6 +392,7 @@ impl Canvas for Svg {
         );
     }
 
+    /// `text` with its vertical centre at `at[1]`.
     fn text(&mut self, at: [f64; 2], text: &str, size: f64, anchor: Anchor, color: [u8; 3]) {
         let a = match anchor {
             Anchor::Start => "start",
@@ -411,71 +409,53 @@ impl Canvas for Svg {
         );
     }
 
+    /// Advance of `text` in the embedded font, the one resvg draws it with.
     fn text_width(&self, text: &str, size: f64) -> f64 {
-        // Average advance of a proportional sans-serif face.
-        text.chars().count() as f64 * size * 0.6
+        text::text_width(text, size as f32) as f64
     }
 }
 
-/// The sweep figure as a standalone SVG document.
-pub fn sweep_plot_svg(series: &[SweepSeries], title: &str) -> String {
-    let (w, h) = SVG_SIZE;
+/// The sweep figure as a standalone SVG document of `width x height` pixels, its text in
+/// DejaVu Sans (generic sans-serif where that is not installed).
+pub fn sweep_plot_svg(series: &[SweepSeries], title: &str, width: u32, height: u32) -> String {
+    let (w, h) = (width.max(1), height.max(1));
     let mut svg = Svg { out: String::new() };
     let _ = writeln!(svg.out, r#"<?xml version="1.0" encoding="UTF-8"?>"#);
     let _ = writeln!(
         svg.out,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="DejaVu Sans, Helvetica, Arial, sans-serif">"#
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="{}, sans-serif">"#,
+        text::FONT_FAMILY
     );
     let _ = writeln!(svg.out, "<title>{}</title>", xml_escape(title));
     let _ = writeln!(svg.out, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
-    draw(&mut svg, series, title, w, h);
+    draw(&mut svg, series, title, w as f64, h as f64);
     svg.out.push_str("</svg>\n");
     svg.out
 }
 
-impl Canvas for Image {
-    fn line(&mut self, pts: &[[f64; 2]], color: [u8; 3], width: f64) {
-        let clip = [0, 0, self.width as i64, self.height as i64];
-        for w in pts.windows(2) {
-            draw_line_px(self, w[0], w[1], color, width, clip);
-        }
-    }
-
-    fn dot(&mut self, at: [f64; 2], radius: f64, color: [u8; 3]) {
-        // A disk with a one-pixel soft edge.
-        let r = radius.ceil() as i64 + 1;
-        let (cx, cy) = (at[0].floor() as i64, at[1].floor() as i64);
-        for y in cy - r..=cy + r {
-            for x in cx - r..=cx + r {
-                let d = (x as f64 + 0.5 - at[0]).hypot(y as f64 + 0.5 - at[1]);
-                self.blend(x, y, color, (radius + 0.5 - d).clamp(0.0, 1.0) as f32);
-            }
-        }
-    }
-
-    fn text(&mut self, at: [f64; 2], text: &str, size: f64, anchor: Anchor, color: [u8; 3]) {
-        let scale = (size / 8.0).round().max(1.0) as u32;
-        let w = font::text_width(text, scale);
-        let x = match anchor {
-            Anchor::Start => at[0] as i64,
-            Anchor::Middle => at[0] as i64 - w / 2,
-            Anchor::End => at[0] as i64 - w,
-        };
-        font::draw_text(self, x, at[1] as i64 - 4 * scale as i64, text, color, scale);
-    }
-
-    fn text_width(&self, text: &str, size: f64) -> f64 {
-        font::text_width(text, (size / 8.0).round().max(1.0) as u32) as f64
-    }
+/// Renders an SVG document at its own size with resvg, text in the embedded font only
+/// (no system font is looked up, so the result is the same on every machine).
+pub fn svg_to_image(svg: &str) -> Result<Image, usvg::Error> {
+    let opt = usvg::Options {
+        font_family: text::FONT_FAMILY.to_string(),
+        fontdb: text::font_db(),
+        ..usvg::Options::default()
+    };
+    let tree = usvg::Tree::from_str(svg, &opt)?;
+    let size = tree.size().to_int_size();
+    let mut pixmap = Pixmap::new(size.width(), size.height()).ok_or(usvg::Error::InvalidSize)?;
+    resvg::render(&tree, Transform::identity(), &mut pixmap.as_mut());
+    Ok(Image::from_pixmap(&pixmap))
 }
 
-/// The sweep figure as a `width x height` picture.
-pub fn sweep_plot_png(series: &[SweepSeries], title: &str, width: u32, height: u32) -> Image {
-    let mut img = Image::new(width, height, [255; 3]);
-    if width > 0 && height > 0 {
-        draw(&mut img, series, title, width as f64, height as f64);
-    }
-    img
+/// The sweep figure as a `width x height` picture: [`sweep_plot_svg`] rendered.
+pub fn sweep_plot_png(
+    series: &[SweepSeries],
+    title: &str,
+    width: u32,
+    height: u32,
+) -> Result<Image, usvg::Error> {
+    svg_to_image(&sweep_plot_svg(series, title, width, height))
 }
 
 #[cfg(test)]
@@ -554,7 +534,7 @@ mod tests {
             series("before <input>", &before),
             series("after & refined", &after),
         ];
-        let svg = sweep_plot_svg(&s, "Sweep \"toy\"");
+        let svg = sweep_plot_svg(&s, "Sweep \"toy\"", 1000, 720);
         let tags = parse_tags(&svg);
         assert_eq!(tags[0], "svg");
         assert!(svg.contains("before &lt;input&gt;") && svg.contains("after &amp; refined"));
@@ -594,13 +574,15 @@ mod tests {
         let gappy = [Some(1.0), Some(2.0), None, Some(4.0)];
         for (vals, expect_ink) in [(&full, true), (&gappy, false)] {
             let s = [series("s", vals)];
-            let img = sweep_plot_png(&s, "t", 1200, 800);
+            let img = sweep_plot_png(&s, "t", 1200, 800).unwrap();
             assert_eq!((img.width, img.height), (1200, 800));
             let f = &frames(&s, 1200.0, 800.0)[0];
             // Halfway between radius 0.05 and 0.1 (value 2.5 on the full line).
             let q = f.map([0.075, 2.5]);
+            // The line is 2.5 px wide, so its centre pixel is (nearly) fully covered.
             let p = img.pixel(q[0] as u32, q[1] as u32);
-            assert_eq!(p == PALETTE[0], expect_ink, "{p:?} at {q:?}");
+            let near = (0..3).all(|k| (p[k] as i32 - PALETTE[0][k] as i32).abs() <= 40);
+            assert_eq!(near, expect_ink, "{p:?} at {q:?}");
             // The sample itself is always drawn.
             let d = f.map([0.1, 3.0]);
             if vals[2].is_some() {
@@ -609,6 +591,50 @@ mod tests {
             let e = f.map([0.2, 4.0]);
             assert_eq!(img.pixel(e[0] as u32, e[1] as u32), PALETTE[0]);
         }
+    }
+
+    #[test]
+    fn the_svg_parses_with_usvg_and_its_text_is_set_in_the_embedded_font() {
+        let v = [Some(1.0), Some(2.0), Some(3.0), Some(4.0)];
+        let svg = sweep_plot_svg(&[series("before", &v)], "fonts", 600, 400);
+        let opt = usvg::Options {
+            fontdb: text::font_db(),
+            ..usvg::Options::default()
+        };
+        let tree = usvg::Tree::from_str(&svg, &opt).unwrap();
+        assert_eq!(
+            tree.size().to_int_size(),
+            usvg::Size::from_wh(600.0, 400.0).unwrap().to_int_size()
+        );
+        // Every text element was laid out (a text with no font would have no glyphs).
+        let mut texts = 0;
+        let mut stack = vec![tree.root()];
+        while let Some(g) = stack.pop() {
+            for n in g.children() {
+                match n {
+                    usvg::Node::Group(g) => stack.push(g),
+                    usvg::Node::Text(t) => {
+                        texts += 1;
+                        let glyphs: Vec<_> = t
+                            .layouted()
+                            .iter()
+                            .flat_map(|s| &s.positioned_glyphs)
+                            .collect();
+                        // Glyph 0 is the font's "missing glyph" box.
+                        assert!(
+                            !glyphs.is_empty() && glyphs.iter().all(|g| g.id.0 != 0),
+                            "no glyphs for {:?}",
+                            t.chunks()[0].text()
+                        );
+                    }
+                    _ => {}
+                }
+            }
+        }
+        // Every text element of the document, none dropped for want of a font: title,
+        // legend, and per panel its name, the axis name and 5 ticks on each axis.
+        assert_eq!(texts, svg.matches("<text ").count());
+        assert_eq!(texts, 1 + 1 + 4 * (2 + 5 + 5));
     }
 
     #[test]
@@ -624,13 +650,13 @@ mod tests {
             r_l: &v,
             score: &[],
         }];
-        let img = sweep_plot_png(&s, "single", 800, 600);
+        let img = sweep_plot_png(&s, "single", 800, 600).unwrap();
         let f = &frames(&s, 800.0, 600.0)[0];
         let d = f.map([0.1, 3.0]);
         // The lone sample sits in the middle of the x range.
         assert!((d[0] - (f.area[0] + f.area[2] / 2.0)).abs() < 1.0);
         assert_eq!(img.pixel(d[0] as u32, d[1] as u32), PALETTE[0]);
-        let svg = sweep_plot_svg(&s, "single");
+        let svg = sweep_plot_svg(&s, "single", 800, 600);
         parse_tags(&svg);
         assert_eq!(svg.matches(">no data<").count(), 2);
     }

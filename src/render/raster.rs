@@ -1,12 +1,17 @@
-//! CPU rasterizer: an RGB image, orthographic and perspective views, density-shaded point
-//! clouds and anti-aliased thick lines. A CPU rasterizer, not wgpu's render pipeline, so
-//! that pictures come out the same on every machine, with or without an adapter.
+//! What pictures are made of besides tiny-skia's strokes: an RGB image with its PNG
+//! writer, orthographic and perspective views (world point to pixel, segments cut at the
+//! near plane and clipped), and density-shaded point clouds written straight into the
+//! pixmap (10^6 points would be 10^6 tiny-skia fills). All on the CPU, not wgpu's render
+//! pipeline, so pictures come out the same on every machine, with or without an adapter.
 
 use std::io;
 use std::path::Path;
 
 use glam::DVec3;
 use rayon::prelude::*;
+use resvg::tiny_skia::Pixmap;
+
+use super::text::blend_premultiplied;
 
 /// An 8-bit sRGB image, rows top to bottom, 3 bytes a pixel.
 #[derive(Clone, Debug, PartialEq)]
@@ -27,6 +32,25 @@ impl Image {
         Image { width, height, rgb }
     }
 
+    /// The colours of an opaque pixmap (premultiplied RGBA is plain RGB at alpha 255);
+    /// a translucent pixel is composed over white.
+    pub fn from_pixmap(pixmap: &Pixmap) -> Image {
+        let mut rgb = Vec::with_capacity(pixmap.data().len() / 4 * 3);
+        for p in pixmap.pixels() {
+            let white = 255 - p.alpha();
+            rgb.extend_from_slice(&[
+                p.red().saturating_add(white),
+                p.green().saturating_add(white),
+                p.blue().saturating_add(white),
+            ]);
+        }
+        Image {
+            width: pixmap.width(),
+            height: pixmap.height(),
+            rgb,
+        }
+    }
+
     /// The colour at `(x, y)`; panics outside the image, like slice indexing.
     pub fn pixel(&self, x: u32, y: u32) -> [u8; 3] {
         assert!(
@@ -35,45 +59,6 @@ impl Image {
         );
         let i = (y as usize * self.width as usize + x as usize) * 3;
         [self.rgb[i], self.rgb[i + 1], self.rgb[i + 2]]
-    }
-
-    /// Sets `(x, y)`; coordinates outside the image are ignored so callers can clip lazily.
-    pub fn put(&mut self, x: i64, y: i64, color: [u8; 3]) {
-        self.blend(x, y, color, 1.0);
-    }
-
-    /// Mixes `color` into `(x, y)` with opacity `alpha` in [0, 1]; outside: ignored.
-    pub fn blend(&mut self, x: i64, y: i64, color: [u8; 3], alpha: f32) {
-        if x < 0 || y < 0 || x >= self.width as i64 || y >= self.height as i64 || alpha <= 0.0 {
-            return;
-        }
-        let a = alpha.min(1.0);
-        let i = (y as usize * self.width as usize + x as usize) * 3;
-        for (dst, &src) in self.rgb[i..i + 3].iter_mut().zip(&color) {
-            let old = *dst as f32;
-            *dst = (old + (src as f32 - old) * a).round() as u8;
-        }
-    }
-
-    /// Fills the rectangle `[x, x+w) x [y, y+h)`, clipped to the image.
-    pub fn fill_rect(&mut self, x: i64, y: i64, w: i64, h: i64, color: [u8; 3]) {
-        let x0 = x.max(0);
-        let y0 = y.max(0);
-        let x1 = (x + w).min(self.width as i64);
-        let y1 = (y + h).min(self.height as i64);
-        for yy in y0..y1 {
-            for xx in x0..x1 {
-                self.put(xx, yy, color);
-            }
-        }
-    }
-
-    /// One-pixel outline of the rectangle `[x, x+w) x [y, y+h)`.
-    pub fn stroke_rect(&mut self, x: i64, y: i64, w: i64, h: i64, color: [u8; 3]) {
-        self.fill_rect(x, y, w, 1, color);
-        self.fill_rect(x, y + h - 1, w, 1, color);
-        self.fill_rect(x, y, 1, h, color);
-        self.fill_rect(x + w - 1, y, 1, h, color);
     }
 
     /// The PNG encoding of the image.
@@ -268,15 +253,15 @@ pub fn view_project(view: &View, p: DVec3) -> Option<[f64; 2]> {
 /// darker instead of saturating at the first point, so 10^6 points stay readable.
 /// `splat` is the side of the square a point covers, in pixels (1 or 2).
 pub fn splat_points(
-    img: &mut Image,
+    img: &mut Pixmap,
     view: &View,
     points: &[[f32; 3]],
     color: [u8; 3],
     gain: f32,
     splat: u32,
 ) {
-    let w = img.width as usize;
-    let h = img.height as usize;
+    let w = img.width() as usize;
+    let h = img.height() as usize;
     if w == 0 || h == 0 || points.is_empty() {
         return;
     }
@@ -314,33 +299,23 @@ pub fn splat_points(
             }
         }
     }
-    img.rgb
-        .par_chunks_mut(w * 3)
+    img.data_mut()
+        .par_chunks_mut(w * 4)
         .zip(counts.par_chunks(w))
         .for_each(|(row, crow)| {
             for (x, &c) in crow.iter().enumerate() {
-                if c == 0 {
-                    continue;
-                }
-                let a = 1.0 - (-gain * c as f32).exp();
-                for k in 0..3 {
-                    let old = row[x * 3 + k] as f32;
-                    row[x * 3 + k] = (old + (color[k] as f32 - old) * a).round() as u8;
+                if c != 0 {
+                    let a = 1.0 - (-gain * c as f32).exp();
+                    blend_premultiplied(&mut row[x * 4..x * 4 + 4], color, a);
                 }
             }
         });
 }
 
-/// Draws the world segment `p1 p2` through `view`, clipped to the near plane and the
-/// viewport, `width` pixels wide with anti-aliased edges and round caps.
-pub fn draw_segment(
-    img: &mut Image,
-    view: &View,
-    p1: DVec3,
-    p2: DVec3,
-    color: [u8; 3],
-    width: f64,
-) {
+/// The pixel positions of the ends of the world segment `p1 p2` in `view`, cut at the
+/// near plane of a perspective view and clipped to the viewport grown by `pad` pixels
+/// (so a stroke's caps at the border are kept). `None` when nothing of it is visible.
+pub fn project_segment(view: &View, p1: DVec3, p2: DVec3, pad: f64) -> Option<[[f64; 2]; 2]> {
     let mut c1 = view.camera(p1);
     let mut c2 = view.camera(p2);
     if view.perspective {
@@ -348,7 +323,7 @@ pub fn draw_segment(
         // behind it, where `plane` rejects it.
         let near = view.near * 2.0;
         if c1.z <= near && c2.z <= near {
-            return;
+            return None;
         }
         // Cut the part behind the camera: projecting it would flip it across the image.
         if c1.z < near {
@@ -357,26 +332,18 @@ pub fn draw_segment(
             c2 = c1 + (c2 - c1) * ((c1.z - near) / (c1.z - c2.z));
         }
     }
-    let (Some(a), Some(b)) = (view.plane(c1), view.plane(c2)) else {
-        return;
-    };
-    let (a, b) = (view.pixel_of(a), view.pixel_of(b));
-    let pad = width;
+    let a = view.pixel_of(view.plane(c1)?);
+    let b = view.pixel_of(view.plane(c2)?);
     let [vx, vy, vw, vh] = view.viewport;
     let clip = [vx - pad, vy - pad, vx + vw + pad, vy + vh + pad];
-    if let Some((a, b)) = clip_segment(a, b, clip) {
-        let vp = [
-            vx.floor() as i64,
-            vy.floor() as i64,
-            (vx + vw).ceil() as i64,
-            (vy + vh).ceil() as i64,
-        ];
-        draw_line_px(img, a, b, color, width, vp);
-    }
+    clip_segment(a, b, clip).map(|(a, b)| [a, b])
 }
 
 /// Liang-Barsky clipping of the pixel segment `a b` to `[x0, y0, x1, y1]`.
 fn clip_segment(a: [f64; 2], b: [f64; 2], r: [f64; 4]) -> Option<([f64; 2], [f64; 2])> {
+    if !(a[0].is_finite() && a[1].is_finite() && b[0].is_finite() && b[1].is_finite()) {
+        return None;
+    }
     let d = [b[0] - a[0], b[1] - a[1]];
     let (mut t0, mut t1) = (0.0f64, 1.0f64);
     let tests = [
@@ -404,73 +371,6 @@ fn clip_segment(a: [f64; 2], b: [f64; 2], r: [f64; 4]) -> Option<([f64; 2], [f64
     }
     let at = |t: f64| [a[0] + d[0] * t, a[1] + d[1] * t];
     Some((at(t0), at(t1)))
-}
-
-/// Anti-aliased thick line between pixel positions `a` and `b`, drawn only inside the
-/// pixel rectangle `clip` = [x0, y0, x1, y1). Walks the major axis and shades, in each
-/// column (or row), only the pixels within reach of the line, so the cost follows the
-/// length, not the bounding box.
-pub fn draw_line_px(
-    img: &mut Image,
-    a: [f64; 2],
-    b: [f64; 2],
-    color: [u8; 3],
-    width: f64,
-    clip: [i64; 4],
-) {
-    if !(a[0].is_finite() && a[1].is_finite() && b[0].is_finite() && b[1].is_finite()) {
-        return;
-    }
-    let hw = (width * 0.5).max(0.5);
-    let reach = hw + 1.0;
-    // Swap axes so the walk goes along the longer extent.
-    let steep = (b[1] - a[1]).abs() > (b[0] - a[0]).abs();
-    let (a2, b2) = if steep {
-        ([a[1], a[0]], [b[1], b[0]])
-    } else {
-        (a, b)
-    };
-    let (a2, b2) = if a2[0] <= b2[0] { (a2, b2) } else { (b2, a2) };
-    let dx = b2[0] - a2[0];
-    let dy = b2[1] - a2[1];
-    let len2 = dx * dx + dy * dy;
-    let minor_at = |u: f64| {
-        let t = if dx > 0.0 {
-            ((u - a2[0]) / dx).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        a2[1] + dy * t
-    };
-    let (cmaj0, cmaj1, cmin0, cmin1) = if steep {
-        (clip[1], clip[3], clip[0], clip[2])
-    } else {
-        (clip[0], clip[2], clip[1], clip[3])
-    };
-    let u0 = ((a2[0] - reach).floor() as i64).max(cmaj0);
-    let u1 = ((b2[0] + reach).ceil() as i64).min(cmaj1 - 1);
-    for u in u0..=u1 {
-        let ya = minor_at(u as f64);
-        let yb = minor_at(u as f64 + 1.0);
-        let v0 = ((ya.min(yb) - reach).floor() as i64).max(cmin0);
-        let v1 = ((ya.max(yb) + reach).ceil() as i64).min(cmin1 - 1);
-        for v in v0..=v1 {
-            // Distance from the pixel centre to the segment (round caps).
-            let (px, py) = (u as f64 + 0.5 - a2[0], v as f64 + 0.5 - a2[1]);
-            let t = if len2 > 0.0 {
-                ((px * dx + py * dy) / len2).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let (ex, ey) = (px - dx * t, py - dy * t);
-            let dist = (ex * ex + ey * ey).sqrt();
-            let cov = (hw + 0.5 - dist).clamp(0.0, 1.0) as f32;
-            if cov > 0.0 {
-                let (x, y) = if steep { (v, u) } else { (u, v) };
-                img.blend(x, y, color, cov);
-            }
-        }
-    }
 }
 
 #[cfg(test)]
@@ -522,62 +422,39 @@ mod tests {
     }
 
     #[test]
-    fn a_line_is_coloured_along_its_path_and_nowhere_else() {
-        let mut img = Image::new(60, 40, [255; 3]);
-        draw_line_px(
-            &mut img,
-            [5.0, 10.0],
-            [55.0, 30.0],
-            [200, 0, 0],
-            2.0,
-            [0, 0, 60, 40],
-        );
-        for t in [0.1, 0.5, 0.9] {
-            let (x, y) = (5.0 + 50.0 * t, 10.0 + 20.0 * t);
-            let px = img.pixel(x as u32, y as u32);
-            assert!(px[0] > 190 && px[1] < 90, "({x},{y}) = {px:?}");
-        }
-        for y in 0..40u32 {
-            for x in 0..60u32 {
-                // Distance from the pixel centre to the line through the endpoints.
-                let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
-                let d = ((cx - 5.0) * 20.0 - (cy - 10.0) * 50.0).abs() / (50f64.hypot(20.0));
-                if d > 2.6 {
-                    assert_eq!(img.pixel(x, y), [255; 3], "stray ink at ({x},{y})");
-                }
-            }
-        }
-    }
-
-    #[test]
     fn a_segment_crossing_the_near_plane_is_cut_not_flipped() {
         let vp = [0.0, 0.0, 100.0, 100.0];
         let v = View::perspective(0.0, 0.0, unit_box(), vp, 0.0);
-        let mut img = Image::new(100, 100, [255; 3]);
         // From the box centre to far behind the camera, along the view axis offset up.
         let a = DVec3::new(0.0, 0.0, 0.5);
         let b = v.eye - v.forward * 10.0 + DVec3::new(0.0, 0.0, 0.5);
-        draw_segment(&mut img, &v, a, b, [0, 0, 255], 2.0);
+        let [p, q] = project_segment(&v, a, b, 2.0).unwrap();
         let pa = view_project(&v, a).unwrap();
-        // A point in front of the camera, a little along the segment, is drawn.
-        let inside = view_project(&v, a + (b - a) * 0.05).unwrap();
-        assert_eq!(img.pixel(inside[0] as u32, inside[1] as u32), [0, 0, 255]);
-        // The visible part runs from the centre upwards (towards the camera's up offset):
-        // nothing below the centre row.
-        for y in (pa[1] as u32 + 3)..100 {
-            for x in 0..100 {
-                assert_eq!(
-                    img.pixel(x, y),
-                    [255; 3],
-                    "ink below the segment at ({x},{y})"
-                );
-            }
-        }
+        // One end is the centre's projection; the other lies above it (towards the
+        // camera's up offset) and inside the padded viewport, not flipped below.
+        assert!(
+            (p[0] - pa[0]).abs() < 1e-9 && (p[1] - pa[1]).abs() < 1e-9,
+            "{p:?}"
+        );
+        assert!(
+            q[1] < pa[1] && q[1] >= -2.0 - 1e-9 && (q[0] - pa[0]).abs() < 1e-6,
+            "{q:?}"
+        );
+        // Wholly behind the camera: nothing.
+        let behind = v.eye - v.forward;
+        assert!(project_segment(&v, behind, behind - v.forward, 2.0).is_none());
+        // Wholly outside the viewport: nothing; crossing it: clipped to its padded edge.
+        let o = View::orthographic(-DVec3::Z, DVec3::Y, unit_box(), vp, 0.0);
+        let far = DVec3::new(5.0, 0.0, 0.0);
+        assert!(project_segment(&o, far, far + DVec3::Y, 2.0).is_none());
+        let [_, e] = project_segment(&o, DVec3::ZERO, far, 2.0).unwrap();
+        assert!((e[0] - 102.0).abs() < 1e-9, "{e:?}");
     }
 
     #[test]
     fn points_shade_their_pixel_and_denser_is_darker() {
-        let mut img = Image::new(20, 20, [255; 3]);
+        let mut img = Pixmap::new(20, 20).unwrap();
+        img.fill(resvg::tiny_skia::Color::WHITE);
         let v = View::orthographic(-DVec3::Z, DVec3::Y, unit_box(), [0.0, 0.0, 20.0, 20.0], 0.0);
         let pts = vec![
             [0.5f32, 0.5, 0.0],
@@ -586,6 +463,7 @@ mod tests {
             [-0.5, -0.5, 0.0],
         ];
         splat_points(&mut img, &v, &pts, [0, 0, 0], 0.5, 1);
+        let img = Image::from_pixmap(&img);
         let one = view_project(&v, DVec3::new(0.5, 0.5, 0.0)).unwrap();
         let three = view_project(&v, DVec3::new(-0.5, -0.5, 0.0)).unwrap();
         let g1 = img.pixel(one[0] as u32, one[1] as u32)[0];
@@ -602,13 +480,13 @@ mod tests {
     #[test]
     fn png_round_trips_through_the_decoder() {
         let mut img = Image::new(7, 3, [10, 20, 30]);
-        img.put(6, 2, [255, 0, 128]);
+        img.rgb[(2 * 7 + 6) * 3..][..3].copy_from_slice(&[255, 0, 128]);
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("a.png");
         img.write_png(&path).unwrap();
         let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path).unwrap()));
         let mut r = dec.read_info().unwrap();
-        let mut buf = vec![0; r.output_buffer_size()];
+        let mut buf = vec![0; r.output_buffer_size().unwrap()];
         let info = r.next_frame(&mut buf).unwrap();
         assert_eq!(
             (info.width, info.height, info.color_type),
