@@ -627,9 +627,22 @@ impl Outputs {
     /// Writes the refined lines, the comparison PLY and the report (each atomically), the
     /// report last and with the `write` stage and the output path in it.
     pub fn write(&self, input: &LineSet, out: &mut Outcome) -> Result<(), RunError> {
-        let t = Instant::now();
         // All of them land together or none does: a failure leaves earlier files as they were.
         let mut set = io::OutputSet::new();
+        self.stage(&mut set, input, out)?;
+        set.commit()?;
+        Ok(())
+    }
+
+    /// Like [`Outputs::write`], into `set`: nothing lands until the caller commits it
+    /// (with its own files, as one transaction).
+    pub fn stage(
+        &self,
+        set: &mut io::OutputSet,
+        input: &LineSet,
+        out: &mut Outcome,
+    ) -> Result<(), RunError> {
+        let t = Instant::now();
         set.write(&self.lines, |p| io::write_lines(p, &out.lines.segments))?;
         if let Some(cp) = &self.compare_ply {
             set.write(cp, |p| {
@@ -650,7 +663,6 @@ impl Outputs {
             let json = out.report.to_json();
             set.write(rp, |p| io::write_bytes_atomic(p, json.as_bytes()))?;
         }
-        set.commit()?;
         Ok(())
     }
 }

@@ -359,6 +359,96 @@ fn demo_writes_every_promised_file() {
     assert!(v["ground_truth"]["after"]["accuracy"].as_f64().is_some());
 }
 
+fn names_in(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+/// The demo checks all its files before any work and writes them as one transaction: a
+/// folder where its last file cannot go gets no file at all, and an old result stays.
+#[test]
+fn demo_checks_its_files_first_and_writes_all_or_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    std::fs::create_dir_all(out.join("viewer.html")).unwrap();
+    std::fs::write(out.join("refined.obj"), "old").unwrap();
+    let o = run(&[
+        "demo",
+        "--out",
+        out.to_str().unwrap(),
+        "--backend",
+        "cpu",
+        "-n",
+        "8000",
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("viewer.html: --out is a folder"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(
+        !stdout(&o).contains("toy scene"),
+        "worked before checking: {}",
+        stdout(&o)
+    );
+    assert_eq!(names_in(&out), ["refined.obj", "viewer.html"]);
+    assert_eq!(
+        std::fs::read_to_string(out.join("refined.obj")).unwrap(),
+        "old"
+    );
+    // A file given as the folder is the user's mistake too.
+    let file = dir.path().join("x.obj");
+    std::fs::write(&file, "x").unwrap();
+    let o = run(&["demo", "--out", file.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "x");
+}
+
+/// `convert` never writes over its input, checks `-o` before reading, and leaves no
+/// temporary file behind.
+#[test]
+fn convert_refuses_its_input_and_checks_the_output_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let lines = dir.path().join("l.txt");
+    std::fs::copy(data("line3dpp/line3dpp_optimized.txt"), &lines).unwrap();
+    let model = dir.path().join("g.ply");
+    std::fs::copy(data("gaussians/tile_lod2.ply"), &model).unwrap();
+    for input in [&lines, &model] {
+        let before = std::fs::read(input).unwrap();
+        let p = input.to_str().unwrap();
+        let o = run(&["convert", p, "-o", p]);
+        assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+        assert!(stderr(&o).contains("-o is the input"), "{}", stderr(&o));
+        assert_eq!(std::fs::read(input).unwrap(), before, "{p} was overwritten");
+    }
+    // The output's folder is checked before the (malformed) input is read.
+    let bad = dir.path().join("bad.txt");
+    std::fs::write(&bad, "1 2 3\n").unwrap();
+    let nowhere = dir.path().join("no/out.obj");
+    let o = run(&[
+        "convert",
+        bad.to_str().unwrap(),
+        "-o",
+        nowhere.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("does not exist"), "{}", stderr(&o));
+    let obj = dir.path().join("l.obj");
+    let o = run(&[
+        "convert",
+        lines.to_str().unwrap(),
+        "-o",
+        obj.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(names_in(dir.path()), ["bad.txt", "g.ply", "l.obj", "l.txt"]);
+}
+
 /// Renders an SVG document with resvg, text in `assets/fonts/DejaVuSans.ttf` (read from
 /// the repository, not the copy compiled into the binary): width, height and RGB bytes.
 fn render_svg_with_the_shipped_font(svg: &str) -> (u32, u32, Vec<u8>) {

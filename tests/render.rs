@@ -244,7 +244,7 @@ fn points_appear_where_they_project() {
 }
 
 #[test]
-fn a_million_points_and_ten_thousand_segments_render_quickly() {
+fn a_million_points_and_ten_thousand_segments_render_with_every_layer_visible() {
     let scene = scaled_scene(1_000_000, 10_000, 7);
     let panels = [
         Panel {
@@ -282,8 +282,15 @@ fn a_million_points_and_ten_thousand_segments_render_quickly() {
             .count()
             > 10_000
     );
-    // Generous: the test profile is not a release build and the machine is shared.
-    assert!(secs < 5.0, "took {secs} s");
+    // The time is printed, not asserted: speed is measured by `linegs-gpu render` runs
+    // (README, Use), never by timed tests.
+    assert!(
+        img.rgb
+            .chunks(3)
+            .filter(|p| close([p[0], p[1], p[2]], REFINED, 0))
+            .count()
+            > 10_000
+    );
 }
 
 #[test]

@@ -27,18 +27,19 @@ pub struct ConvertArgs {
 }
 
 pub fn run(a: ConvertArgs) -> Result<()> {
-    if io::is_gaussian_model(&a.input)? {
-        let ext = a
-            .output
-            .extension()
-            .map(|e| e.to_string_lossy().to_ascii_lowercase())
-            .unwrap_or_default();
-        if ext != "ply" {
-            return Err(input_error(format!(
-                "{}: Gaussians are written as .ply (centers and opacity), not `.{ext}`",
-                a.output.display()
-            )));
-        }
+    let gaussians = io::is_gaussian_model(&a.input)?;
+    // Checked before any work: the extension, the folder, and that `-o` is not an input.
+    let mut outs = io::OutputSet::new();
+    outs.input(&a.input);
+    if let Some(t) = &a.frame.gaussians_transform {
+        outs.input(t);
+    }
+    match gaussians {
+        true => outs.output("-o", &a.output, &["ply"]),
+        false => outs.output("-o", &a.output, &io::LINE_OUTPUTS),
+    };
+    outs.check()?;
+    if gaussians {
         if let Some(o) = a.min_opacity {
             if !(0.0..=1.0).contains(&o) {
                 return Err(input_error(format!(
@@ -66,7 +67,10 @@ pub fn run(a: ConvertArgs) -> Result<()> {
                 .unwrap_or_default(),
             cloud.format
         );
-        io::write_gaussians_ply(&a.output, &cloud.centers, opacity.as_deref(), &comment)?;
+        outs.write(&a.output, |p| {
+            io::write_gaussians_ply(p, &cloud.centers, opacity.as_deref(), &comment)
+        })?;
+        outs.commit()?;
         println!(
             "{}: {} of {} Gaussians ({}) -> {}{}",
             a.input.display(),
@@ -88,12 +92,12 @@ pub fn run(a: ConvertArgs) -> Result<()> {
             a.input.display()
         )));
     }
-    io::check_line_output(&a.output)?;
     let lines = io::read_lines_with(&a.input, &a.frame.line_options())?;
     for w in &lines.warnings {
         eprintln!("warning: {w}");
     }
-    io::write_lines(&a.output, &lines.lines.segments)?;
+    outs.write(&a.output, |p| io::write_lines(p, &lines.lines.segments))?;
+    outs.commit()?;
     println!(
         "{}: {} segments ({}) -> {}",
         a.input.display(),

@@ -1,4 +1,4 @@
-use super::{metrics_table, print_engine, BackendArgs};
+use super::{input_error, metrics_table, print_engine, BackendArgs};
 use crate::cmd::eval::SeriesCols;
 use crate::cmd::render::{AFTER, BEFORE};
 use anyhow::{Context, Result};
@@ -27,10 +27,38 @@ pub struct DemoArgs {
     pub num_gaussians: usize,
 }
 
+/// What the demo writes into its folder, in the order it lists them.
+const FILES: [&str; 10] = [
+    "gaussians.ply",
+    "input.txt",
+    "ground_truth.obj",
+    "refined.obj",
+    "before_after.ply",
+    "report.json",
+    "sweep.png",
+    "sweep.svg",
+    "before_after.png",
+    "viewer.html",
+];
+
 pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     let t0 = Instant::now();
+    if a.out.exists() && !a.out.is_dir() {
+        return Err(input_error(format!(
+            "{}: --out is a file; the demo writes its files into a folder",
+            a.out.display()
+        )));
+    }
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create the demo folder", a.out.display()))?;
+    let d = &a.out;
+    let file = |name: &str| d.join(name);
+    // Every file checked before any work, and all of them land together at the end.
+    let mut outs = io::OutputSet::new();
+    for name in FILES {
+        outs.output("--out", &file(name), &[]);
+    }
+    outs.check()?;
     let scene = synth::toy_scene(&synth::ToyParams {
         seed: a.seed,
         n_gaussians: a.num_gaussians,
@@ -88,24 +116,21 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         f(gt_after)
     );
 
-    let d = &a.out;
-    let mut files = Vec::new();
-    let mut file = |name: &str| {
-        let p = d.join(name);
-        files.push(p.clone());
-        p
-    };
-    io::write_gaussians_3dgs(&file("gaussians.ply"), &scene.gaussians, None)?;
+    outs.write(&file("gaussians.ply"), |p| {
+        io::write_gaussians_3dgs(p, &scene.gaussians, None)
+    })?;
     // Line3D++ text keeps the scene's line groups, so `refine` on these files runs the
     // collinear merge as the demo did and reproduces its numbers exactly (tests/cli.rs).
-    io::write_lines_line3dpp(&file("input.txt"), &scene.lines)?;
-    io::write_lines(&file("ground_truth.obj"), gt_edges)?;
+    outs.write(&file("input.txt"), |p| {
+        io::write_lines_line3dpp(p, &scene.lines)
+    })?;
+    outs.write(&file("ground_truth.obj"), |p| io::write_lines(p, gt_edges))?;
     let outputs = Outputs {
         lines: file("refined.obj"),
         compare_ply: Some(file("before_after.ply")),
         report: Some(file("report.json")),
     };
-    outputs.write(&scene.lines, &mut out)?;
+    outputs.stage(&mut outs, &scene.lines, &mut out)?;
     let sw = out.report.sweep.as_ref().expect("the job has a sweep");
     let (cb, ca) = (
         SeriesCols::new(&sw.before),
@@ -115,10 +140,12 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     let title = "synthetic toy scene: metrics against the evaluation radius";
     let (w, h) = render::PLOT_SIZE;
     let doc = render::sweep_plot_svg(&series, title, w, h);
-    render::svg_to_image(&doc)
-        .map_err(|e| anyhow::anyhow!("cannot render the sweep plot: {e}"))?
-        .write_png(&file("sweep.png"))?;
-    io::write_bytes_atomic(&file("sweep.svg"), doc.as_bytes())?;
+    let png = render::svg_to_image(&doc)
+        .map_err(|e| anyhow::anyhow!("cannot render the sweep plot: {e}"))?;
+    outs.write(&file("sweep.png"), |p| png.write_png(p))?;
+    outs.write(&file("sweep.svg"), |p| {
+        io::write_bytes_atomic(p, doc.as_bytes())
+    })?;
     let mline = |m: &eval::Metrics| {
         vec![
             format!("{} segments", m.segments + m.skipped),
@@ -151,8 +178,8 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
             metrics: mline(&after),
         },
     ];
-    render::render_comparison(&scene.gaussians, &panels, 1600, 900)
-        .write_png(&file("before_after.png"))?;
+    let img = render::render_comparison(&scene.gaussians, &panels, 1600, 900);
+    outs.write(&file("before_after.png"), |p| img.write_png(p))?;
     let layers = render::viewer_layers(
         &scene.lines.segments,
         Some(&out.lines.segments),
@@ -164,10 +191,13 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         "linegs-gpu demo (synthetic)",
         200_000,
     );
-    io::write_bytes_atomic(&file("viewer.html"), html.as_bytes())?;
+    outs.write(&file("viewer.html"), |p| {
+        io::write_bytes_atomic(p, html.as_bytes())
+    })?;
+    outs.commit()?;
     println!("wrote to {}:", d.display());
-    for f in &files {
-        println!("  {}", f.display());
+    for name in FILES {
+        println!("  {}", file(name).display());
     }
     Ok(())
 }

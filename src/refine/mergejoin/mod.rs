@@ -112,7 +112,7 @@ fn merge_join_budget(
         .collect();
     rounds::run(engine, &mut machines, cx)?;
     Ok(line_set(
-        machines.into_iter().flat_map(|m| m.items),
+        machines.into_iter().flat_map(|m| m.into_items()),
         lines.groups.is_some(),
     ))
 }
@@ -165,7 +165,7 @@ pub fn collinear_merge(
         .map(|m| rounds::Machine::new(items_of(lines, m), Mode::Collinear, FIRST_BUDGET))
         .collect();
     rounds::run(engine, &mut machines, cx)?;
-    let results = machines.into_iter().map(|m| m.items).collect();
+    let results = machines.into_iter().map(|m| m.into_items()).collect();
     Ok(in_input_order(lines, &members, results))
 }
 

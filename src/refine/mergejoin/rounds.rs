@@ -1,22 +1,32 @@
 //! The batched machinery that runs the restart loops of [`super::sequential`] for every
 //! group at once, one engine batch per round (SPEC 4), with exactly the same result.
 //!
-//! Every group is a small state machine. In one round each unfinished group lists, in scan
-//! order from where it stands, the pairs that pass the CPU parts of the rules with the
-//! queries their decisions need (across the end of the merge scan into the join scan,
-//! whose pairs then count only if no merge succeeds); all groups' queries go to the engine
-//! as one batch; then each group walks its list in order:
+//! A decision is a pure function of the two items (and the phase), so everything decided
+//! stays valid until one of its items changes. Every group is a small state machine that
+//! keeps, per phase, the pairs not known to fail ([`Open`]): a pair leaves when its CPU
+//! part or its queries decide against it, or when one of its items is dropped, and a
+//! success that changes item `h` puts back only the pairs of `h`. A restart therefore
+//! costs the pairs of the changed item, not a new scan of the whole group: a cluster of
+//! hundreds of near-duplicates (the real Line3D++ output under `reference`) would
+//! otherwise rescan `O(k^2)` failing pairs after each of its `O(k)` merges.
+//!
+//! In one round each unfinished group lists its open pairs in scan order, with the queries
+//! their decisions need (across the end of the merge scan into the join scan, whose pairs
+//! then count only if no merge succeeds), until its budget is full or it meets a pair
+//! already known to succeed with a change (which ends the scan of this round: nothing
+//! after it can apply); all groups' queries go to the engine as one batch; then each group
+//! walks its list in order:
 //! - a pair whose result is item `i` itself, bit for bit (a copy merged into its twin):
 //!   item `j` is dropped and the walk goes on, because nothing any other decision reads
 //!   has changed — this is what the sequential loop does after its restart, which finds
 //!   every earlier pair failing again;
 //! - the first other success is applied and the scan restarts;
-//! - no success: the scan moves past the listed pairs.
+//! - no success: the listed pairs leave the open set.
 //!
-//! Decisions are pure functions of the two items, so they are kept (the memo) by item
-//! identity across rounds: after a restart a round asks only about pairs that involve the
-//! changed item. A round whose pairs are all decided asks nothing but still applies; the
-//! loop ends only when every group's full scan has found nothing to do.
+//! Decisions that need queries are also kept (the memo) by item identity, the failed
+//! ones and the successes that lost to an earlier pair of their round. A round whose pairs
+//! are all decided asks nothing but still applies; the loop ends only when every group's
+//! full scan has found nothing to do.
 
 use super::rules::{self, JoinCandidate, Made, MergeCandidate};
 use super::{Ctx, Item, Mode};
@@ -58,8 +68,9 @@ struct Listing {
     asked: HashMap<[u64; 6], usize>,
     /// `(item, query)`: stats of current items not known yet.
     inputs: Vec<(usize, usize)>,
-    /// Where the scan goes on when no listed pair succeeds; `None` at the end of the scan.
-    resume: Option<(Phase, usize, usize)>,
+    /// The phase whose scan this listing did not finish (budget full, or a known success
+    /// that changes an item); `None` when it reached the end of the last phase.
+    stopped: Option<Phase>,
 }
 
 impl Listing {
@@ -79,44 +90,87 @@ fn bits(s: &Segment) -> [u64; 6] {
 
 type Key = (u64, u64, Phase);
 
+/// The pairs of one phase not known to fail: in row `a` (pairs `(a, c)`, `c > a`), the
+/// columns in `pending[a]` and every column from `from[a]` on. Columns of dropped items
+/// are skipped (and removed) when a scan meets them.
+struct Open {
+    from: Vec<usize>,
+    /// Sorted; columns below `from[a]` whose item changed after the scan passed them.
+    pending: Vec<Vec<usize>>,
+}
+
+impl Open {
+    fn new(m: usize) -> Self {
+        Open {
+            from: (1..=m).collect(),
+            pending: vec![Vec::new(); m],
+        }
+    }
+
+    /// Item `h` changed: every pair of it is open again, and only those.
+    fn reopen(&mut self, h: usize, alive: &[bool]) {
+        self.from[h] = h + 1;
+        self.pending[h].clear();
+        let rows = self.from.iter().zip(&mut self.pending).zip(alive);
+        for ((&from, pending), &alive) in rows.take(h) {
+            if alive && from > h {
+                if let Err(at) = pending.binary_search(&h) {
+                    pending.insert(at, h);
+                }
+            }
+        }
+    }
+}
+
+/// What the scan does with one open pair.
+enum Offer {
+    /// Decided against (CPU part or memo): the pair leaves the open set.
+    Fail,
+    /// Listed for this round's walk.
+    Listed,
+    /// The listing ends here (the pair was listed when `true`: a known success that
+    /// changes an item; not when the budget is full).
+    Stop,
+}
+
 pub(super) struct Machine {
-    pub(super) items: Vec<Item>,
+    items: Vec<Item>,
+    /// Items not dropped; a dropped item keeps its index, so scan order stays index order.
+    alive: Vec<bool>,
     phase: Phase,
-    /// Next pair `(i, j)` of `phase` to look at.
-    next: (usize, usize),
+    /// Open pairs of the merge and of the join scan, made when the scan first gets there;
+    /// the join's is dropped when a merge changes an item (its scan starts afresh).
+    open_merge: Option<Open>,
+    open_join: Option<Open>,
     budget: usize,
     first_budget: usize,
     /// Identity of each item's content: a success that changes an item gives it a new one.
     uids: Vec<u64>,
     next_uid: u64,
-    /// Pairs (by identity) decided against.
+    /// Pairs (by identity) decided against by their queries.
     failed: HashSet<Key>,
     /// Pairs (by identity) decided in favour in a round where an earlier pair won.
     won: HashMap<Key, Made>,
-    /// After a restart caused by item `i` changing in `phase`: every pair before it in scan
-    /// order failed and only item `i` changed, so in rows `a < i` the pair `(a, i)` is the
-    /// only one that can decide differently. The scan skips the rest of those rows, which
-    /// keeps a cluster of `k` segments at `O(k)` work per restart instead of `O(k^2)`.
-    hot: Option<(Phase, usize)>,
 }
 
 impl Machine {
     pub(super) fn new(items: Vec<Item>, mode: Mode, budget: usize) -> Self {
-        let n = items.len() as u64;
+        let n = items.len();
         Machine {
             items,
+            alive: vec![true; n],
             phase: match mode {
                 Mode::Cluster => Phase::Merge,
                 Mode::Collinear => Phase::Join,
             },
-            next: (0, 1),
+            open_merge: None,
+            open_join: None,
             budget,
             first_budget: budget,
-            uids: (0..n).collect(),
-            next_uid: n,
+            uids: (0..n as u64).collect(),
+            next_uid: n as u64,
             failed: Default::default(),
             won: Default::default(),
-            hot: None,
         }
     }
 
@@ -124,67 +178,135 @@ impl Machine {
         self.phase == Phase::Done
     }
 
-    /// The pairs of this round, from `next` on, at most `budget` of them.
-    fn list(&self, cx: Ctx) -> Listing {
+    /// The group's items at the end, in order.
+    pub(super) fn into_items(self) -> Vec<Item> {
+        let alive = self.alive;
+        self.items
+            .into_iter()
+            .zip(alive)
+            .filter_map(|(it, a)| a.then_some(it))
+            .collect()
+    }
+
+    /// The open pairs of this round in scan order, at most `budget` of them (see the
+    /// module comment). Pairs the scan finds decided against leave the open set.
+    fn list(&mut self, cx: Ctx) -> Listing {
         let mut l = Listing::default();
         let m = self.items.len();
-        let mut phase = self.phase;
-        let (mut i, mut j) = self.next;
-        loop {
-            if j >= m {
-                i += 1;
-                j = i + 1;
+        if self.phase == Phase::Merge {
+            let mut open = self.open_merge.take().unwrap_or_else(|| Open::new(m));
+            let finished = self.scan(Phase::Merge, &mut open, &mut l, cx);
+            self.open_merge = Some(open);
+            if !finished {
+                l.stopped = Some(Phase::Merge);
+                return l;
             }
-            if j >= m {
-                if phase == Phase::Merge {
-                    phase = Phase::Join;
-                    (i, j) = (0, 1);
+            if l.cands.is_empty() {
+                // Nothing open is left: the merge loop has ended.
+                self.phase = Phase::Join;
+                self.open_merge = None;
+            }
+        }
+        let mut open = self.open_join.take().unwrap_or_else(|| Open::new(m));
+        if !self.scan(Phase::Join, &mut open, &mut l, cx) {
+            l.stopped = Some(Phase::Join);
+        }
+        self.open_join = Some(open);
+        l
+    }
+
+    /// Lists the open pairs of `phase` in scan order; `false` when the listing stopped.
+    fn scan(&mut self, phase: Phase, open: &mut Open, l: &mut Listing, cx: Ctx) -> bool {
+        let m = self.items.len();
+        for a in 0..m {
+            if !self.alive[a] {
+                continue;
+            }
+            let pending = std::mem::take(&mut open.pending[a]);
+            let mut keep = Vec::new();
+            let mut rest = pending.into_iter();
+            let mut stopped = false;
+            for c in rest.by_ref() {
+                if !self.alive[c] {
                     continue;
                 }
-                return l;
-            }
-            if let Some((hp, h)) = self.hot {
-                if hp == phase && i < h {
-                    if j < h {
-                        j = h;
-                    } else if j > h {
-                        j = m;
-                        continue;
+                match self.offer(a, c, phase, l, cx) {
+                    Offer::Fail => {}
+                    Offer::Listed => keep.push(c),
+                    Offer::Stop => {
+                        keep.push(c);
+                        stopped = true;
+                        break;
                     }
                 }
             }
-            if l.cands.len() >= self.budget {
-                l.resume = Some((phase, i, j));
-                return l;
+            keep.extend(rest);
+            open.pending[a] = keep;
+            if stopped {
+                return false;
             }
-            let key = (self.uids[i], self.uids[j], phase);
-            if let Some(made) = self.won.get(&key) {
-                l.cands.push((i, j, phase, Cand::Known(*made)));
-            } else if !self.failed.contains(&key) {
-                if let Some(c) = self.candidate(i, j, phase, cx) {
-                    for k in [i, j] {
-                        if self.items[k].stats.is_none() {
-                            let q = l.ask(self.items[k].seg, cx.r);
-                            l.inputs.push((k, q));
-                        }
-                    }
-                    let c = match c {
-                        Ok(c) => Cand::Merge {
-                            c,
-                            q: l.ask(c.g_prime, cx.r),
-                        },
-                        Err(c) => Cand::Join {
-                            c,
-                            // A degenerate chord (touching segments) holds no point.
-                            q_chord: c.chord.is_valid().then(|| l.ask(c.chord, cx.r)),
-                            q_joined: l.ask(c.joined, cx.r),
-                        },
-                    };
-                    l.cands.push((i, j, phase, c));
+            // The open columns from `from[a]` on: a failing prefix leaves the set.
+            let mut prefix = true;
+            for c in open.from[a]..m {
+                let offer = match self.alive[c] {
+                    true => self.offer(a, c, phase, l, cx),
+                    false => Offer::Fail,
+                };
+                match offer {
+                    Offer::Fail if prefix => open.from[a] = c + 1,
+                    Offer::Fail => {}
+                    Offer::Listed => prefix = false,
+                    Offer::Stop => return false,
                 }
             }
-            j += 1;
         }
+        true
+    }
+
+    /// Looks at the open pair `(i, j)` of `phase` and lists it when it needs deciding.
+    fn offer(&self, i: usize, j: usize, phase: Phase, l: &mut Listing, cx: Ctx) -> Offer {
+        let key = (self.uids[i], self.uids[j], phase);
+        if self.failed.contains(&key) {
+            return Offer::Fail;
+        }
+        if let Some(made) = self.won.get(&key) {
+            if l.cands.len() >= self.budget {
+                return Offer::Stop;
+            }
+            l.cands.push((i, j, phase, Cand::Known(*made)));
+            // A success that changes item `i` applies unless an earlier pair does: this
+            // round's walk ends there either way.
+            return match bits(&made.seg) == bits(&self.items[i].seg) {
+                true => Offer::Listed,
+                false => Offer::Stop,
+            };
+        }
+        let Some(c) = self.candidate(i, j, phase, cx) else {
+            return Offer::Fail;
+        };
+        if l.cands.len() >= self.budget {
+            return Offer::Stop;
+        }
+        for k in [i, j] {
+            if self.items[k].stats.is_none() {
+                let q = l.ask(self.items[k].seg, cx.r);
+                l.inputs.push((k, q));
+            }
+        }
+        let c = match c {
+            Ok(c) => Cand::Merge {
+                c,
+                q: l.ask(c.g_prime, cx.r),
+            },
+            Err(c) => Cand::Join {
+                c,
+                // A degenerate chord (touching segments) holds no point.
+                q_chord: c.chord.is_valid().then(|| l.ask(c.chord, cx.r)),
+                q_joined: l.ask(c.joined, cx.r),
+            },
+        };
+        l.cands.push((i, j, phase, c));
+        Offer::Listed
     }
 
     /// The CPU part of the rule of `phase` for the pair `(i, j)`.
@@ -212,7 +334,6 @@ impl Machine {
         for &(k, q) in &l.inputs {
             self.items[k].stats = Some(res[q]);
         }
-        let mut dropped: Vec<usize> = Vec::new();
         let mut change = None;
         for &(i, j, phase, c) in &l.cands {
             let made = match c {
@@ -247,82 +368,54 @@ impl Machine {
             self.won.insert(key, made);
             // Pairs of an item dropped in this walk no longer exist; their decisions
             // stay in the memo (by identity) but do not apply.
-            let gone = |k| dropped.binary_search(&k).is_ok();
-            if change.is_some() || gone(i) || gone(j) {
+            if change.is_some() || !self.alive[i] || !self.alive[j] {
                 continue;
             }
             if bits(&made.seg) == bits(&self.items[i].seg) {
-                // Kept sorted: a later row may drop an index below an earlier row's.
-                let at = dropped.partition_point(|&d| d < j);
-                dropped.insert(at, j);
+                self.alive[j] = false;
             } else {
                 change = Some((i, j, made, phase));
             }
         }
-        let (phase, i, j) = match change {
+        match change {
             Some((i, j, made, phase)) => {
                 self.items[i].seg = made.seg;
                 self.items[i].stats = made.stats;
                 self.uids[i] = self.next_uid;
                 self.next_uid += 1;
-                let at = dropped.partition_point(|&d| d < j);
-                dropped.insert(at, j);
-                self.compact(&dropped);
-                let i = new_index(&dropped, i);
-                self.hot = Some((phase, i));
+                self.alive[j] = false;
+                let open = match phase {
+                    Phase::Merge => {
+                        // The join scan starts afresh once the merge loop ends.
+                        self.open_join = None;
+                        &mut self.open_merge
+                    }
+                    _ => {
+                        self.open_merge = None;
+                        &mut self.open_join
+                    }
+                };
+                open.as_mut()
+                    .expect("a listed phase has its open set")
+                    .reopen(i, &self.alive);
+                self.phase = phase;
                 self.budget = self.first_budget;
-                (phase, 0, 1)
             }
             None => {
-                let Some((phase, i, j)) = l.resume else {
-                    self.compact(&dropped);
-                    self.phase = Phase::Done;
-                    return;
-                };
-                self.compact(&dropped);
-                self.hot = match self.hot {
-                    Some((hp, h)) if !gone_in(&dropped, h) => Some((hp, new_index(&dropped, h))),
-                    _ => None,
-                };
-                self.budget = self.budget.saturating_mul(2);
-                let ni = new_index(&dropped, i);
-                if gone_in(&dropped, i) {
-                    (phase, ni, ni + 1)
-                } else {
-                    (phase, ni, new_index(&dropped, j))
+                match l.stopped {
+                    None => self.phase = Phase::Done,
+                    Some(p) => {
+                        if p == Phase::Join {
+                            // Every merge pair was listed and none changed anything.
+                            self.open_merge = None;
+                        }
+                        self.phase = p;
+                    }
                 }
+                self.budget = self.budget.saturating_mul(2);
             }
-        };
-        self.phase = phase;
-        self.next = (i, j);
-    }
-
-    /// Drops the items at the sorted indices `dropped`.
-    fn compact(&mut self, dropped: &[usize]) {
-        if dropped.is_empty() {
-            return;
         }
-        let keep = |k: &usize| !gone_in(dropped, *k);
-        let mut k = 0;
-        self.items.retain(|_| {
-            k += 1;
-            keep(&(k - 1))
-        });
-        let mut k = 0;
-        self.uids.retain(|_| {
-            k += 1;
-            keep(&(k - 1))
-        });
     }
-}
-
-fn gone_in(dropped: &[usize], k: usize) -> bool {
-    dropped.binary_search(&k).is_ok()
-}
-
-/// Index of item `k` (or, if it was dropped, of the next kept one) after dropping.
-fn new_index(dropped: &[usize], k: usize) -> usize {
-    k - dropped.partition_point(|&d| d < k)
 }
 
 /// A current item as a rule's input (its stats are asked before any decision reads them).
@@ -338,7 +431,7 @@ pub(super) fn run(
 ) -> Result<(), EngineError> {
     while machines.iter().any(|m| !m.done()) {
         let listings: Vec<Option<Listing>> = machines
-            .par_iter()
+            .par_iter_mut()
             .map(|m| (!m.done()).then(|| m.list(cx)))
             .collect();
         let mut queries = Vec::new();
