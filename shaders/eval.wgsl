@@ -3,8 +3,8 @@
 // whose chunk lies in its part. Every point is classified (common.wgsl): sure members
 // count on the device, points within the f32 error bound of a boundary are appended to
 // the flag list for the host to decide in f64 (so counts and sets are exact).
-//   MODE_STATS(_SIDES): the item's count, side count and sums into its own slot.
-//   MODE_COVERAGE: the members' bits into the mask (integer atomicOr).
+//   MODE_STATS(_SIDES): the item's count, side count and sums into its own slot, and with
+//     `params.cover` the members' bits into the coverage mask (integer atomicOr) too.
 //   MODE_HIST: each member into its query's histogram of d2 / r2 (integer atomicAdd).
 //   MODE_BELOW: with the query's plan, sums of the members certainly among the k nearest
 //     into the item's slot, and the members of the cut band flagged as candidates.
@@ -44,10 +44,16 @@ fn main(
     let qi = it.query;
     let q = queries[qi];
     let g = geom(q, it.cell);
+    // Points are stored relative to their own cell's corner, with that cell's x index
+    // (mod 2^16) in w: moved into the frame of the item's cell (at most ROW_CELLS / 2
+    // cells away along x), exactly in the integer part and with one rounding below 2^-21
+    // cells.
+    let xr = f32((it.cell % params.dims_x) & 0xFFFFu);
     let n = min(it.count, CHUNK);
     let first = it.start - params.part_base;
     let mode = params.mode;
     let sides = mode == MODE_STATS_SIDES;
+    let cover = params.cover != 0u && (mode == MODE_STATS || sides);
     var count = 0u;
     var side = 0u;
     var d2 = 0.0;
@@ -59,7 +65,11 @@ fn main(
     }
     let inv_r2 = select(0.0, 1.0 / q.r2, q.r2 > 0.0);
     for (var i = 0u; i < n; i++) {
-        let t = classify(g, points[first + i].xyz, sides);
+        let pt = points[first + i];
+        var dx = pt.w - xr;
+        dx = select(dx, dx - 65536.0, dx > 32768.0);
+        dx = select(dx, dx + 65536.0, dx < -32768.0);
+        let t = classify(g, vec3<f32>(pt.x + dx, pt.y, pt.z), sides);
         if t.kind == OUT {
             continue;
         }
@@ -69,9 +79,10 @@ fn main(
             }
             continue;
         }
-        if mode == MODE_COVERAGE {
+        if cover {
             bits[i >> 5u] |= 1u << (i & 31u);
-        } else if mode == MODE_HIST {
+        }
+        if mode == MODE_HIST {
             atomicAdd(&aux[qi * NBINS + bin_of(t.d2 * inv_r2)], 1u);
         } else {
             var take = true;
@@ -89,7 +100,7 @@ fn main(
             }
         }
     }
-    if mode == MODE_COVERAGE {
+    if cover {
         // Chunks start anywhere, so word j of `bits` straddles two mask words.
         let shift = it.start & 31u;
         for (var j = 0u; j < 8u; j++) {
@@ -104,7 +115,8 @@ fn main(
                 }
             }
         }
-    } else if mode != MODE_HIST {
+    }
+    if mode != MODE_HIST {
         partials[id] = Partial(count, side, d2, off.x, off.y, off.z, 0u, 0u);
     }
 }

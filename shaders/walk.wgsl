@@ -1,12 +1,13 @@
-// Grid walk, one invocation per query: the rows (z, then y) and cells its capped cylinder
-// can touch, each cell's points cut into chunks of at most CHUNK (and never across a part
-// of the point store). MODE_COUNT writes each query's number of work items (for the
+// Grid walk, one invocation per query: the rows (z, then y) its capped cylinder can touch,
+// each row's span cut into runs of at most ROW_CELLS cells (the points of a run are
+// contiguous) and each run's points into chunks of at most CHUNK (never across a part of
+// the point store). An item names the run's middle cell, its frame. MODE_COUNT writes each query's number of work items (for the
 // prefix scan); MODE_EMIT writes the items themselves from the query's scanned offset, in
 // the same order, so items of one query are contiguous and in grid order.
 // The walk is conservative (a superset of the cells holding members): every slab and span
 // is grown by a margin far above the f32 error of the arithmetic; the exact test is the
 // evaluation kernel's.
-// Loop bound: the three nested loops and the chunk loop share one counter, stopped at
+// Loop bound: the three nested loops (rows, runs) and the chunk loop share one counter, stopped at
 // MAX_WALK iterations in total (below lavapipe's 65,535); a query that reaches it is
 // flagged STATUS_HOST and answered on the host.
 
@@ -90,11 +91,14 @@ fn main(
                 }
                 let xs = cell_span(axis_span(p.x, d.x, tyz, rr.x), params.dims_x);
                 let row = (z * params.dims_y + y) * params.dims_x;
-                for (var x = xs.x; x <= xs.y && steps < MAX_WALK; x++) {
+                // Runs of at most ROW_CELLS cells of the row: their points are contiguous.
+                for (var x = xs.x; x <= xs.y && steps < MAX_WALK; x += ROW_CELLS) {
                     steps++;
-                    let c = row + x;
-                    var s = cell_start[c];
-                    let e = cell_start[c + 1u];
+                    let x1 = min(x + ROW_CELLS - 1u, xs.y);
+                    // The run's middle cell: the frame the evaluation kernel works in.
+                    let c = row + (x + x1) / 2u;
+                    var s = cell_start[row + x];
+                    let e = cell_start[row + x1 + 1u];
                     loop {
                         if s >= e || steps >= MAX_WALK {
                             break;

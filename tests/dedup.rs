@@ -137,9 +137,10 @@ fn refining_copied_segments_gives_the_same_output_with_and_without_dedup() {
             let m = |e: &dyn Engine| eval::evaluate(e, segs, s.eval(), s.r_l(), None).unwrap();
             assert_eq!(m(&bare), m(&wrapped));
         }
-        // The copies were asked once: far fewer queries reached the inner engine.
+        // The copies were asked once: far fewer queries reached the inner engine (the
+        // later steps see merged, distinct segments; translate's fused batch asks once).
         let (asked, answered) = (wrapped.asked(), wrapped.counters().queries);
-        assert!(answered * 4 < asked, "{answered} of {asked}");
+        assert!(answered * 3 < asked, "{answered} of {asked}");
         assert_eq!(asked, bare.counters().queries);
     }
 }

@@ -10,7 +10,7 @@ use common::*;
 use glam::DVec3;
 use linegs_gpu::engine::cpu::CpuEngine;
 use linegs_gpu::engine::gpu::{GpuEngine, GpuOptions};
-use linegs_gpu::engine::{Engine, EngineError, NearestSum, Query, Want};
+use linegs_gpu::engine::{Ask, Coverage, Engine, EngineError, Nearest, NearestSum, Query, Want};
 use linegs_gpu::geom::Segment;
 use linegs_gpu::index::Grid;
 use std::sync::Arc;
@@ -89,10 +89,67 @@ fn check_parity(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) 
         );
     }
 
-    assert_eq!(
-        reference.coverage(queries).unwrap(),
-        tested.coverage(queries).unwrap()
-    );
+    let coverage = reference.coverage(queries).unwrap();
+    assert_eq!(coverage, tested.coverage(queries).unwrap());
+    check_fused(reference, tested, queries, &ks, &coverage);
+}
+
+/// The fused batch: one ask for the stats, the nearest sums (translate's `floor(0.4 n)`,
+/// or explicit `k`) and the coverage answers what the separate batches answer, on both
+/// engines; a nearest-only ask still gives every count.
+fn check_fused(
+    reference: &dyn Engine,
+    tested: &dyn Engine,
+    queries: &[Query],
+    ks: &[u64],
+    coverage: &Coverage,
+) {
+    let all = reference.stats(queries, Want::ALL).unwrap();
+    let keep: Vec<u64> = all
+        .iter()
+        .map(|s| (0.4 * s.count as f64).floor() as u64)
+        .collect();
+    let near = reference.nearest(queries, &keep).unwrap();
+    let ask = Ask {
+        want: Want::ALL,
+        nearest: Nearest::Keep(0.4),
+        coverage: true,
+    };
+    let a = reference.query(queries, &ask).unwrap();
+    // The CPU engine's fused walk gives its separate answers to the bit.
+    assert_eq!(a.stats, all);
+    assert_eq!(a.nearest, near);
+    assert_eq!(a.coverage.as_ref(), Some(coverage));
+    let b = tested.query(queries, &ask).unwrap();
+    assert_eq!(b.coverage.as_ref(), Some(coverage));
+    for (i, (x, y)) in a.stats.iter().zip(&b.stats).enumerate() {
+        assert_eq!(
+            (x.count, x.side_pos),
+            (y.count, y.side_pos),
+            "fused query {i}"
+        );
+        assert!(
+            close(x.sum_d2, y.sum_d2, x.count, queries[i].r),
+            "fused query {i}"
+        );
+    }
+    for (i, (x, y)) in a.nearest.iter().zip(&b.nearest).enumerate() {
+        assert_eq!(x.k, y.k, "fused query {i}");
+        assert!(
+            nearest_close(x, y, queries[i].r),
+            "fused query {i}: {x:?} vs {y:?}"
+        );
+    }
+    let ask = Ask {
+        nearest: Nearest::K(ks),
+        ..Default::default()
+    };
+    let b = tested.query(queries, &ask).unwrap();
+    assert!(b.coverage.is_none());
+    for (i, (x, y)) in all.iter().zip(&b.stats).enumerate() {
+        assert_eq!(x.count, y.count, "nearest-only query {i}");
+    }
+    assert_eq!(b.nearest.len(), queries.len());
 }
 
 fn nearest_close(x: &NearestSum, y: &NearestSum, r: f64) -> bool {

@@ -1,7 +1,10 @@
 //! The CPU engine: rayon over queries, exact f64 tests on the grid's rows. Each query sums
 //! its points in grid order, so results do not depend on the thread count.
 
-use super::{Counters, Coverage, CylStats, Engine, EngineError, Member, NearestSum, Query, Want};
+use super::{
+    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, Member, Nearest, NearestSum,
+    Query,
+};
 use crate::geom::{p64, Cylinder};
 use crate::index::Grid;
 use glam::DVec3;
@@ -52,31 +55,61 @@ impl CpuEngine {
         });
     }
 
-    fn one_stats(&self, q: &Query, want: Want) -> CylStats {
+    /// One query of a fused batch: one walk over its rows gives the stats, the members'
+    /// coverage bits (into `mask`, when given) and, when `nearest` is asked, its sums
+    /// over the `k` members nearest to the line (ranked by `(d2, grid index)`).
+    fn one(
+        &self,
+        i: usize,
+        q: &Query,
+        ask: &Ask<'_>,
+        mask: Option<&[AtomicU64]>,
+        members: &mut Vec<(f64, usize, DVec3)>,
+    ) -> (CylStats, NearestSum) {
         let mut s = CylStats::default();
         let d = q.seg.dir();
         let g = &*self.grid;
-        if want.sides {
-            self.for_each_member(q, |i, _, v| {
-                s.count += 1;
-                if want.sums {
-                    s.sum_d2 += v.length_squared();
-                    s.sum_offset += v;
-                }
-                if (p64(g.points[i]) - q.plane).dot(d) > 0.0 {
-                    s.side_pos += 1;
-                }
-            });
-        } else if want.sums {
-            self.for_each_member(q, |_, _, v| {
-                s.count += 1;
+        let want = ask.want;
+        let near = ask.nearest != Nearest::No;
+        members.clear();
+        self.for_each_member(q, |j, _, v| {
+            s.count += 1;
+            if want.sums {
                 s.sum_d2 += v.length_squared();
                 s.sum_offset += v;
-            });
-        } else {
-            self.for_each_member(q, |_, _, _| s.count += 1);
+            }
+            if want.sides && (p64(g.points[j]) - q.plane).dot(d) > 0.0 {
+                s.side_pos += 1;
+            }
+            if let Some(mask) = mask {
+                mask[j / 64].fetch_or(1u64 << (j % 64), Ordering::Relaxed);
+            }
+            if near {
+                members.push((v.length_squared(), j, v));
+            }
+        });
+        let mut out = NearestSum::default();
+        let Some(k) = ask.nearest.k_of(i, s.count) else {
+            return (s, out);
+        };
+        let k = (k as usize).min(members.len());
+        out.k = k as u64;
+        if k == 0 {
+            return (s, out);
         }
-        s
+        let order = |a: &(f64, usize, DVec3), b: &(f64, usize, DVec3)| {
+            a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+        };
+        if k < members.len() {
+            members.select_nth_unstable_by(k - 1, order);
+        }
+        let first = &mut members[..k];
+        first.sort_unstable_by(order);
+        for m in first.iter() {
+            out.sum_d2 += m.0;
+            out.sum_offset += m.2;
+        }
+        (s, out)
     }
 }
 
@@ -127,75 +160,39 @@ impl Engine for CpuEngine {
         self.grid.len()
     }
 
-    fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError> {
+    fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
+        ask.nearest.check(queries.len())?;
         self.count_batch(queries.len());
-        Ok(queries
+        let mask: Option<Vec<AtomicU64>> = ask.coverage.then(|| {
+            (0..self.grid.len().div_ceil(64))
+                .map(|_| AtomicU64::new(0))
+                .collect()
+        });
+        let both: Vec<(CylStats, NearestSum)> = queries
             .par_iter()
+            .enumerate()
             .with_min_len(8)
-            .map(|q| self.one_stats(q, want))
-            .collect())
-    }
-
-    fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError> {
-        if k.len() != queries.len() {
-            return Err(EngineError::BadQuery {
-                index: k.len().min(queries.len()),
-                why: format!("{} queries but {} k values", queries.len(), k.len()),
-            });
-        }
-        self.count_batch(queries.len());
-        Ok(queries
-            .par_iter()
-            .zip(k.par_iter())
-            .with_min_len(8)
-            .map_init(
-                Vec::new,
-                |members: &mut Vec<(f64, usize, DVec3)>, (q, &k)| {
-                    members.clear();
-                    self.for_each_member(q, |i, _, v| members.push((v.length_squared(), i, v)));
-                    let k = (k as usize).min(members.len());
-                    let mut out = NearestSum {
-                        k: k as u64,
-                        ..Default::default()
-                    };
-                    if k == 0 {
-                        return out;
-                    }
-                    let order = |a: &(f64, usize, DVec3), b: &(f64, usize, DVec3)| {
-                        a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
-                    };
-                    if k < members.len() {
-                        members.select_nth_unstable_by(k - 1, order);
-                    }
-                    let first = &mut members[..k];
-                    first.sort_unstable_by(order);
-                    for m in first.iter() {
-                        out.sum_d2 += m.0;
-                        out.sum_offset += m.2;
-                    }
-                    out
-                },
-            )
-            .collect())
+            .map_init(Vec::new, |members, (i, q)| {
+                self.one(i, q, ask, mask.as_deref(), members)
+            })
+            .collect();
+        let (stats, nearest): (Vec<CylStats>, Vec<NearestSum>) = both.into_iter().unzip();
+        Ok(Answers {
+            stats,
+            nearest: if ask.nearest == Nearest::No {
+                Vec::new()
+            } else {
+                nearest
+            },
+            coverage: mask.map(|m| Coverage {
+                mask: m.into_iter().map(|a| a.into_inner()).collect(),
+            }),
+        })
     }
 
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
         self.count_batch(queries.len());
         Ok(members_of(&self.grid, queries))
-    }
-
-    fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {
-        self.count_batch(queries.len());
-        let words = self.grid.len().div_ceil(64);
-        let mask: Vec<AtomicU64> = (0..words).map(|_| AtomicU64::new(0)).collect();
-        queries.par_iter().for_each(|q| {
-            self.for_each_member(q, |i, _, _| {
-                mask[i / 64].fetch_or(1u64 << (i % 64), Ordering::Relaxed);
-            })
-        });
-        Ok(Coverage {
-            mask: mask.into_iter().map(|a| a.into_inner()).collect(),
-        })
     }
 
     fn counters(&self) -> Counters {

@@ -14,7 +14,7 @@
 //! and a NaN query equals only its own bit pattern. A batch without duplicates goes to
 //! the inner engine as it is, without a copy.
 
-use super::{Counters, Coverage, CylStats, Engine, EngineError, Member, NearestSum, Query, Want};
+use super::{Answers, Ask, Counters, Engine, EngineError, Member, Nearest, Query};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -137,35 +137,43 @@ impl Engine for Dedup {
         self.inner.n_points()
     }
 
-    fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError> {
+    fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
         self.count(queries.len());
-        match Groups::of(queries, None) {
-            None => self.inner.stats(queries, want),
-            Some(g) => {
-                let a = self
-                    .inner
-                    .stats(&g.queries(queries), want)
-                    .map_err(|e| g.error(e))?;
-                Ok(g.fan_out(&a))
-            }
-        }
-    }
-
-    fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError> {
-        self.count(queries.len());
-        if k.len() != queries.len() {
+        let k = match ask.nearest {
+            Nearest::K(k) => Some(k),
+            _ => None,
+        };
+        if k.is_some_and(|k| k.len() != queries.len()) {
             // The inner engine says what is wrong with the batch.
-            return self.inner.nearest(queries, k);
+            return self.inner.query(queries, ask);
         }
-        match Groups::of(queries, Some(k)) {
-            None => self.inner.nearest(queries, k),
+        match Groups::of(queries, k) {
+            None => self.inner.query(queries, ask),
             Some(g) => {
-                let ks: Vec<u64> = g.first.iter().map(|&i| k[i]).collect();
+                let ks: Vec<u64> =
+                    k.map_or_else(Vec::new, |k| g.first.iter().map(|&i| k[i]).collect());
+                let inner_ask = Ask {
+                    nearest: if k.is_some() {
+                        Nearest::K(&ks)
+                    } else {
+                        ask.nearest
+                    },
+                    ..*ask
+                };
                 let a = self
                     .inner
-                    .nearest(&g.queries(queries), &ks)
+                    .query(&g.queries(queries), &inner_ask)
                     .map_err(|e| g.error(e))?;
-                Ok(g.fan_out(&a))
+                // Coverage is a union: the copies add nothing to it.
+                Ok(Answers {
+                    stats: g.fan_out(&a.stats),
+                    nearest: if a.nearest.is_empty() {
+                        Vec::new()
+                    } else {
+                        g.fan_out(&a.nearest)
+                    },
+                    coverage: a.coverage,
+                })
             }
         }
     }
@@ -184,17 +192,6 @@ impl Engine for Dedup {
         }
     }
 
-    fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {
-        self.count(queries.len());
-        match Groups::of(queries, None) {
-            None => self.inner.coverage(queries),
-            Some(g) => self
-                .inner
-                .coverage(&g.queries(queries))
-                .map_err(|e| g.error(e)),
-        }
-    }
-
     fn counters(&self) -> Counters {
         self.inner.counters()
     }
@@ -208,6 +205,7 @@ impl Engine for Dedup {
 mod tests {
     use super::*;
     use crate::engine::cpu::CpuEngine;
+    use crate::engine::Want;
     use crate::geom::{Aabb, Segment};
     use crate::index::Grid;
     use glam::DVec3;
@@ -232,19 +230,16 @@ mod tests {
         fn n_points(&self) -> usize {
             self.cpu.n_points()
         }
-        fn stats(&self, q: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError> {
+        fn query(&self, q: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
+            let k = |i: usize| match ask.nearest {
+                Nearest::K(k) => k.get(i).copied().unwrap_or(0),
+                _ => 0,
+            };
             self.seen
                 .lock()
                 .unwrap()
-                .push(q.iter().map(|q| (*q, 0)).collect());
-            self.cpu.stats(q, want)
-        }
-        fn nearest(&self, q: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError> {
-            self.seen
-                .lock()
-                .unwrap()
-                .push(q.iter().zip(k).map(|(q, k)| (*q, *k)).collect());
-            self.cpu.nearest(q, k)
+                .push(q.iter().enumerate().map(|(i, q)| (*q, k(i))).collect());
+            self.cpu.query(q, ask)
         }
         fn members(&self, q: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
             self.seen
@@ -252,13 +247,6 @@ mod tests {
                 .unwrap()
                 .push(q.iter().map(|q| (*q, 0)).collect());
             self.cpu.members(q)
-        }
-        fn coverage(&self, q: &[Query]) -> Result<Coverage, EngineError> {
-            self.seen
-                .lock()
-                .unwrap()
-                .push(q.iter().map(|q| (*q, 0)).collect());
-            self.cpu.coverage(q)
         }
         fn counters(&self) -> Counters {
             self.cpu.counters()

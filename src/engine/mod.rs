@@ -111,6 +111,63 @@ impl Coverage {
     }
 }
 
+/// How many of each query's members nearest to the line a fused batch sums
+/// ([`NearestSum`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Nearest<'a> {
+    /// No nearest sums.
+    #[default]
+    No,
+    /// `k[i]` for query `i`.
+    K(&'a [u64]),
+    /// `floor(keep x N(s))` of each query's own count (translate's rule, SPEC 3.4).
+    Keep(f64),
+}
+
+/// Everything one batch asks about its queries: answered in one pass over each query's
+/// cylinder (one walk; the GPU engine also evaluates each point once for the sums, the
+/// sides and the coverage together).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Ask<'a> {
+    /// Which sums beyond the count (the count is always answered).
+    pub want: Want,
+    pub nearest: Nearest<'a>,
+    /// The union of all members of the batch.
+    pub coverage: bool,
+}
+
+/// The answers of one [`Ask`]: `stats[i]` for every query (fields not asked for are
+/// zero), `nearest[i]` when nearest sums were asked (else empty), and the coverage when
+/// asked.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Answers {
+    pub stats: Vec<CylStats>,
+    pub nearest: Vec<NearestSum>,
+    pub coverage: Option<Coverage>,
+}
+
+impl Nearest<'_> {
+    /// The `k` of query `i` whose count is `n`; `None` when no nearest sums are asked.
+    pub fn k_of(&self, i: usize, n: u64) -> Option<u64> {
+        match self {
+            Nearest::No => None,
+            Nearest::K(k) => Some(k[i]),
+            Nearest::Keep(f) => Some((f * n as f64).floor().max(0.0) as u64),
+        }
+    }
+
+    /// An error when an explicit `k` list does not match the batch.
+    pub fn check(&self, n: usize) -> Result<(), EngineError> {
+        match self {
+            Nearest::K(k) if k.len() != n => Err(EngineError::BadQuery {
+                index: k.len().min(n),
+                why: format!("{n} queries but {} k values", k.len()),
+            }),
+            _ => Ok(()),
+        }
+    }
+}
+
 /// One member of `X(s, r)`, for steps that need per-point data (the edge fit).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Member {
@@ -151,16 +208,37 @@ pub trait Engine: Send + Sync {
     fn adapter(&self) -> String;
     /// `N_box`: points in the working set.
     fn n_points(&self) -> usize;
+    /// The fused batch: for every query its count (and the sums and side counts of
+    /// `ask.want`), its nearest sums, and the coverage of the batch, from one pass.
+    fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError>;
     /// Count (and sums, side counts) for every query.
-    fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError>;
+    fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError> {
+        let ask = Ask {
+            want,
+            ..Default::default()
+        };
+        Ok(self.query(queries, &ask)?.stats)
+    }
     /// For query `i`, sums over its `k[i]` members nearest to the line.
-    fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError>;
+    fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError> {
+        let ask = Ask {
+            nearest: Nearest::K(k),
+            ..Default::default()
+        };
+        Ok(self.query(queries, &ask)?.nearest)
+    }
     /// The members of every query, each list in working-set order (ascending `id`: the
     /// same for every thread count, both engines and every grid layout). Per-point output is O(members), not O(queries): use it only
     /// where sums cannot answer (the edge fit's robust estimates).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError>;
     /// The union of all members of the batch.
-    fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError>;
+    fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {
+        let ask = Ask {
+            coverage: true,
+            ..Default::default()
+        };
+        Ok(self.query(queries, &ask)?.coverage.unwrap_or_default())
+    }
     fn counters(&self) -> Counters;
     /// `(host_seconds, device_seconds)` spent answering batches so far: host work
     /// (preparing queries, deciding flagged points) and waits for the device. `None` for

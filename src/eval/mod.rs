@@ -3,7 +3,7 @@
 
 pub mod gt;
 
-use crate::engine::{Engine, EngineError, Query, Want};
+use crate::engine::{Ask, Engine, EngineError, Query, Want};
 use crate::geom::Segment;
 use crate::refine::{EvalParams, RlMode};
 use serde::{Deserialize, Serialize};
@@ -44,8 +44,18 @@ pub fn evaluate(
 ) -> Result<Metrics, EngineError> {
     let r = radius.unwrap_or(p.eval_radius);
     let queries: Vec<Query> = segments.iter().map(|s| Query::new(*s, r)).collect();
-    let stats = engine.stats(&queries, Want::SUMS)?;
-    let mut kept = Vec::new();
+    // One batch: the sums and the coverage from one walk of the cylinders (segments
+    // with no point add nothing to the union).
+    let answers = engine.query(
+        &queries,
+        &Ask {
+            want: Want::SUMS,
+            coverage: true,
+            ..Default::default()
+        },
+    )?;
+    let stats = answers.stats;
+    let mut kept = 0usize;
     let mut e_sum = 0.0;
     let mut len_sum = 0.0;
     let mut n_sum = 0u64;
@@ -56,7 +66,7 @@ pub fn evaluate(
         e_sum += 100.0 * p.unit_scale * s.rmse();
         len_sum += q.seg.length();
         n_sum += s.count;
-        kept.push(*q);
+        kept += 1;
     }
     let n_box = engine.n_points();
     let mut m = Metrics {
@@ -65,23 +75,23 @@ pub fn evaluate(
         coverage_pct: None,
         r_l: None,
         score: None,
-        segments: kept.len(),
-        skipped: segments.len() - kept.len(),
+        segments: kept,
+        skipped: segments.len() - kept,
         points_in_cylinders: n_sum,
         covered_points: 0,
         n_box,
         message: None,
     };
-    if kept.is_empty() {
+    if kept == 0 {
         m.message = Some(format!(
             "no segment has a Gaussian center within r_e = {r}: metrics are undefined \
              (are the lines and the Gaussians in the same frame and units?)"
         ));
         return Ok(m);
     }
-    let covered = engine.coverage(&kept)?.count();
+    let covered = answers.coverage.map_or(0, |c| c.count());
     m.covered_points = covered;
-    let e_rms = e_sum / kept.len() as f64;
+    let e_rms = e_sum / kept as f64;
     m.e_rms_cm = Some(e_rms);
     m.coverage_pct = Some(100.0 * covered as f64 / n_box as f64);
     let denom = match r_l_mode {

@@ -1,10 +1,11 @@
 //! Step 4, position bias: each segment moves by the mean perpendicular offset of the
 //! `floor(keep x n)` points of `X(s, r)` nearest to its line.
 
-use crate::engine::{Engine, EngineError, Query, Want};
+use crate::engine::{Ask, Engine, EngineError, Nearest, Query};
 use crate::geom::Segment;
 
-/// Returns the translated segments (one batch for the counts, one for the nearest sums).
+/// Returns the translated segments (one fused batch: each segment's count and the sums
+/// over its `floor(keep x n)` nearest members).
 pub fn translate(
     engine: &dyn Engine,
     segments: &[Segment],
@@ -12,12 +13,11 @@ pub fn translate(
     keep: f64,
 ) -> Result<Vec<Segment>, EngineError> {
     let queries: Vec<Query> = segments.iter().map(|s| Query::new(*s, r)).collect();
-    let counts = engine.stats(&queries, Want::COUNT)?;
-    let k: Vec<u64> = counts
-        .iter()
-        .map(|s| (keep * s.count as f64).floor() as u64)
-        .collect();
-    let near = engine.nearest(&queries, &k)?;
+    let ask = Ask {
+        nearest: Nearest::Keep(keep),
+        ..Default::default()
+    };
+    let near = engine.query(&queries, &ask)?.nearest;
     Ok(segments
         .iter()
         .zip(&near)

@@ -14,9 +14,12 @@ use rayon::prelude::*;
 /// What a batch asks of the evaluation kernel.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Kind {
-    Stats { sides: bool },
+    /// Counts and sums (and side counts); with `cover`, the coverage mask too.
+    Stats {
+        sides: bool,
+        cover: bool,
+    },
     Nearest,
-    Coverage,
 }
 
 /// The sizes the engine works within, from the options and the device.
@@ -44,7 +47,7 @@ impl Limits {
         let part_len = (binding / 16).clamp(1, u32::MAX as u64 / 2) as u32;
         let item_max = (opts.max_items as u64)
             .min(device_binding / std::mem::size_of::<Partial>() as u64)
-            .clamp(1, 1 << 31) as u32;
+            .clamp(1, 1 << 28) as u32;
         let flag_max = ((device_binding / 4 - CTL_HEAD as u64) / 2).min(1 << 30) as u32;
         let per_query = (NBINS as u64 * 4).max(std::mem::size_of::<GQuery>() as u64);
         let max_queries = opts
@@ -104,7 +107,8 @@ pub struct Statics {
 
 impl Statics {
     /// Uploads the cell table and the sorted centers, each as its offset from its own
-    /// cell's corner in cell units (computed in f64, so the f32 keeps ~1e-7 of a cell).
+    /// cell's corner in cell units (computed in f64, so the f32 keeps ~1e-7 of a cell) and
+    /// its cell's x index.
     pub fn upload(ctx: &Context, grid: &Grid, lim: &Limits) -> Result<Statics, EngineError> {
         let cell_bytes = (grid.cell_start.len() * 4) as u64;
         if cell_bytes > lim.device_binding {
@@ -123,7 +127,14 @@ impl Statics {
                 let c = grid.cell_of(p);
                 let o = grid.cell_origin(c % dx, (c / dx) % dy, c / (dx * dy));
                 let r = (p - o) * inv;
-                [r.x as f32, r.y as f32, r.z as f32, 0.0]
+                // w: the cell's x index mod 2^16 (exact in f32), for the kernels to move
+                // the point into a neighbouring cell's frame.
+                [
+                    r.x as f32,
+                    r.y as f32,
+                    r.z as f32,
+                    ((c % dx) & 0xFFFF) as f32,
+                ]
             })
             .collect();
         ctx.scoped("uploading the Gaussians", || {
@@ -382,8 +393,10 @@ pub fn submit(
         .map(|(i, q)| gquery(grid, q, ks.get(i).copied().unwrap_or(0)))
         .collect();
     let mut waited = 0.0;
+    let mut rerun = false;
     loop {
-        let (out, w, total, n_flags) = attempt(ctx, k, st, lim, b, kind, &gq)?;
+        let (out, w, total, n_flags) = attempt(ctx, k, st, lim, b, kind, &gq, rerun)?;
+        rerun = true;
         waited += w;
         let mut again = false;
         if total > b.item_cap {
@@ -414,7 +427,9 @@ fn slot(buf: &wgpu::Buffer, i: usize) -> wgpu::BindingResource<'_> {
     })
 }
 
-/// One try: returns the output, the wait, the items needed and the flags raised.
+/// One try: returns the output, the wait, the items needed and the flags raised. A
+/// `rerun` starts from the sizing of the dispatches: the count walk and the scan of the
+/// try before are still in their buffers (whose sizes depend only on the queries).
 #[allow(clippy::too_many_arguments)]
 fn attempt(
     ctx: &Context,
@@ -424,6 +439,7 @@ fn attempt(
     b: &mut Buffers,
     kind: Kind,
     gq: &[GQuery],
+    rerun: bool,
 ) -> Result<(Output, f64, u32, u32), EngineError> {
     let n = gq.len() as u32;
     let item_cap = b.item_cap;
@@ -435,11 +451,7 @@ fn attempt(
     let q_bytes = n as u64 * std::mem::size_of::<GQuery>() as u64;
     let scan_bytes = scan_len as u64 * 4;
     let item_bytes = item_cap as u64 * std::mem::size_of::<Item>() as u64;
-    let part_bytes = if kind == Kind::Coverage {
-        64
-    } else {
-        item_cap as u64 * std::mem::size_of::<Partial>() as u64
-    };
+    let part_bytes = item_cap as u64 * std::mem::size_of::<Partial>() as u64;
     let res_bytes = n as u64 * std::mem::size_of::<QResult>() as u64;
     let ctl_bytes = (CTL_HEAD as u64 + 2 * flag_cap as u64) * 4;
     let hist_bytes = n as u64 * NBINS as u64 * 4;
@@ -456,6 +468,7 @@ fn attempt(
         flag_cap,
         max_x: lim.max_x,
         total: total_idx,
+        cover: matches!(kind, Kind::Stats { cover: true, .. }) as u32,
         ..Default::default()
     };
     let mut slots: Vec<Params> = Vec::new();
@@ -484,9 +497,8 @@ fn attempt(
         .collect();
     let args_slot = push(base);
     let eval_mode = match kind {
-        Kind::Stats { sides: false } => MODE_STATS,
-        Kind::Stats { sides: true } => MODE_STATS_SIDES,
-        Kind::Coverage => MODE_COVERAGE,
+        Kind::Stats { sides: false, .. } => MODE_STATS,
+        Kind::Stats { sides: true, .. } => MODE_STATS_SIDES,
         Kind::Nearest => MODE_HIST,
     };
     let part_slots = |mode: u32, push: &mut dyn FnMut(Params) -> usize| -> Vec<usize> {
@@ -518,18 +530,20 @@ fn attempt(
     let params = b.params.get(ctx, uniform.len() as u64).clone();
     ctx.queue.write_buffer(&params, 0, &uniform);
     let queries = b.queries.get(ctx, q_bytes).clone();
-    ctx.queue
-        .write_buffer(&queries, 0, bytemuck::cast_slice(gq));
+    if !rerun {
+        ctx.queue
+            .write_buffer(&queries, 0, bytemuck::cast_slice(gq));
+    }
     let scan = b.scan.get(ctx, scan_bytes).clone();
     let items = b.items.get(ctx, item_bytes).clone();
     let partials = b.partials.get(ctx, part_bytes).clone();
     let results = b.results.get(ctx, res_bytes).clone();
     let ctl = b.ctl.get(ctx, ctl_bytes).clone();
-    let indirect = b.indirect.get(ctx, 12).clone();
+    let indirect = b.indirect.get(ctx, 24).clone();
     let aux_bytes = match kind {
         Kind::Nearest => hist_bytes,
-        Kind::Coverage => b.aux_len,
-        Kind::Stats { .. } => 4,
+        Kind::Stats { cover: true, .. } => b.aux_len,
+        Kind::Stats { cover: false, .. } => 4,
     };
     let aux = b.aux.get(ctx, aux_bytes).clone();
     let plans = b.plans.get(ctx, plan_bytes.max(16)).clone();
@@ -582,19 +596,27 @@ fn attempt(
         let g = walk_group(walk_count);
         pass.set_pipeline(&k.walk);
         pass.set_bind_group(0, &g, &[]);
-        pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
+        // A rerun starts at the sizing: the counts and their scan are in place.
+        let fresh = !rerun;
+        if fresh {
+            pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
+        }
         // Scan up the levels, then add the block sums back down.
         for (i, &(_, len, _)) in levels.iter().enumerate() {
             let g = scan_group(&k.scan, scan_slots[i]);
             pass.set_pipeline(&k.scan);
             pass.set_bind_group(0, &g, &[]);
-            pass.dispatch_workgroups(len.div_ceil(SCAN_WG).max(1), 1, 1);
+            if fresh {
+                pass.dispatch_workgroups(len.div_ceil(SCAN_WG).max(1), 1, 1);
+            }
         }
         for i in (0..levels.len().saturating_sub(1)).rev() {
             let g = scan_group(&k.scan_add, scan_slots[i]);
             pass.set_pipeline(&k.scan_add);
             pass.set_bind_group(0, &g, &[]);
-            pass.dispatch_workgroups(levels[i].1.div_ceil(SCAN_WG).max(1), 1, 1);
+            if fresh {
+                pass.dispatch_workgroups(levels[i].1.div_ceil(SCAN_WG).max(1), 1, 1);
+            }
         }
         let g = bind(
             &k.args,
@@ -602,7 +624,7 @@ fn attempt(
                 slot(&params, args_slot),
                 h(&scan, scan_bytes),
                 h(&ctl, ctl_bytes),
-                h(&indirect, 12),
+                h(&indirect, 24),
             ],
         );
         pass.set_pipeline(&k.args);
@@ -611,7 +633,8 @@ fn attempt(
         let g = walk_group(walk_emit);
         pass.set_pipeline(&k.walk);
         pass.set_bind_group(0, &g, &[]);
-        pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
+        // Sized by `args`: empty when the items do not fit.
+        pass.dispatch_workgroups_indirect(&indirect, 12);
         pass.set_pipeline(&k.eval);
         for (p, &s) in eval_slots.iter().enumerate() {
             let g = eval_group(s, p);
@@ -638,7 +661,7 @@ fn attempt(
                 pass.dispatch_workgroups_indirect(&indirect, 0);
             }
         }
-        if kind != Kind::Coverage {
+        {
             let g = bind(
                 &k.reduce,
                 vec![

@@ -18,12 +18,12 @@ pub struct Context {
 
 /// Picks the adapter: `WGPU_ADAPTER_NAME` (a case-insensitive substring of the adapter
 /// name) when set, else wgpu's default choice (`WGPU_POWER_PREF` honoured); `WGPU_BACKEND`
-/// restricts the backends in both cases. Unlike `wgpu::util::initialize_adapter_from_env`,
+/// restricts the backends in both cases ([`default_backends`]). Unlike `wgpu::util::initialize_adapter_from_env`,
 /// a name that matches nothing is an error, not a panic.
 pub fn pick_adapter() -> Result<wgpu::Adapter, EngineError> {
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-    let backends = wgpu::Backends::from_env().unwrap_or(wgpu::Backends::all());
+    let backends = default_backends();
     if let Ok(name) = std::env::var("WGPU_ADAPTER_NAME") {
         let want = name.to_lowercase();
         let adapters = pollster::block_on(instance.enumerate_adapters(backends));
@@ -47,11 +47,18 @@ pub fn pick_adapter() -> Result<wgpu::Adapter, EngineError> {
         .map_err(|e| EngineError::NoAdapter(e.to_string()))
 }
 
+/// `WGPU_BACKEND`, else the primary backends (Vulkan, Metal, DX12): probing OpenGL/EGL as
+/// well costs tens of milliseconds at every start and gives no adapter the engine wants
+/// (`WGPU_BACKEND=gl` still asks for it).
+fn default_backends() -> wgpu::Backends {
+    wgpu::Backends::from_env().unwrap_or(wgpu::Backends::PRIMARY)
+}
+
 /// Every adapter wgpu offers (`WGPU_BACKEND` restricts the backends), for `--backend auto`.
 pub fn enumerate_adapters() -> Vec<wgpu::Adapter> {
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-    let backends = wgpu::Backends::from_env().unwrap_or(wgpu::Backends::all());
+    let backends = default_backends();
     pollster::block_on(instance.enumerate_adapters(backends))
 }
 

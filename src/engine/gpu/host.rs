@@ -114,7 +114,8 @@ fn add_nearest(m: &mut [(f64, u32, DVec3)], need: usize, acc: &mut NearestSum) {
 /// lie below `lo + e`, and at least k (`upto`, plus those of `M`) lie up to `hi - e`, the
 /// k-th distance is in that band: everything below it is in the set, nothing above, and
 /// the host ranks only the band. `None` when that does not hold (or a count is
-/// inconsistent): the caller then answers the query on the host.
+/// inconsistent): the caller then answers the query on the host. Also returns `N(s)`
+/// (the sure members and the boundary ones that are members).
 pub fn nearest(
     grid: &Grid,
     q: &Query,
@@ -122,7 +123,7 @@ pub fn nearest(
     r: &QResult,
     plan: Option<&Plan>,
     flags: &[(u32, u32)],
-) -> Option<NearestSum> {
+) -> Option<(NearestSum, u64)> {
     if r.status & STATUS_HOST != 0 {
         return None;
     }
@@ -140,7 +141,7 @@ pub fn nearest(
         ..Default::default()
     };
     if k == 0 {
-        return Some(out);
+        return Some((out, total));
     }
     let dev = super::batch::stats_of(r, grid.cell);
     out.sum_d2 = dev.sum_d2;
@@ -155,7 +156,7 @@ pub fn nearest(
         // The device summed every sure member: right only when all members are wanted.
         if k == total && dev.count == plan.total as u64 {
             add_all(&boundary, &mut out);
-            return Some(out);
+            return Some((out, total));
         }
         return None;
     }
@@ -181,11 +182,11 @@ pub fn nearest(
     }
     add_all(&boundary[..n_low], &mut out);
     add_nearest(&mut band, (k - fixed) as usize, &mut out);
-    Some(out)
+    Some((out, total))
 }
 
-/// The exact k nearest on the host alone.
-pub fn exact_nearest(grid: &Grid, q: &Query, k: u64) -> NearestSum {
+/// The exact k nearest on the host alone, and `N(s)`.
+pub fn exact_nearest(grid: &Grid, q: &Query, k: u64) -> (NearestSum, u64) {
     let cyl = Cylinder::new(&q.seg, q.r);
     let mut m: Vec<(f64, u32, DVec3)> = Vec::new();
     for_each_member(grid, q, |i| m.push(ranked(grid, &cyl, i as u32)));
@@ -195,5 +196,5 @@ pub fn exact_nearest(grid: &Grid, q: &Query, k: u64) -> NearestSum {
         ..Default::default()
     };
     add_nearest(&mut m, k, &mut out);
-    out
+    (out, m.len() as u64)
 }

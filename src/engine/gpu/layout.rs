@@ -9,6 +9,10 @@ use bytemuck::{Pod, Zeroable};
 
 /// Most points per work item: the bound of the evaluation kernel's loop.
 pub const CHUNK: u32 = 256;
+/// Most cells of a row in one work item (a run of contiguous points). The evaluation moves
+/// each point into the frame of the run's middle cell, so this bounds that distance
+/// (`ROW_CELLS / 2` cells) and with it the rounding that the f32 error bound must cover.
+pub const ROW_CELLS: u32 = 8;
 /// Invocations per workgroup of the per-item and per-query kernels.
 pub const WG: u32 = 64;
 /// Elements per workgroup of the prefix scan.
@@ -40,7 +44,6 @@ pub const MODE_COUNT: u32 = 0;
 pub const MODE_EMIT: u32 = 1;
 pub const MODE_STATS: u32 = 2;
 pub const MODE_STATS_SIDES: u32 = 3;
-pub const MODE_COVERAGE: u32 = 4;
 pub const MODE_HIST: u32 = 5;
 pub const MODE_BELOW: u32 = 6;
 
@@ -98,8 +101,9 @@ shared! {
 }
 
 shared! {
-    /// A work item: query slot, grid cell and a chunk `start..start + count` of its sorted
-    /// points (no chunk crosses a part of the point store).
+    /// A work item: query slot, the grid cell whose frame it is evaluated in (the middle
+    /// of a run of at most `ROW_CELLS` cells of one row) and a chunk `start..start + count`
+    /// of the run's sorted points (no chunk crosses a part of the point store).
     struct Item {
         query: u32 => "u32",
         cell: u32 => "u32",
@@ -178,7 +182,8 @@ shared! {
         sums: u32 => "u32",
         /// Index of the batch's item total in the scan buffer.
         total: u32 => "u32",
-        pad0: u32 => "u32",
+        /// Stats modes: 1 when the members' bits also go into the coverage mask.
+        cover: u32 => "u32",
         pad1: u32 => "u32",
     }
 }
@@ -190,6 +195,7 @@ pub const PARAMS_SLOT: u64 = 256;
 pub fn prelude() -> String {
     let consts = [
         ("CHUNK", CHUNK),
+        ("ROW_CELLS", ROW_CELLS),
         ("WG", WG),
         ("SCAN_WG", SCAN_WG),
         ("MAX_WALK", MAX_WALK),
@@ -204,7 +210,6 @@ pub fn prelude() -> String {
         ("MODE_EMIT", MODE_EMIT),
         ("MODE_STATS", MODE_STATS),
         ("MODE_STATS_SIDES", MODE_STATS_SIDES),
-        ("MODE_COVERAGE", MODE_COVERAGE),
         ("MODE_HIST", MODE_HIST),
         ("MODE_BELOW", MODE_BELOW),
     ];

@@ -34,7 +34,10 @@ pub mod layout;
 pub use device::{enumerate_adapters, skip_gpu_tests};
 pub use layout::CHUNK;
 
-use super::{Counters, Coverage, CylStats, Engine, EngineError, NearestSum, Query, Want};
+use super::{
+    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, Nearest, NearestSum, Query,
+    Want,
+};
 use crate::index::Grid;
 use batch::{Buffers, Kind};
 use device::Context;
@@ -138,8 +141,17 @@ impl GpuEngine {
     ) -> Result<Self, EngineError> {
         let ctx = Context::new(adapter)?;
         let limits = batch::Limits::new(&ctx, &opts, grid.len());
-        let kernels = ctx.scoped("compiling the kernels", || batch::Kernels::new(&ctx))?;
-        let statics = batch::Statics::upload(&ctx, &grid, &limits)?;
+        // The kernels compile on one thread while the grid uploads on the others.
+        let (kernels, statics) = std::thread::scope(|s| {
+            let kernels =
+                s.spawn(|| ctx.scoped("compiling the kernels", || batch::Kernels::new(&ctx)));
+            let statics = batch::Statics::upload(&ctx, &grid, &limits);
+            let kernels = kernels
+                .join()
+                .unwrap_or_else(|p| std::panic::resume_unwind(p));
+            (kernels, statics)
+        });
+        let (kernels, statics) = (kernels?, statics?);
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         Ok(GpuEngine {
             grid,
@@ -242,31 +254,37 @@ impl GpuEngine {
         self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
         Ok(())
     }
-}
 
-impl Engine for GpuEngine {
-    fn backend(&self) -> &'static str {
-        "gpu"
-    }
-
-    fn adapter(&self) -> String {
-        self.ctx.describe()
-    }
-
-    fn n_points(&self) -> usize {
-        self.grid.len()
-    }
-
-    fn stats(&self, queries: &[Query], want: Want) -> Result<Vec<CylStats>, EngineError> {
-        self.count_batch(queries.len());
+    /// The stats of every query (fields not in `want` zeroed) and, with `cover`, the
+    /// coverage mask of the batch, from one device batch.
+    fn stats_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+        want: Want,
+        cover: bool,
+    ) -> Result<(Vec<CylStats>, Option<Coverage>), EngineError> {
+        let n_points = self.grid.len();
+        let ctx = &self.ctx;
+        let asked = cover;
+        let cover = cover && n_points > 0;
+        if cover {
+            ctx.scoped("clearing the coverage mask", || {
+                batch::clear_mask(ctx, b, &self.opts, n_points)
+            })??;
+        }
         let mut out = vec![CylStats::default(); queries.len()];
-        let mut b = self.lock();
         let grid = &*self.grid;
         let cell = grid.cell;
         let fallbacks = &self.fallbacks;
+        // Members the device left to the host (flagged points, host-answered queries).
+        let mut extra: Vec<u32> = Vec::new();
         self.run(
-            &mut b,
-            Kind::Stats { sides: want.sides },
+            b,
+            Kind::Stats {
+                sides: want.sides,
+                cover,
+            },
             queries,
             &[],
             &mut |first, o| {
@@ -289,6 +307,18 @@ impl Engine for GpuEngine {
                             host::add_member(grid, &qs[i], f.1, s);
                         }
                     });
+                if cover {
+                    for (i, r) in o.results.iter().enumerate() {
+                        if r.status & layout::STATUS_HOST != 0 {
+                            host::for_each_member(grid, &qs[i], |j| extra.push(j as u32));
+                        }
+                    }
+                    for &(q, p) in &o.flags {
+                        if host::is_member(grid, &qs[q as usize], p) {
+                            extra.push(p);
+                        }
+                    }
+                }
                 Ok(())
             },
         )?;
@@ -301,22 +331,35 @@ impl Engine for GpuEngine {
                 a.side_pos = 0;
             }
         }
-        Ok(out)
+        if !cover {
+            return Ok((out, asked.then(Coverage::default)));
+        }
+        let t = std::time::Instant::now();
+        let (words, waited) = ctx.scoped("reading the coverage mask", || {
+            batch::read_mask(ctx, b, n_points)
+        })??;
+        let mut mask: Vec<u64> = words
+            .chunks(2)
+            .map(|w| w[0] as u64 | (w.get(1).copied().unwrap_or(0) as u64) << 32)
+            .collect();
+        for p in extra {
+            mask[p as usize / 64] |= 1u64 << (p % 64);
+        }
+        self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
+        Ok((out, Some(Coverage { mask })))
     }
 
-    fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError> {
-        if k.len() != queries.len() {
-            return Err(EngineError::BadQuery {
-                index: k.len().min(queries.len()),
-                why: format!("{} queries but {} k values", queries.len(), k.len()),
-            });
-        }
-        self.count_batch(queries.len());
-        let mut out = vec![NearestSum::default(); queries.len()];
-        let mut b = self.lock();
+    /// For query `i`, sums over its `k[i]` members nearest to the line, and its count.
+    fn nearest_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+        k: &[u64],
+    ) -> Result<(Vec<NearestSum>, Vec<u64>), EngineError> {
+        let mut out = vec![(NearestSum::default(), 0u64); queries.len()];
         let grid = &*self.grid;
         let fallbacks = &self.fallbacks;
-        self.run(&mut b, Kind::Nearest, queries, k, &mut |first, o| {
+        self.run(b, Kind::Nearest, queries, k, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
             let spans = host::spans(&o.flags, n);
@@ -344,6 +387,60 @@ impl Engine for GpuEngine {
                 });
             Ok(())
         })?;
+        Ok(out.into_iter().unzip())
+    }
+}
+
+impl Engine for GpuEngine {
+    fn backend(&self) -> &'static str {
+        "gpu"
+    }
+
+    fn adapter(&self) -> String {
+        self.ctx.describe()
+    }
+
+    fn n_points(&self) -> usize {
+        self.grid.len()
+    }
+
+    /// One device batch for the stats and the coverage together (one walk, each point
+    /// evaluated once), then, for nearest sums, the k-nearest batch (whose `k` may come
+    /// from the first batch's counts); a nearest-only ask gets its counts from the
+    /// k-nearest batch itself.
+    fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
+        ask.nearest.check(queries.len())?;
+        self.count_batch(queries.len());
+        let mut b = self.lock();
+        let stats_batch = ask.nearest == Nearest::No
+            || ask.coverage
+            || ask.want != Want::COUNT
+            || matches!(ask.nearest, Nearest::Keep(_));
+        let mut out = Answers::default();
+        if stats_batch {
+            let (stats, cov) = self.stats_batch(&mut b, queries, ask.want, ask.coverage)?;
+            out.stats = stats;
+            out.coverage = cov;
+        }
+        if ask.nearest != Nearest::No {
+            let k: Vec<u64> = (0..queries.len())
+                .map(|i| {
+                    let n = out.stats.get(i).map_or(0, |s| s.count);
+                    ask.nearest.k_of(i, n).unwrap_or(0)
+                })
+                .collect();
+            let (near, counts) = self.nearest_batch(&mut b, queries, &k)?;
+            if !stats_batch {
+                out.stats = counts
+                    .into_iter()
+                    .map(|count| CylStats {
+                        count,
+                        ..Default::default()
+                    })
+                    .collect();
+            }
+            out.nearest = near;
+        }
         Ok(out)
     }
 
@@ -352,51 +449,6 @@ impl Engine for GpuEngine {
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
         Ok(super::cpu::members_of(&self.grid, queries))
-    }
-
-    fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {
-        self.count_batch(queries.len());
-        let n = self.grid.len();
-        if n == 0 {
-            return Ok(Coverage { mask: Vec::new() });
-        }
-        let mut b = self.lock();
-        let ctx = &self.ctx;
-        ctx.scoped("clearing the coverage mask", || {
-            batch::clear_mask(ctx, &mut b, &self.opts, n)
-        })??;
-        let grid = &*self.grid;
-        let mut extra: Vec<u32> = Vec::new();
-        let fallbacks = &self.fallbacks;
-        self.run(&mut b, Kind::Coverage, queries, &[], &mut |first, o| {
-            let nq = o.results.len();
-            let qs = &queries[first..first + nq];
-            for (i, r) in o.results.iter().enumerate() {
-                if r.status & layout::STATUS_HOST != 0 {
-                    fallbacks.fetch_add(1, Ordering::Relaxed);
-                    host::for_each_member(grid, &qs[i], |j| extra.push(j as u32));
-                }
-            }
-            for &(q, p) in &o.flags {
-                if host::is_member(grid, &qs[q as usize], p) {
-                    extra.push(p);
-                }
-            }
-            Ok(())
-        })?;
-        let t = std::time::Instant::now();
-        let (words, waited) = ctx.scoped("reading the coverage mask", || {
-            batch::read_mask(ctx, &mut b, n)
-        })??;
-        let mut mask: Vec<u64> = words
-            .chunks(2)
-            .map(|w| w[0] as u64 | (w.get(1).copied().unwrap_or(0) as u64) << 32)
-            .collect();
-        for p in extra {
-            mask[p as usize / 64] |= 1u64 << (p % 64);
-        }
-        self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
-        Ok(Coverage { mask })
     }
 
     fn counters(&self) -> Counters {
