@@ -94,22 +94,31 @@ impl CpuEngine {
         };
         let k = (k as usize).min(members.len());
         out.k = k as u64;
-        if k == 0 {
-            return (s, out);
-        }
-        let order = |a: &(f64, usize, DVec3), b: &(f64, usize, DVec3)| {
-            a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
-        };
-        if k < members.len() {
-            members.select_nth_unstable_by(k - 1, order);
-        }
-        let first = &mut members[..k];
-        first.sort_unstable_by(order);
-        for m in first.iter() {
-            out.sum_d2 += m.0;
-            out.sum_offset += m.2;
-        }
+        add_nearest(members, k, &mut out);
         (s, out)
+    }
+}
+
+/// Adds to `acc` the sums of the `need` entries of `m` (squared distance, point index,
+/// offset) nearest the line, ranked by (d2, index) and summed in that order: the one
+/// ranking of both engines (the GPU engine's host path decides its boundary band with it).
+pub(crate) fn add_nearest<I: Ord + Copy>(
+    m: &mut [(f64, I, DVec3)],
+    need: usize,
+    acc: &mut NearestSum,
+) {
+    if need == 0 {
+        return;
+    }
+    let order = |a: &(f64, I, DVec3), b: &(f64, I, DVec3)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+    if need < m.len() {
+        m.select_nth_unstable_by(need - 1, order);
+    }
+    let first = &mut m[..need];
+    first.sort_unstable_by(order);
+    for x in first.iter() {
+        acc.sum_d2 += x.0;
+        acc.sum_offset += x.2;
     }
 }
 

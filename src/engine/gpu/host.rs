@@ -3,6 +3,7 @@
 //! answered wholly here.
 
 use super::layout::{Plan, QResult, ALL_BELOW, FLAG_CANDIDATE, STATUS_HOST};
+use crate::engine::cpu::add_nearest;
 use crate::engine::{CylStats, NearestSum, Query};
 use crate::geom::{p64, Cylinder};
 use crate::index::Grid;
@@ -83,25 +84,6 @@ fn ranked(grid: &Grid, cyl: &Cylinder, i: u32) -> (f64, u32, DVec3) {
     let w = p64(grid.points[i as usize]) - cyl.p1;
     let v = w - cyl.d * w.dot(cyl.d);
     (v.length_squared(), i, v)
-}
-
-/// Sums of the `need` members of `m` nearest the line, ranked by (d2, index) in f64 like
-/// the CPU engine.
-fn add_nearest(m: &mut [(f64, u32, DVec3)], need: usize, acc: &mut NearestSum) {
-    if need == 0 {
-        return;
-    }
-    let order =
-        |a: &(f64, u32, DVec3), b: &(f64, u32, DVec3)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-    if need < m.len() {
-        m.select_nth_unstable_by(need - 1, order);
-    }
-    let first = &mut m[..need];
-    first.sort_unstable_by(order);
-    for x in first.iter() {
-        acc.sum_d2 += x.0;
-        acc.sum_offset += x.2;
-    }
 }
 
 /// The exact k nearest from the device's sums below the cut, the candidates of the cut
