@@ -2,50 +2,14 @@
 //! output.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
-}
-
-fn data(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(p)
-}
-
-fn run(args: &[&str]) -> Output {
-    bin()
-        .args(args)
-        .env("CI", std::env::var("CI").unwrap_or_default())
-        .output()
-        .unwrap()
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-fn stdout(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
+mod common;
+use common::{data, linegs, run, stderr, stdout};
 
 /// A small synthetic scene on disk (toy Gaussians + lines), made by the CLI itself.
 fn toy(dir: &Path) -> (PathBuf, PathBuf) {
-    let g = dir.join("g.ply");
-    let l = dir.join("l.obj");
-    let o = run(&[
-        "synth",
-        "toy",
-        "-o",
-        g.to_str().unwrap(),
-        "--lines-out",
-        l.to_str().unwrap(),
-        "-n",
-        "8000",
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    (g, l)
+    common::synth_toy(dir, 8000)
 }
 
 #[test]
@@ -754,7 +718,7 @@ fn a_gpu_run_without_xdg_runtime_dir_prints_no_error() {
     // Its own temp folder, to see that the private runtime folder is removed at exit.
     let tmp = dir.path().join("tmp");
     std::fs::create_dir(&tmp).unwrap();
-    let o = bin()
+    let o = linegs()
         .args([
             "refine",
             "-g",

@@ -2,6 +2,7 @@
 
 mod common;
 
+use common::data;
 use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::gt;
 use linegs_gpu::geom::{LineSet, Segment};
@@ -9,7 +10,6 @@ use linegs_gpu::io;
 use linegs_gpu::pipeline::{Refined, Refiner};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
-use std::path::Path;
 
 fn refine_cpu(points: &[[f32; 3]], lines: &LineSet, params: &Params) -> Refined {
     let r = Refiner::new(points, &lines.segments, params, Backend::Cpu).unwrap();
@@ -116,12 +116,6 @@ fn output_is_identical_across_runs_and_thread_counts() {
     assert_eq!(bytes[0], bytes[4]);
     assert_eq!(bytes[1], bytes[3]);
     assert_eq!(bytes[1], bytes[5]);
-}
-
-fn data(p: &str) -> std::path::PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(p)
 }
 
 #[test]

@@ -4,7 +4,6 @@
 //! bad inputs each reader must refuse with the file and the place.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use linegs_gpu::io::{
     encode_spz, info, read_gaussians, read_gaussians_with_opacity, read_lines, read_lines_with,
@@ -12,11 +11,8 @@ use linegs_gpu::io::{
     POLYLINE_PIECES,
 };
 
-fn data(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(p)
-}
+mod common;
+use common::{data, run, stderr, stdout};
 
 fn opts(min_opacity: Option<f64>) -> PlyOptions {
     PlyOptions {
@@ -547,42 +543,31 @@ fn edge_json_lines_are_read_and_curves_skipped_or_sampled() {
 
 // ---------------------------------------------------------------- the command line
 
-fn bin(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn err(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-fn out(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
-
 #[test]
 fn info_and_convert_handle_every_new_format() {
     let dir = tempfile::tempdir().unwrap();
-    let o = bin(&["info", data("gaussians/biker.spz").to_str().unwrap()]);
-    assert!(o.status.success(), "{}", err(&o));
-    assert!(out(&o).contains("SPZ version 4"), "{}", out(&o));
-    let o = bin(&[
+    let o = run(&["info", data("gaussians/biker.spz").to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("SPZ version 4"), "{}", stdout(&o));
+    let o = run(&[
         "info",
         data("gaussians/guitar.compressed.ply").to_str().unwrap(),
     ]);
-    assert!(out(&o).contains("SuperSplat compressed PLY"), "{}", out(&o));
-    assert!(out(&o).contains("90854"), "{}", out(&o));
+    assert!(
+        stdout(&o).contains("SuperSplat compressed PLY"),
+        "{}",
+        stdout(&o)
+    );
+    assert!(stdout(&o).contains("90854"), "{}", stdout(&o));
 
     let ply = dir.path().join("biker.ply");
-    let o = bin(&[
+    let o = run(&[
         "convert",
         data("gaussians/biker.spz").to_str().unwrap(),
         "-o",
         ply.to_str().unwrap(),
     ]);
-    assert!(o.status.success(), "{}", err(&o));
+    assert!(o.status.success(), "{}", stderr(&o));
     let a = read_gaussians(&data("gaussians/biker.spz"), &opts(Some(0.5))).unwrap();
     let b = read_gaussians(&ply, &opts(Some(0.5))).unwrap();
     assert_eq!(a.centers, b.centers);
@@ -601,45 +586,33 @@ fn info_and_convert_handle_every_new_format() {
         track_file([1.0, 0.0, 0.0, 1.0, 2.0, 3.0], 2),
     );
     let obj = dir.path().join("tracks.obj");
-    let o = bin(&[
+    let o = run(&[
         "convert",
         tracks.to_str().unwrap(),
         "-o",
         obj.to_str().unwrap(),
     ]);
-    assert!(o.status.success(), "{}", err(&o));
+    assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(
         read_lines(&obj).unwrap().lines.segments,
         read_lines(&tracks).unwrap().lines.segments
     );
     // Gaussians only go to PLY; nothing is written otherwise.
     let bad = dir.path().join("biker.obj");
-    let o = bin(&[
+    let o = run(&[
         "convert",
         data("gaussians/biker.spz").to_str().unwrap(),
         "-o",
         bad.to_str().unwrap(),
     ]);
-    assert_eq!(o.status.code(), Some(2), "{}", err(&o));
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert!(!bad.exists());
 }
 
 /// The toy scene, and the same Gaussians as nerfstudio would store them:
 /// `p_ns = s (R p + t)`, with the dataparser JSON that says so.
 fn toy_in_two_frames(dir: &Path) -> (PathBuf, PathBuf, PathBuf, PathBuf) {
-    let g = dir.join("g.ply");
-    let l = dir.join("l.obj");
-    let o = bin(&[
-        "synth",
-        "toy",
-        "-o",
-        g.to_str().unwrap(),
-        "--lines-out",
-        l.to_str().unwrap(),
-        "-n",
-        "6000",
-    ]);
-    assert!(o.status.success(), "{}", err(&o));
+    let (g, l) = common::synth_toy(dir, 6000);
     let cloud = read_gaussians(&g, &opts(None)).unwrap();
     let (s, t) = (0.25f64, [5.0f64, -7.0, 9.0]);
     let moved: Vec<[f32; 3]> = cloud
@@ -683,13 +656,17 @@ fn refine_stops_on_a_frame_mismatch_and_the_transform_fixes_it() {
         "-o",
         outp.to_str().unwrap(),
     ];
-    let o = bin(&base);
-    assert_eq!(o.status.code(), Some(2), "{}", err(&o));
-    assert!(err(&o).contains("not in one frame"), "{}", err(&o));
-    assert!(err(&o).contains("--gaussians-transform"), "{}", err(&o));
+    let o = run(&base);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("not in one frame"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("--gaussians-transform"),
+        "{}",
+        stderr(&o)
+    );
     assert!(!outp.exists(), "a mismatch writes nothing");
 
-    let e = bin(&[
+    let e = run(&[
         "eval",
         "--backend",
         "cpu",
@@ -698,19 +675,19 @@ fn refine_stops_on_a_frame_mismatch_and_the_transform_fixes_it() {
         "-l",
         l.to_str().unwrap(),
     ]);
-    assert!(e.status.success(), "{}", err(&e));
+    assert!(e.status.success(), "{}", stderr(&e));
     assert!(
-        err(&e).contains("warning") && err(&e).contains("not in one frame"),
+        stderr(&e).contains("warning") && stderr(&e).contains("not in one frame"),
         "{}",
-        err(&e)
+        stderr(&e)
     );
 
     let mut results = Vec::new();
     for t in [&json, &m] {
         let mut args = base.to_vec();
         args.extend(["--gaussians-transform", t.to_str().unwrap()]);
-        let o = bin(&args);
-        assert!(o.status.success(), "{}: {}", t.display(), err(&o));
+        let o = run(&args);
+        assert!(o.status.success(), "{}: {}", t.display(), stderr(&o));
         results.push(read_lines(&outp).unwrap().lines.segments);
     }
     assert!(!results[0].is_empty());

@@ -9,11 +9,8 @@ use linegs_gpu::io::{
     write_lines_ply_layers, Error, FileKind, LineFormat, PlyOptions, Position,
 };
 
-fn data(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(rel)
-}
+mod common;
+use common::data;
 
 /// A file with `bytes` in a fresh temporary directory (kept alive by the returned guard).
 fn file(name: &str, bytes: &[u8]) -> (tempfile::TempDir, PathBuf) {

@@ -25,16 +25,8 @@ fn gauss_err(bytes: &[u8]) -> Error {
     parse_gaussians(Path::new("g.ply"), bytes, &PlyOptions::default()).expect_err("refused")
 }
 
-fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
+mod common;
+use common::{run, stderr};
 
 /// Exit 2, one line naming `file` and `needle`, no panic.
 fn assert_exit_2(o: &Output, file: &str, needle: &str) {
@@ -661,18 +653,7 @@ fn random_mutants_of_every_format_are_read_or_refused() {
 #[test]
 fn a_segment_flung_to_1000_1000_1000_leaves_the_others_results_alone() {
     let dir = tempfile::tempdir().unwrap();
-    let (g, l) = (dir.path().join("g.ply"), dir.path().join("l.obj"));
-    let o = run(&[
-        "synth",
-        "toy",
-        "-o",
-        g.to_str().unwrap(),
-        "--lines-out",
-        l.to_str().unwrap(),
-        "-n",
-        "20000",
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (g, l) = common::synth_toy(dir.path(), 20000);
     // Move the first endpoint of the first segment far away (the grid used to grow with it).
     let text = std::fs::read_to_string(&l).unwrap();
     let mut moved = false;

@@ -187,3 +187,50 @@ pub fn gpu_engine(
         Err(e) => panic!("GPU engine failed to start: {e}"),
     }
 }
+
+// ------------------------------------------------------ the binary, as a user runs it
+
+/// A file of `tests/data/` (real files from other tools, with their licences).
+pub fn data(rel: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(rel)
+}
+
+/// The `linegs-gpu` binary, for runs that need more than arguments (environment, stdin).
+pub fn linegs() -> std::process::Command {
+    std::process::Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
+}
+
+/// Runs `linegs-gpu args` and waits for it.
+pub fn run(args: &[&str]) -> std::process::Output {
+    linegs().args(args).output().unwrap()
+}
+
+pub fn stderr(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+pub fn stdout(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// The toy scene of `n` Gaussians made by the CLI itself (`synth toy`):
+/// `dir/g.ply` and its input lines `dir/l.obj`.
+pub fn synth_toy(dir: &std::path::Path, n: usize) -> (std::path::PathBuf, std::path::PathBuf) {
+    let g = dir.join("g.ply");
+    let l = dir.join("l.obj");
+    let n = n.to_string();
+    let o = run(&[
+        "synth",
+        "toy",
+        "-o",
+        g.to_str().unwrap(),
+        "--lines-out",
+        l.to_str().unwrap(),
+        "-n",
+        &n,
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    (g, l)
+}
