@@ -191,31 +191,10 @@ impl Context {
         size: u64,
         f: impl FnOnce(&[u8]) -> R,
     ) -> Result<R, EngineError> {
-        if size == 0 {
-            self.queue.submit([encoder.finish()]);
-            return Ok(f(&[]));
+        if size > 0 {
+            encoder.copy_buffer_to_buffer(src, 0, staging, 0, size);
         }
-        encoder.copy_buffer_to_buffer(src, 0, staging, 0, size);
-        self.queue.submit([encoder.finish()]);
-        let slice = staging.slice(..size);
-        let (tx, rx) = mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| EngineError::Gpu(format!("waiting for the device: {e}")))?;
-        rx.recv()
-            .map_err(|_| EngineError::Gpu("read-back never completed".into()))?
-            .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
-        let out = {
-            let view = slice
-                .get_mapped_range()
-                .map_err(|e| EngineError::Gpu(format!("read-back failed: {e}")))?;
-            f(&view)
-        };
-        staging.unmap();
-        Ok(out)
+        Ok(self.submit_and_map(encoder, staging, size, f)?.0)
     }
 
     /// Submits `encoder` (which copies what the host needs into `staging`, a MAP_READ
