@@ -444,11 +444,14 @@ impl Engine for GpuEngine {
         Ok(out)
     }
 
-    /// Documented fallback: answered on the host over the same grid by the CPU engine's
-    /// code (no kernel writes per-point lists; reading them back is O(members) anyway).
+    /// Answered on the host over the same grid by the CPU engine's code; its time counts
+    /// as host seconds.
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
-        Ok(super::cpu::members_of(&self.grid, queries))
+        let t = std::time::Instant::now();
+        let out = super::cpu::members_of(&self.grid, queries);
+        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+        Ok(out)
     }
 
     fn counters(&self) -> Counters {
