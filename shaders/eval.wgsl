@@ -8,6 +8,10 @@
 //   MODE_HIST: each member into its query's histogram of d2 / r2 (integer atomicAdd).
 //   MODE_BELOW: with the query's plan, sums of the members certainly among the k nearest
 //     into the item's slot, and the members of the cut band flagged as candidates.
+//   MODE_MEMBERS: after a stats pass (members.wgsl scans its counts), the sorted indices
+//     of the item's sure members into the member list (`aux`) from the item's offset
+//     (`partials[id].first`) on; an item that finds a different number than the stats
+//     pass counted raises ctl[CTL_MEMBERS_BAD] (the host then answers the sub-batch).
 // Loop bound: min(count, CHUNK) points per invocation (then at most 8 words), far below
 // the 65,535 iterations after which lavapipe silently stops an invocation.
 
@@ -63,6 +67,13 @@ fn main(
     if mode == MODE_BELOW {
         plan = plans[qi];
     }
+    var slot0 = 0u;
+    var expect = 0u;
+    if mode == MODE_MEMBERS {
+        let pp = partials[id];
+        slot0 = pp.first;
+        expect = pp.count;
+    }
     let inv_r2 = select(0.0, 1.0 / q.r2, q.r2 > 0.0);
     for (var i = 0u; i < n; i++) {
         let pt = points[first + i];
@@ -74,7 +85,8 @@ fn main(
             continue;
         }
         if t.kind == NEAR {
-            if mode != MODE_BELOW {
+            // The stats pass before a member pass has flagged them already.
+            if mode != MODE_BELOW && mode != MODE_MEMBERS {
                 flag(qi | FLAG_BOUNDARY, it.start + i);
             }
             continue;
@@ -84,6 +96,11 @@ fn main(
         }
         if mode == MODE_HIST {
             atomicAdd(&aux[qi * NBINS + bin_of(t.d2 * inv_r2)], 1u);
+        } else if mode == MODE_MEMBERS {
+            if count < expect && slot0 + count < params.member_cap {
+                atomicStore(&aux[slot0 + count], it.start + i);
+            }
+            count += 1u;
         } else {
             var take = true;
             if mode == MODE_BELOW && plan.cut != ALL_BELOW {
@@ -116,7 +133,11 @@ fn main(
             }
         }
     }
-    if mode != MODE_HIST {
+    if mode == MODE_MEMBERS {
+        if count != expect {
+            atomicOr(&ctl[CTL_MEMBERS_BAD], 1u);
+        }
+    } else if mode != MODE_HIST {
         partials[id] = Partial(count, side, d2, off.x, off.y, off.z, 0u, 0u);
     }
 }

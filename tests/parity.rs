@@ -33,9 +33,10 @@ fn close_vec(a: DVec3, b: DVec3, n: u64, sum_d2: f64, r: f64) -> bool {
     (a - b).length() <= REL * (n as f64 * sum_d2).sqrt() + REL_R * n as f64 * r
 }
 
-/// `tested` answers `queries` like `reference`: counts, sides, k and coverage equal,
-/// sums to float precision.
+/// `tested` answers `queries` like `reference`: counts, sides, k, coverage and member
+/// lists equal, sums to float precision.
 fn check_parity(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
+    check_members(reference, tested, queries);
     for want in [Want::COUNT, Want::SUMS, Want::SIDES, Want::ALL] {
         let a = reference.stats(queries, want).unwrap();
         let b = tested.stats(queries, want).unwrap();
@@ -152,6 +153,24 @@ fn check_fused(
     assert_eq!(b.nearest.len(), queries.len());
 }
 
+/// The member lists are the same, bit for bit (ids, axial positions and offsets).
+fn check_members(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
+    let a = reference.members(queries).unwrap();
+    let b = tested.members(queries).unwrap();
+    assert_eq!(a.len(), b.len());
+    for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+        if x != y {
+            let first = x.iter().zip(y).position(|(m, n)| m != n);
+            panic!(
+                "query {i}: {} members vs {}, first difference at {first:?}: {:?}",
+                x.len(),
+                y.len(),
+                queries[i]
+            );
+        }
+    }
+}
+
 fn nearest_close(x: &NearestSum, y: &NearestSum, r: f64) -> bool {
     close(x.sum_d2, y.sum_d2, x.k, r) && close_vec(x.sum_offset, y.sum_offset, x.k, x.sum_d2, r)
 }
@@ -177,6 +196,8 @@ fn random_scenes_match_the_cpu() {
                 return;
             };
             check_parity(&cpu, &gpu, &qs);
+            // The member lists came from the device, not from the host's fallback.
+            assert!(gpu.host_fallbacks() <= 3, "{}", gpu.host_fallbacks());
         }
     }
 }
@@ -268,6 +289,12 @@ fn a_query_with_more_than_65535_members_in_one_cell() {
     assert!((near[0].sum_d2 - d2).abs() <= 1e-4 * d2);
     assert!((near[0].sum_offset - off).length() <= 1e-4 * (kk as f64 * d2).sqrt());
     assert_eq!(gpu.coverage(&qs[..1]).unwrap().count(), 100_000);
+    // The members of the dense query, from the device: all 100,000, in working-set order.
+    let m = gpu.members(&qs).unwrap();
+    assert_eq!(m[0].len(), 100_000);
+    assert!(m[0].windows(2).all(|w| w[0].id < w[1].id));
+    assert_eq!(m, cpu.members(&qs).unwrap());
+    assert_eq!(gpu.host_fallbacks(), 0);
 }
 
 #[test]

@@ -122,38 +122,40 @@ pub(crate) fn add_nearest<I: Ord + Copy>(
     }
 }
 
-/// [`Engine::members`] over `grid` on the host, f64; also the GPU engine's answer (the
-/// per-point output has no kernel: it is O(members) to read back either way).
+/// [`Engine::members`] over `grid` on the host, f64.
 pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
     queries
         .par_iter()
         .with_min_len(8)
-        .map(|q| {
-            let mut out = Vec::new();
-            if !q.seg.is_valid() {
-                return out;
-            }
-            let cyl = Cylinder::new(&q.seg, q.r);
-            grid.visit_rows(&q.seg, q.r, |row| {
-                let range = grid.row_range(&row);
-                let start = range.start;
-                for (j, p) in grid.points[range].iter().enumerate() {
-                    if let Some((t, offset)) = cyl.test(p64(*p)) {
-                        out.push(Member {
-                            id: grid.ids[start + j],
-                            t,
-                            offset,
-                        });
-                    }
-                }
-            });
-            // Working-set order, not grid order: the grid's layout follows the working
-            // box, so a far segment would otherwise reorder the members (and the fit's
-            // sums) of every other segment in the last bits.
-            out.sort_unstable_by_key(|m| m.id);
-            out
-        })
+        .map(|q| member_list(grid, q))
         .collect()
+}
+
+/// The members of one query on the host, in working-set order.
+pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
+    let mut out = Vec::new();
+    if !q.seg.is_valid() {
+        return out;
+    }
+    let cyl = Cylinder::new(&q.seg, q.r);
+    grid.visit_rows(&q.seg, q.r, |row| {
+        let range = grid.row_range(&row);
+        let start = range.start;
+        for (j, p) in grid.points[range].iter().enumerate() {
+            if let Some((t, offset)) = cyl.test(p64(*p)) {
+                out.push(Member {
+                    id: grid.ids[start + j],
+                    t,
+                    offset,
+                });
+            }
+        }
+    });
+    // Working-set order, not grid order: the grid's layout follows the working
+    // box, so a far segment would otherwise reorder the members (and the fit's
+    // sums) of every other segment in the last bits.
+    out.sort_unstable_by_key(|m| m.id);
+    out
 }
 
 impl Engine for CpuEngine {

@@ -20,6 +20,8 @@ pub enum Kind {
         cover: bool,
     },
     Nearest,
+    /// The members: each query's sure members' sorted indices (and the flagged points).
+    Members,
 }
 
 /// The sizes the engine works within, from the options and the device.
@@ -30,6 +32,8 @@ pub struct Limits {
     pub device_binding: u64,
     pub item_max: u32,
     pub flag_max: u32,
+    /// Most entries of a members batch's member list.
+    pub member_max: u32,
     pub max_queries: usize,
     pub max_x: u32,
 }
@@ -54,11 +58,14 @@ impl Limits {
             .max_queries
             .min((device_binding / per_query) as usize)
             .clamp(1, 1 << 22);
+        // Half the binding: the staging buffer holds the list and the per-query results.
+        let member_max = (device_binding / 8).clamp(1, 1 << 30) as u32;
         Limits {
             part_len,
             device_binding,
             item_max,
             flag_max,
+            member_max,
             max_queries,
             max_x: opts.max_workgroups_x.max(1),
         }
@@ -73,6 +80,8 @@ pub struct Kernels {
     eval: wgpu::ComputePipeline,
     cut: wgpu::ComputePipeline,
     reduce: wgpu::ComputePipeline,
+    gather: wgpu::ComputePipeline,
+    scatter: wgpu::ComputePipeline,
 }
 
 impl Kernels {
@@ -81,6 +90,7 @@ impl Kernels {
             ctx.pipeline(name, &super::kernel_source(src), entry)
         };
         let scan = include_str!("../../../shaders/scan.wgsl");
+        let members = include_str!("../../../shaders/members.wgsl");
         Kernels {
             walk: k("walk", include_str!("../../../shaders/walk.wgsl"), "main"),
             scan: k("scan", scan, "main"),
@@ -93,6 +103,8 @@ impl Kernels {
                 include_str!("../../../shaders/reduce.wgsl"),
                 "main",
             ),
+            gather: k("members gather", members, "gather"),
+            scatter: k("members scatter", members, "scatter"),
         }
     }
 }
@@ -176,11 +188,15 @@ pub struct Buffers {
     /// The k-nearest histograms, or the coverage mask.
     aux: Reusable,
     plans: Reusable,
+    /// Members batches: the scan of the items' member counts, and the member list.
+    mscan: Reusable,
+    members: Reusable,
     staging: Reusable,
     /// Bytes of the coverage mask in `aux` (set by `clear_mask`).
     aux_len: u64,
     item_cap: u32,
     flag_cap: u32,
+    member_cap: u32,
 }
 
 impl Buffers {
@@ -200,20 +216,28 @@ impl Buffers {
             ),
             aux: Reusable::new("aux", storage),
             plans: Reusable::new("plans", storage),
+            mscan: Reusable::new("mscan", storage),
+            members: Reusable::new("members", storage),
             staging: Reusable::new("staging", wgpu::BufferUsages::MAP_READ),
             aux_len: 4,
             item_cap: lim.item_max.min(1 << 16),
             flag_cap: lim.flag_max.min(1 << 14),
+            member_cap: lim.member_max.min(1 << 16),
         }
     }
 }
 
 /// One sub-batch's answers: per query its result (and k-nearest plan), and the flagged
-/// points as (query slot | kind, sorted point index), sorted.
+/// points as (query slot | kind, sorted point index), sorted. A members batch also has
+/// the sure members' sorted indices, query after query (`results[i].count` each, none for
+/// a query answered on the host), and `bad` when the device miscounted them.
+#[derive(Default)]
 pub struct Output {
     pub results: Vec<QResult>,
     pub plans: Vec<Plan>,
     pub flags: Vec<(u32, u32)>,
+    pub members: Vec<u32>,
+    pub bad: bool,
 }
 
 impl Output {
@@ -227,8 +251,7 @@ impl Output {
                 };
                 n
             ],
-            plans: Vec::new(),
-            flags: Vec::new(),
+            ..Default::default()
         }
     }
 }
@@ -377,14 +400,7 @@ pub fn submit(
 ) -> Result<Attempt, EngineError> {
     let n = qs.len();
     if n == 0 {
-        return Ok(Attempt::Done(
-            Output {
-                results: Vec::new(),
-                plans: Vec::new(),
-                flags: Vec::new(),
-            },
-            0.0,
-        ));
+        return Ok(Attempt::Done(Output::default(), 0.0));
     }
     let gq: Vec<GQuery> = qs
         .par_iter()
@@ -395,15 +411,25 @@ pub fn submit(
     let mut waited = 0.0;
     let mut rerun = false;
     loop {
-        let (out, w, total, n_flags) = attempt(ctx, k, st, lim, b, kind, &gq, rerun)?;
+        let (out, w, total, n_flags, n_members) = attempt(ctx, k, st, lim, b, kind, &gq, rerun)?;
         rerun = true;
         waited += w;
         let mut again = false;
+        if kind == Kind::Members && total > member_scan_max(lim) {
+            return Ok(Attempt::TooLarge(waited));
+        }
         if total > b.item_cap {
             if total > lim.item_max {
                 return Ok(Attempt::TooLarge(waited));
             }
             b.item_cap = grow(total, lim.item_max);
+            again = true;
+        } else if n_members > b.member_cap as u64 {
+            // (Counted only when every item was evaluated.)
+            if n_members > lim.member_max as u64 {
+                return Ok(Attempt::TooLarge(waited));
+            }
+            b.member_cap = grow(n_members as u32, lim.member_max);
             again = true;
         }
         if n_flags > b.flag_cap {
@@ -419,6 +445,11 @@ pub fn submit(
     }
 }
 
+/// Most items a members batch may scan: one scan level within `max_x` workgroups.
+fn member_scan_max(lim: &Limits) -> u32 {
+    SCAN_WG.saturating_mul(lim.max_x)
+}
+
 fn slot(buf: &wgpu::Buffer, i: usize) -> wgpu::BindingResource<'_> {
     wgpu::BindingResource::Buffer(wgpu::BufferBinding {
         buffer: buf,
@@ -427,7 +458,8 @@ fn slot(buf: &wgpu::Buffer, i: usize) -> wgpu::BindingResource<'_> {
     })
 }
 
-/// One try: returns the output, the wait, the items needed and the flags raised. A
+/// One try: returns the output, the wait, the items needed, the flags raised and (a
+/// members batch) the members found. A
 /// `rerun` starts from the sizing of the dispatches: the count walk and the scan of the
 /// try before are still in their buffers (whose sizes depend only on the queries).
 #[allow(clippy::too_many_arguments)]
@@ -440,12 +472,19 @@ fn attempt(
     kind: Kind,
     gq: &[GQuery],
     rerun: bool,
-) -> Result<(Output, f64, u32, u32), EngineError> {
+) -> Result<(Output, f64, u32, u32, u64), EngineError> {
     let n = gq.len() as u32;
     let item_cap = b.item_cap;
     let flag_cap = b.flag_cap;
+    let member_cap = b.member_cap;
     let (levels, total_idx, scan_len) = scan_levels(n);
     let nearest = kind == Kind::Nearest;
+    let members = kind == Kind::Members;
+    // The items' member counts are scanned over the buffer's capacity (the total is on
+    // the device); entries past the total do not change the offsets before it.
+    let (mlevels, _, mscan_len) = scan_levels(item_cap.min(member_scan_max(lim)));
+    let mscan_bytes = if members { mscan_len as u64 * 4 } else { 4 };
+    let mem_bytes = member_cap as u64 * 4;
 
     // Sizes of everything bound.
     let q_bytes = n as u64 * std::mem::size_of::<GQuery>() as u64;
@@ -469,6 +508,7 @@ fn attempt(
         max_x: lim.max_x,
         total: total_idx,
         cover: matches!(kind, Kind::Stats { cover: true, .. }) as u32,
+        member_cap,
         ..Default::default()
     };
     let mut slots: Vec<Params> = Vec::new();
@@ -497,7 +537,7 @@ fn attempt(
         .collect();
     let args_slot = push(base);
     let eval_mode = match kind {
-        Kind::Stats { sides: false, .. } => MODE_STATS,
+        Kind::Stats { sides: false, .. } | Kind::Members => MODE_STATS,
         Kind::Stats { sides: true, .. } => MODE_STATS_SIDES,
         Kind::Nearest => MODE_HIST,
     };
@@ -518,6 +558,23 @@ fn attempt(
         part_slots(MODE_BELOW, &mut push)
     } else {
         Vec::new()
+    };
+    let (gather_slot, mscan_slots, member_slots) = if members {
+        let g = push(base);
+        let levels: Vec<usize> = mlevels
+            .iter()
+            .map(|&(b0, len, sums)| {
+                push(Params {
+                    n: len,
+                    base: b0,
+                    sums,
+                    ..base
+                })
+            })
+            .collect();
+        (g, levels, part_slots(MODE_MEMBERS, &mut push))
+    } else {
+        (0, Vec::new(), Vec::new())
     };
     let cut_slot = push(base);
     let reduce_slot = push(base);
@@ -544,10 +601,20 @@ fn attempt(
         Kind::Nearest => hist_bytes,
         Kind::Stats { cover: true, .. } => b.aux_len,
         Kind::Stats { cover: false, .. } => 4,
+        Kind::Members => mem_bytes,
     };
-    let aux = b.aux.get(ctx, aux_bytes).clone();
+    // A members batch's list takes the place of the histograms or the mask.
+    let aux = if members {
+        b.members.get(ctx, aux_bytes).clone()
+    } else {
+        b.aux.get(ctx, aux_bytes).clone()
+    };
+    let mscan = b.mscan.get(ctx, mscan_bytes).clone();
     let plans = b.plans.get(ctx, plan_bytes.max(16)).clone();
-    let staging_bytes = res_bytes + ctl_bytes + if nearest { plan_bytes } else { 0 };
+    let staging_bytes = res_bytes
+        + ctl_bytes
+        + if nearest { plan_bytes } else { 0 }
+        + if members { mem_bytes } else { 0 };
     let staging = b.staging.get(ctx, staging_bytes).clone();
 
     let h = device::head;
@@ -641,6 +708,48 @@ fn attempt(
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups_indirect(&indirect, 0);
         }
+        if members {
+            let mgroup = |p: &wgpu::ComputePipeline, s: usize| {
+                bind(
+                    p,
+                    vec![
+                        slot(&params, s),
+                        h(&ctl, ctl_bytes),
+                        h(&partials, part_bytes),
+                        h(&mscan, mscan_bytes),
+                    ],
+                )
+            };
+            let g = mgroup(&k.gather, gather_slot);
+            pass.set_pipeline(&k.gather);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups_indirect(&indirect, 0);
+            let sgroup = |p: &wgpu::ComputePipeline, s: usize| {
+                bind(p, vec![slot(&params, s), h(&mscan, mscan_bytes)])
+            };
+            for (i, &(_, len, _)) in mlevels.iter().enumerate() {
+                let g = sgroup(&k.scan, mscan_slots[i]);
+                pass.set_pipeline(&k.scan);
+                pass.set_bind_group(0, &g, &[]);
+                pass.dispatch_workgroups(len.div_ceil(SCAN_WG).max(1), 1, 1);
+            }
+            for i in (0..mlevels.len().saturating_sub(1)).rev() {
+                let g = sgroup(&k.scan_add, mscan_slots[i]);
+                pass.set_pipeline(&k.scan_add);
+                pass.set_bind_group(0, &g, &[]);
+                pass.dispatch_workgroups(mlevels[i].1.div_ceil(SCAN_WG).max(1), 1, 1);
+            }
+            let g = mgroup(&k.scatter, gather_slot);
+            pass.set_pipeline(&k.scatter);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups_indirect(&indirect, 0);
+            pass.set_pipeline(&k.eval);
+            for (p, &s) in member_slots.iter().enumerate() {
+                let g = eval_group(s, p);
+                pass.set_bind_group(0, &g, &[]);
+                pass.dispatch_workgroups_indirect(&indirect, 0);
+            }
+        }
         if nearest {
             let g = bind(
                 &k.cut,
@@ -681,7 +790,10 @@ fn attempt(
     if nearest {
         enc.copy_buffer_to_buffer(&plans, 0, &staging, res_bytes + ctl_bytes, plan_bytes);
     }
-    let ((out, total, n_flags), waited) =
+    if members {
+        enc.copy_buffer_to_buffer(&aux, 0, &staging, res_bytes + ctl_bytes, mem_bytes);
+    }
+    let ((out, total, n_flags, n_members), waited) =
         ctx.submit_and_map(enc, &staging, staging_bytes, |bytes| {
             let (r, rest) = bytes.split_at(res_bytes as usize);
             let (c, p) = rest.split_at(ctl_bytes as usize);
@@ -700,17 +812,31 @@ fn attempt(
             } else {
                 Vec::new()
             };
+            let (mut n_members, mut list, mut bad) = (0u64, Vec::new(), false);
+            if members {
+                n_members = results
+                    .iter()
+                    .filter(|r| r.status & STATUS_HOST == 0)
+                    .map(|r| r.count as u64)
+                    .sum();
+                let kept = n_members.min(member_cap as u64) as usize;
+                list = device::pods::<u32>(&p[..kept * 4]).into_owned();
+                bad = ctlw[CTL_MEMBERS_BAD as usize] != 0;
+            }
             (
                 Output {
                     results,
                     plans,
                     flags,
+                    members: list,
+                    bad,
                 },
                 total,
                 n_flags,
+                n_members,
             )
         })?;
-    Ok((out, waited, total, n_flags))
+    Ok((out, waited, total, n_flags, n_members))
 }
 
 /// Allocates and clears the coverage mask over `n` points (`b.aux`).

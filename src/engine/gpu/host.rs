@@ -4,7 +4,7 @@
 
 use super::layout::{Plan, QResult, ALL_BELOW, FLAG_CANDIDATE, STATUS_HOST};
 use crate::engine::cpu::add_nearest;
-use crate::engine::{CylStats, NearestSum, Query};
+use crate::engine::{CylStats, Member, NearestSum, Query};
 use crate::geom::{p64, Cylinder};
 use crate::index::Grid;
 use glam::DVec3;
@@ -179,4 +179,32 @@ pub fn exact_nearest(grid: &Grid, q: &Query, k: u64) -> (NearestSum, u64) {
     };
     add_nearest(&mut m, k, &mut out);
     (out, m.len() as u64)
+}
+
+/// One query's members from the device's sure members (`sure`, sorted indices) and its
+/// flagged points (`flags`), each decided and measured with the CPU engine's own f64 test
+/// and sorted by working-set id: the CPU engine's list, bit for bit. `None` when the
+/// device named a point that is not in the grid (the caller then answers on the host).
+pub fn members(grid: &Grid, q: &Query, sure: &[u32], flags: &[(u32, u32)]) -> Option<Vec<Member>> {
+    let mut out = Vec::with_capacity(sure.len() + flags.len());
+    if !q.seg.is_valid() {
+        return Some(out);
+    }
+    let cyl = Cylinder::new(&q.seg, q.r);
+    let flagged = flags
+        .iter()
+        .filter(|f| f.0 & FLAG_CANDIDATE == 0)
+        .map(|f| f.1);
+    for i in sure.iter().copied().chain(flagged) {
+        let p = grid.points.get(i as usize)?;
+        if let Some((t, offset)) = cyl.test(p64(*p)) {
+            out.push(Member {
+                id: grid.ids[i as usize],
+                t,
+                offset,
+            });
+        }
+    }
+    out.sort_unstable_by_key(|m| m.id);
+    Some(out)
 }

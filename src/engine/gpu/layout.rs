@@ -28,7 +28,7 @@ pub const NBINS: u32 = 64;
 /// `Plan::cut` meaning "every member is below the cut".
 pub const ALL_BELOW: u32 = NBINS;
 /// Words of the control buffer before the flag entries: [0] items needed by the batch,
-/// [1] flags appended, [2..4] unused.
+/// [1] flags appended, [2] a members batch's miscount (`CTL_MEMBERS_BAD`), [3] unused.
 pub const CTL_HEAD: u32 = 4;
 /// Flag kinds (bit 31 of a flag's first word): the point lies within the f32 error bound
 /// of a boundary (membership or side for the host to decide in f64), or it is a member in
@@ -46,6 +46,12 @@ pub const MODE_STATS: u32 = 2;
 pub const MODE_STATS_SIDES: u32 = 3;
 pub const MODE_HIST: u32 = 5;
 pub const MODE_BELOW: u32 = 6;
+/// Evaluation: each item's sure members' sorted indices into the member list, from the
+/// item's offset (`Partial::first`, scanned) on; `count` of the stats pass is the bound.
+pub const MODE_MEMBERS: u32 = 7;
+/// `ctl[2]` after a members batch: nonzero when an item found a different number of
+/// members than its stats pass counted (the host then answers the sub-batch itself).
+pub const CTL_MEMBERS_BAD: u32 = 2;
 
 /// Defines a `#[repr(C)]` Pod struct of 4-byte fields and its WGSL text (`Name::WGSL`),
 /// with `Name::FIELDS` (name, byte offset) for the layout test.
@@ -121,7 +127,8 @@ shared! {
         ox: f32 => "f32",
         oy: f32 => "f32",
         oz: f32 => "f32",
-        pad0: u32 => "u32",
+        /// Members batches: the item's first slot in the member list (scanned counts).
+        first: u32 => "u32",
         pad1: u32 => "u32",
     }
 }
@@ -184,7 +191,8 @@ shared! {
         total: u32 => "u32",
         /// Stats modes: 1 when the members' bits also go into the coverage mask.
         cover: u32 => "u32",
-        pad1: u32 => "u32",
+        /// `MODE_MEMBERS`: capacity of the member list (entries).
+        member_cap: u32 => "u32",
     }
 }
 
@@ -212,6 +220,8 @@ pub fn prelude() -> String {
         ("MODE_STATS_SIDES", MODE_STATS_SIDES),
         ("MODE_HIST", MODE_HIST),
         ("MODE_BELOW", MODE_BELOW),
+        ("MODE_MEMBERS", MODE_MEMBERS),
+        ("CTL_MEMBERS_BAD", CTL_MEMBERS_BAD),
     ];
     let mut s = String::from("// Generated from src/engine/gpu/layout.rs: do not edit here.\n");
     for (name, v) in consts {

@@ -391,6 +391,69 @@ impl GpuEngine {
     }
 }
 
+impl GpuEngine {
+    /// Every query's members (see [`Engine::members`]) from device batches; a query the
+    /// device leaves to the host (walk too long, too many members, a miscount) gets the
+    /// CPU engine's list.
+    fn members_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+    ) -> Result<Vec<Vec<super::Member>>, EngineError> {
+        let mut out: Vec<Vec<super::Member>> = vec![Vec::new(); queries.len()];
+        let grid = &*self.grid;
+        let fallbacks = &self.fallbacks;
+        self.run(b, Kind::Members, queries, &[], &mut |first, o| {
+            let n = o.results.len();
+            let qs = &queries[first..first + n];
+            let spans = host::spans(&o.flags, n);
+            // Query after query, the device's sure members.
+            let mut at = 0usize;
+            let lists: Vec<std::ops::Range<usize>> = o
+                .results
+                .iter()
+                .map(|r| {
+                    let c = if r.status & layout::STATUS_HOST == 0 {
+                        r.count as usize
+                    } else {
+                        0
+                    };
+                    at += c;
+                    at - c..at
+                })
+                .collect();
+            out[first..first + n]
+                .par_iter_mut()
+                .enumerate()
+                .with_min_len(8)
+                .for_each(|(i, m)| {
+                    let q = &qs[i];
+                    let device = o.results[i].status & layout::STATUS_HOST == 0
+                        && !o.bad
+                        && lists[i].end <= o.members.len()
+                        && q.r.is_finite()
+                        && q.r >= 0.0;
+                    let list = device
+                        .then(|| {
+                            host::members(
+                                grid,
+                                q,
+                                &o.members[lists[i].clone()],
+                                &o.flags[spans[i].clone()],
+                            )
+                        })
+                        .flatten();
+                    *m = list.unwrap_or_else(|| {
+                        fallbacks.fetch_add(1, Ordering::Relaxed);
+                        super::cpu::member_list(grid, q)
+                    });
+                });
+            Ok(())
+        })?;
+        Ok(out)
+    }
+}
+
 impl Engine for GpuEngine {
     fn backend(&self) -> &'static str {
         "gpu"
@@ -444,14 +507,13 @@ impl Engine for GpuEngine {
         Ok(out)
     }
 
-    /// Answered on the host over the same grid by the CPU engine's code; its time counts
-    /// as host seconds.
+    /// One device batch: the walk and the stats pass, a scan of the items' member counts
+    /// and a member pass that writes each query's sure members contiguously; the host
+    /// measures them (and decides the flagged points) in f64, as the CPU engine does.
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
-        let t = std::time::Instant::now();
-        let out = super::cpu::members_of(&self.grid, queries);
-        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-        Ok(out)
+        let mut b = self.lock();
+        self.members_batch(&mut b, queries)
     }
 
     fn counters(&self) -> Counters {
