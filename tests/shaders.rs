@@ -62,6 +62,7 @@ fn every_shader_is_valid_wgsl() {
             "common.wgsl",
             "cut.wgsl",
             "eval.wgsl",
+            "fit.wgsl",
             "members.wgsl",
             "reduce.wgsl",
             "scan.wgsl",

@@ -14,7 +14,9 @@
 //! and a NaN query equals only its own bit pattern. A batch without duplicates goes to
 //! the inner engine as it is, without a copy.
 
-use super::{Answers, Ask, Counters, Engine, EngineError, Member, Nearest, Query};
+use super::{
+    Answers, Ask, Counters, Engine, EngineError, FitAnswer, FitAsk, Member, Nearest, Query,
+};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -186,6 +188,36 @@ impl Engine for Dedup {
                 let a = self
                     .inner
                     .members(&g.queries(queries))
+                    .map_err(|e| g.error(e))?;
+                Ok(g.fan_out(&a))
+            }
+        }
+    }
+
+    /// The step of a segment is a function of its query's bits (and the batch-wide ask):
+    /// each distinct query is fitted once and its answer copied.
+    fn fit_lines(
+        &self,
+        queries: &[Query],
+        ask: &FitAsk<'_>,
+    ) -> Result<Vec<FitAnswer>, EngineError> {
+        self.count(queries.len());
+        match Groups::of(queries, None) {
+            None => self.inner.fit_lines(queries, ask),
+            Some(g) => {
+                // The inner engine numbers the distinct queries.
+                let outer = ask.sensitive;
+                let first = &g.first;
+                let remap = move |d: usize, f: &crate::refine::fit::LineFit| {
+                    outer.is_some_and(|s| s(first[d], f))
+                };
+                let inner_ask = FitAsk {
+                    sensitive: Some(&remap),
+                    ..*ask
+                };
+                let a = self
+                    .inner
+                    .fit_lines(&g.queries(queries), &inner_ask)
                     .map_err(|e| g.error(e))?;
                 Ok(g.fan_out(&a))
             }

@@ -179,6 +179,24 @@ pub struct Member {
     pub offset: DVec3,
 }
 
+/// What the edge fit asks of [`Engine::fit_lines`]: the per-point attributes of the
+/// working set, the refinement parameters, and optionally which answers feed a decision
+/// that lies close to its threshold.
+#[derive(Clone, Copy)]
+pub struct FitAsk<'a> {
+    pub attrs: &'a crate::refine::fit::Attributes,
+    pub params: &'a crate::refine::Params,
+    /// `sensitive(i, line)`: whether the caller's decision from `line` as query `i`'s
+    /// answer lies within 1e-5 r of a threshold. An engine that fits to float precision
+    /// (the GPU engine's device ridge) fits those queries exactly on the host instead, so
+    /// that every decision is the exact engine's; exact engines ignore it.
+    pub sensitive: Option<&'a (dyn Fn(usize, &crate::refine::fit::LineFit) -> bool + Sync)>,
+}
+
+/// One query's fit step: the line in its segment's cross-section frame (`None`: stay),
+/// and how it was decided.
+pub type FitAnswer = (Option<crate::refine::fit::LineFit>, crate::refine::fit::How);
+
 /// Work counters, for tests that prove batching and upload-once.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Counters {
@@ -231,6 +249,18 @@ pub trait Engine: Send + Sync {
     /// same for every thread count, both engines and every grid layout). Per-point output is O(members), not O(queries): use it only
     /// where sums cannot answer (the edge fit's robust estimates).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError>;
+    /// The edge fit's step (`--fit edge`) for every query's segment (`query.seg`, radius
+    /// `query.r`) from its members: by default [`Self::members`], then the host's
+    /// [`crate::refine::fit::steps`]. An engine may fit on its device instead (the GPU
+    /// engine's ridge), answering like the host to float precision.
+    fn fit_lines(
+        &self,
+        queries: &[Query],
+        ask: &FitAsk<'_>,
+    ) -> Result<Vec<FitAnswer>, EngineError> {
+        let members = self.members(queries)?;
+        Ok(crate::refine::fit::steps(queries, &members, ask))
+    }
     /// The union of all members of the batch.
     fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {
         let ask = Ask {

@@ -21,7 +21,7 @@
 //! its total move stays within `fit_max_move x r` (default 2) of where it started, so a
 //! line is never carried over to another edge.
 
-use crate::engine::{Engine, EngineError, Member, Query};
+use crate::engine::{Engine, EngineError, FitAnswer, FitAsk, Member, Query};
 use crate::geom::Segment;
 use crate::refine::Params;
 use glam::{DVec2, DVec3};
@@ -104,12 +104,13 @@ pub(crate) fn basis(d: DVec3) -> (DVec3, DVec3) {
     (e1, d.cross(e1))
 }
 
-/// The line model `q(t) = a + b (t - t0)` in a segment's cross-section frame.
+/// The line model `q(t) = a + b (t - t0)` in a segment's cross-section frame
+/// ([`basis`] of its direction; `t` from `P1`).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub(crate) struct LineFit {
-    pub(crate) t0: f64,
-    pub(crate) a: DVec2,
-    pub(crate) b: DVec2,
+pub struct LineFit {
+    pub t0: f64,
+    pub a: DVec2,
+    pub b: DVec2,
 }
 
 /// Weighted least squares of `q` on `t`; `None` without weight or axial spread.
@@ -327,6 +328,16 @@ fn two_planes(
     }
 }
 
+/// [`step`] of every query's segment (`q.seg`, radius `q.r`) from its members: the
+/// default [`Engine::fit_lines`], and the host's answer wherever an engine has none.
+pub fn steps(queries: &[Query], members: &[Vec<Member>], ask: &FitAsk<'_>) -> Vec<FitAnswer> {
+    queries
+        .iter()
+        .zip(members)
+        .map(|(q, m)| step(&q.seg, m, ask.attrs, q.r, ask.params))
+        .collect()
+}
+
 /// One segment's next position from its members, or `None` (stay).
 fn step(
     s: &Segment,
@@ -444,16 +455,25 @@ pub fn fit_edges(
             })
             .collect();
         let queries: Vec<Query> = uniq.iter().map(|&i| Query::new(cur[i], r)).collect();
-        let members = engine.members(&queries)?;
+        // The one threshold taken from an answer here: whether the segment moved more
+        // than 1e-3 r (it then stays active).
+        let near = |j: usize, f: &LineFit| {
+            let i = uniq[j];
+            let (_, moved) = apply(&cur[i], f, &segments[i], r, p);
+            (moved - 1e-3 * r).abs() <= 1e-5 * r
+        };
+        let ask = FitAsk {
+            attrs,
+            params: p,
+            sensitive: Some(&near),
+        };
+        let steps = engine.fit_lines(&queries, &ask)?;
         let fitted: Vec<(Option<(Segment, f64)>, How)> = uniq
             .iter()
-            .zip(&members)
-            .map(|(&i, m)| {
-                let (f, h) = step(&cur[i], m, attrs, r, p);
-                (f.map(|f| apply(&cur[i], &f, &segments[i], r, p)), h)
-            })
+            .zip(&steps)
+            .map(|(&i, &(f, h))| (f.map(|f| apply(&cur[i], &f, &segments[i], r, p)), h))
             .collect();
-        drop(members);
+        drop(steps);
         let mut next = Vec::with_capacity(active.len());
         for (&i, &d) in active.iter().zip(&of) {
             let (res, h) = fitted[d];

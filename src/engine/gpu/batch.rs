@@ -22,6 +22,16 @@ pub enum Kind {
     Nearest,
     /// The members: each query's sure members' sorted indices (and the flagged points).
     Members,
+    /// The edge fit's ridge of each query (`fit.wgsl`) over its sure members, left on the
+    /// device (and the flagged points).
+    Fit,
+}
+
+impl Kind {
+    /// Whether the batch lists each query's members on the device.
+    fn lists(self) -> bool {
+        matches!(self, Kind::Members | Kind::Fit)
+    }
 }
 
 /// The sizes the engine works within, from the options and the device.
@@ -82,6 +92,7 @@ pub struct Kernels {
     reduce: wgpu::ComputePipeline,
     gather: wgpu::ComputePipeline,
     scatter: wgpu::ComputePipeline,
+    fit: wgpu::ComputePipeline,
 }
 
 impl Kernels {
@@ -105,6 +116,7 @@ impl Kernels {
             ),
             gather: k("members gather", members, "gather"),
             scatter: k("members scatter", members, "scatter"),
+            fit: k("fit", include_str!("../../../shaders/fit.wgsl"), "main"),
         }
     }
 }
@@ -191,6 +203,9 @@ pub struct Buffers {
     /// Members batches: the scan of the items' member counts, and the member list.
     mscan: Reusable,
     members: Reusable,
+    /// Fit batches: the queries' frames and the ridges.
+    fitq: Reusable,
+    fitout: Reusable,
     staging: Reusable,
     /// Bytes of the coverage mask in `aux` (set by `clear_mask`).
     aux_len: u64,
@@ -218,6 +233,8 @@ impl Buffers {
             plans: Reusable::new("plans", storage),
             mscan: Reusable::new("mscan", storage),
             members: Reusable::new("members", storage),
+            fitq: Reusable::new("fitq", storage),
+            fitout: Reusable::new("fitout", storage),
             staging: Reusable::new("staging", wgpu::BufferUsages::MAP_READ),
             aux_len: 4,
             item_cap: lim.item_max.min(1 << 16),
@@ -238,6 +255,8 @@ pub struct Output {
     pub flags: Vec<(u32, u32)>,
     pub members: Vec<u32>,
     pub bad: bool,
+    /// A fit batch's ridges, one per query.
+    pub fits: Vec<FitOut>,
 }
 
 impl Output {
@@ -397,6 +416,7 @@ pub fn submit(
     kind: Kind,
     qs: &[Query],
     ks: &[u64],
+    fit: &[FitQuery],
 ) -> Result<Attempt, EngineError> {
     let n = qs.len();
     if n == 0 {
@@ -410,12 +430,20 @@ pub fn submit(
         .collect();
     let mut waited = 0.0;
     let mut rerun = false;
+    // A fit batch's entries are four times as large.
+    let member_max = if kind == Kind::Fit {
+        (lim.member_max / 4).max(1)
+    } else {
+        lim.member_max
+    };
+    b.member_cap = b.member_cap.min(member_max);
     loop {
-        let (out, w, total, n_flags, n_members) = attempt(ctx, k, st, lim, b, kind, &gq, rerun)?;
+        let (out, w, total, n_flags, n_members) =
+            attempt(ctx, k, st, lim, b, kind, &gq, fit, rerun)?;
         rerun = true;
         waited += w;
         let mut again = false;
-        if kind == Kind::Members && total > member_scan_max(lim) {
+        if kind.lists() && total > member_scan_max(lim) {
             return Ok(Attempt::TooLarge(waited));
         }
         if total > b.item_cap {
@@ -426,10 +454,10 @@ pub fn submit(
             again = true;
         } else if n_members > b.member_cap as u64 {
             // (Counted only when every item was evaluated.)
-            if n_members > lim.member_max as u64 {
+            if n_members > member_max as u64 {
                 return Ok(Attempt::TooLarge(waited));
             }
-            b.member_cap = grow(n_members as u32, lim.member_max);
+            b.member_cap = grow(n_members as u32, member_max);
             again = true;
         }
         if n_flags > b.flag_cap {
@@ -471,6 +499,7 @@ fn attempt(
     b: &mut Buffers,
     kind: Kind,
     gq: &[GQuery],
+    fit: &[FitQuery],
     rerun: bool,
 ) -> Result<(Output, f64, u32, u32, u64), EngineError> {
     let n = gq.len() as u32;
@@ -479,12 +508,16 @@ fn attempt(
     let member_cap = b.member_cap;
     let (levels, total_idx, scan_len) = scan_levels(n);
     let nearest = kind == Kind::Nearest;
-    let members = kind == Kind::Members;
+    let members = kind.lists();
+    let fitting = kind == Kind::Fit;
     // The items' member counts are scanned over the buffer's capacity (the total is on
     // the device); entries past the total do not change the offsets before it.
     let (mlevels, _, mscan_len) = scan_levels(item_cap.min(member_scan_max(lim)));
     let mscan_bytes = if members { mscan_len as u64 * 4 } else { 4 };
-    let mem_bytes = member_cap as u64 * 4;
+    // A fit batch's entries are 4 words: the member's t and offset vector.
+    let mem_bytes = member_cap as u64 * if fitting { 16 } else { 4 };
+    let fitq_bytes = n as u64 * std::mem::size_of::<FitQuery>() as u64;
+    let fitout_bytes = n as u64 * std::mem::size_of::<FitOut>() as u64;
 
     // Sizes of everything bound.
     let q_bytes = n as u64 * std::mem::size_of::<GQuery>() as u64;
@@ -509,6 +542,7 @@ fn attempt(
         total: total_idx,
         cover: matches!(kind, Kind::Stats { cover: true, .. }) as u32,
         member_cap,
+        fit: fitting as u32,
         ..Default::default()
     };
     let mut slots: Vec<Params> = Vec::new();
@@ -537,7 +571,7 @@ fn attempt(
         .collect();
     let args_slot = push(base);
     let eval_mode = match kind {
-        Kind::Stats { sides: false, .. } | Kind::Members => MODE_STATS,
+        Kind::Stats { sides: false, .. } | Kind::Members | Kind::Fit => MODE_STATS,
         Kind::Stats { sides: true, .. } => MODE_STATS_SIDES,
         Kind::Nearest => MODE_HIST,
     };
@@ -578,6 +612,7 @@ fn attempt(
     };
     let cut_slot = push(base);
     let reduce_slot = push(base);
+    let fit_slot = push(base);
     let mut uniform = vec![0u8; slots.len() * PARAMS_SLOT as usize];
     for (i, p) in slots.iter().enumerate() {
         let at = i * PARAMS_SLOT as usize;
@@ -601,7 +636,7 @@ fn attempt(
         Kind::Nearest => hist_bytes,
         Kind::Stats { cover: true, .. } => b.aux_len,
         Kind::Stats { cover: false, .. } => 4,
-        Kind::Members => mem_bytes,
+        Kind::Members | Kind::Fit => mem_bytes,
     };
     // A members batch's list takes the place of the histograms or the mask.
     let aux = if members {
@@ -610,11 +645,24 @@ fn attempt(
         b.aux.get(ctx, aux_bytes).clone()
     };
     let mscan = b.mscan.get(ctx, mscan_bytes).clone();
+    let (fitq, fitout) = if fitting {
+        let q = b.fitq.get(ctx, fitq_bytes).clone();
+        if !rerun {
+            ctx.queue.write_buffer(&q, 0, bytemuck::cast_slice(fit));
+        }
+        (Some(q), Some(b.fitout.get(ctx, fitout_bytes).clone()))
+    } else {
+        (None, None)
+    };
     let plans = b.plans.get(ctx, plan_bytes.max(16)).clone();
     let staging_bytes = res_bytes
         + ctl_bytes
         + if nearest { plan_bytes } else { 0 }
-        + if members { mem_bytes } else { 0 };
+        + match kind {
+            Kind::Members => mem_bytes,
+            Kind::Fit => fitout_bytes,
+            _ => 0,
+        };
     let staging = b.staging.get(ctx, staging_bytes).clone();
 
     let h = device::head;
@@ -784,14 +832,36 @@ fn attempt(
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
         }
+        if let (Some(fitq), Some(fitout)) = (&fitq, &fitout) {
+            // One workgroup per query, after the reduction has counted its members.
+            let g = bind(
+                &k.fit,
+                vec![
+                    slot(&params, fit_slot),
+                    h(fitq, fitq_bytes),
+                    h(&scan, scan_bytes),
+                    h(&partials, part_bytes),
+                    h(&results, res_bytes),
+                    h(&aux, mem_bytes),
+                    h(fitout, fitout_bytes),
+                ],
+            );
+            let groups = device::tiles(n as u64 * FIT_WG as u64, FIT_WG as u64, lim.max_x);
+            pass.set_pipeline(&k.fit);
+            pass.set_bind_group(0, &g, &[]);
+            pass.dispatch_workgroups(groups.0, groups.1, 1);
+        }
     }
     enc.copy_buffer_to_buffer(&results, 0, &staging, 0, res_bytes);
     enc.copy_buffer_to_buffer(&ctl, 0, &staging, res_bytes, ctl_bytes);
     if nearest {
         enc.copy_buffer_to_buffer(&plans, 0, &staging, res_bytes + ctl_bytes, plan_bytes);
     }
-    if members {
+    if kind == Kind::Members {
         enc.copy_buffer_to_buffer(&aux, 0, &staging, res_bytes + ctl_bytes, mem_bytes);
+    }
+    if let Some(fitout) = &fitout {
+        enc.copy_buffer_to_buffer(fitout, 0, &staging, res_bytes + ctl_bytes, fitout_bytes);
     }
     let ((out, total, n_flags, n_members), waited) =
         ctx.submit_and_map(enc, &staging, staging_bytes, |bytes| {
@@ -812,15 +882,21 @@ fn attempt(
             } else {
                 Vec::new()
             };
-            let (mut n_members, mut list, mut bad) = (0u64, Vec::new(), false);
+            let (mut n_members, mut list, mut bad, mut fits) =
+                (0u64, Vec::new(), false, Vec::new());
+            if fitting {
+                fits = bytemuck::pod_collect_to_vec(&p[..fitout_bytes as usize]);
+            }
             if members {
                 n_members = results
                     .iter()
                     .filter(|r| r.status & STATUS_HOST == 0)
                     .map(|r| r.count as u64)
                     .sum();
-                let kept = n_members.min(member_cap as u64) as usize;
-                list = device::pods::<u32>(&p[..kept * 4]).into_owned();
+                if !fitting {
+                    let kept = n_members.min(member_cap as u64) as usize;
+                    list = device::pods::<u32>(&p[..kept * 4]).into_owned();
+                }
                 bad = ctlw[CTL_MEMBERS_BAD as usize] != 0;
             }
             (
@@ -830,6 +906,7 @@ fn attempt(
                     flags,
                     members: list,
                     bad,
+                    fits,
                 },
                 total,
                 n_flags,

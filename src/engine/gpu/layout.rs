@@ -52,6 +52,24 @@ pub const MODE_MEMBERS: u32 = 7;
 /// `ctl[2]` after a members batch: nonzero when an item found a different number of
 /// members than its stats pass counted (the host then answers the sub-batch itself).
 pub const CTL_MEMBERS_BAD: u32 = 2;
+/// Lanes of the fit kernel's workgroup (one workgroup per query).
+pub const FIT_WG: u32 = 64;
+/// Most mean-shift steps of the ridge (`ridge()`'s schedule in src/refine/fit.rs).
+pub const FIT_STEPS: u32 = 100;
+/// Most members of a query the fit kernel takes; a query with more is fitted on the host.
+/// The kernel's loops then stay below FIT_STEPS + 2 passes of
+/// `MAX_FIT_MEMBERS / FIT_WG + log2(FIT_WG)` iterations (26,724), far below lavapipe's
+/// 65,535.
+pub const MAX_FIT_MEMBERS: u32 = 16_384;
+/// `FitOut::status`: the ridge found (`t0`, `a`, `b`, `weight`); no weight left (no
+/// members, or the kernel lost them all: "unclear"); or a decision too close to f32's
+/// rounding (or a query too large) for the device: the host fits the query.
+pub const FIT_OK: u32 = 0;
+pub const FIT_NONE: u32 = 1;
+pub const FIT_HOST: u32 = 2;
+/// `FitOut::status`: the line found, but its slope rests on an axial spread within f32
+/// rounding of none: the host fits the query unless the weight says "unclear" anyway.
+pub const FIT_SPREAD: u32 = 3;
 
 /// Defines a `#[repr(C)]` Pod struct of 4-byte fields and its WGSL text (`Name::WGSL`),
 /// with `Name::FIELDS` (name, byte offset) for the layout test.
@@ -193,6 +211,41 @@ shared! {
         cover: u32 => "u32",
         /// `MODE_MEMBERS`: capacity of the member list (entries).
         member_cap: u32 => "u32",
+        /// `MODE_MEMBERS`: 1 when each entry is the member's axial position and offset
+        /// vector (4 words, cell units: the fit's input) instead of its sorted index.
+        fit: u32 => "u32",
+        pad2: u32 => "u32",
+        pad3: u32 => "u32",
+        pad4: u32 => "u32",
+    }
+}
+
+shared! {
+    /// One query's frame for the fit kernel: the cross-section basis `e1`, `e2` of its
+    /// segment (src/refine/fit.rs `basis`), `cell / r` (cell units to units of r), the
+    /// final kernel width `fit_bandwidth` (units of r) and the segment's half length
+    /// (units of r: axial positions are taken from the midpoint, for precision).
+    struct FitQuery {
+        e1x: f32 => "f32", e1y: f32 => "f32", e1z: f32 => "f32",
+        e2x: f32 => "f32", e2y: f32 => "f32", e2z: f32 => "f32",
+        inv_r: f32 => "f32",
+        h_min: f32 => "f32",
+        mid: f32 => "f32",
+    }
+}
+
+shared! {
+    /// One query's ridge from the fit kernel, in units of r (the slope `b` is unitless):
+    /// the line `a + b (t - t0)` (`t0` from the segment's midpoint) and the weight under
+    /// the final kernel.
+    struct FitOut {
+        status: u32 => "u32",
+        /// Mean-shift steps run.
+        steps: u32 => "u32",
+        weight: f32 => "f32",
+        t0: f32 => "f32",
+        ax: f32 => "f32", ay: f32 => "f32",
+        bx: f32 => "f32", by: f32 => "f32",
     }
 }
 
@@ -222,6 +275,13 @@ pub fn prelude() -> String {
         ("MODE_BELOW", MODE_BELOW),
         ("MODE_MEMBERS", MODE_MEMBERS),
         ("CTL_MEMBERS_BAD", CTL_MEMBERS_BAD),
+        ("FIT_WG", FIT_WG),
+        ("FIT_STEPS", FIT_STEPS),
+        ("MAX_FIT_MEMBERS", MAX_FIT_MEMBERS),
+        ("FIT_OK", FIT_OK),
+        ("FIT_NONE", FIT_NONE),
+        ("FIT_HOST", FIT_HOST),
+        ("FIT_SPREAD", FIT_SPREAD),
     ];
     let mut s = String::from("// Generated from src/engine/gpu/layout.rs: do not edit here.\n");
     for (name, v) in consts {
@@ -234,6 +294,8 @@ pub fn prelude() -> String {
         QResult::WGSL,
         Plan::WGSL,
         Params::WGSL,
+        FitQuery::WGSL,
+        FitOut::WGSL,
     ] {
         s += st;
     }
@@ -252,5 +314,11 @@ pub fn layouts() -> Vec<Layout> {
         ("QResult", std::mem::size_of::<QResult>(), QResult::FIELDS),
         ("Plan", std::mem::size_of::<Plan>(), Plan::FIELDS),
         ("Params", std::mem::size_of::<Params>(), Params::FIELDS),
+        (
+            "FitQuery",
+            std::mem::size_of::<FitQuery>(),
+            FitQuery::FIELDS,
+        ),
+        ("FitOut", std::mem::size_of::<FitOut>(), FitOut::FIELDS),
     ]
 }

@@ -35,8 +35,8 @@ pub use device::{enumerate_adapters, skip_gpu_tests};
 pub use layout::CHUNK;
 
 use super::{
-    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, Nearest, NearestSum, Query,
-    Want,
+    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, FitAnswer, FitAsk, Nearest,
+    NearestSum, Query, Want,
 };
 use crate::index::Grid;
 use batch::{Buffers, Kind};
@@ -60,6 +60,12 @@ pub struct GpuOptions {
     pub max_workgroups_x: u32,
     /// Most queries per sub-batch (bounds the per-query buffers).
     pub max_queries: usize,
+    /// `--fit edge`'s ridge on the device (`fit.wgsl`, f32) instead of the host's step over
+    /// the device's member lists. Off by default: it answers like the host to ~1e-7 r,
+    /// but the later steps turn that into a different decision for a few segments in a
+    /// thousand (see the README's GPU engine section). `LINEGS_GPU_DEVICE_FIT=1` turns it
+    /// on for the commands.
+    pub device_fit: bool,
 }
 
 impl Default for GpuOptions {
@@ -69,6 +75,7 @@ impl Default for GpuOptions {
             max_items: 1 << 24,
             max_workgroups_x: 65_535,
             max_queries: 1 << 16,
+            device_fit: false,
         }
     }
 }
@@ -118,6 +125,7 @@ pub struct GpuEngine {
     /// Queries answered wholly on the host (walks too long, or k-nearest sets with a
     /// boundary member); rare by design.
     fallbacks: AtomicU64,
+    device_fit: bool,
     clock: Clock,
 }
 
@@ -164,6 +172,7 @@ impl GpuEngine {
             batches: AtomicU64::new(0),
             queries: AtomicU64::new(0),
             fallbacks: AtomicU64::new(0),
+            device_fit: opts.device_fit,
             clock: Clock::default(),
         })
     }
@@ -211,6 +220,19 @@ impl GpuEngine {
         ks: &[u64],
         each: &mut dyn FnMut(usize, batch::Output) -> Result<(), EngineError>,
     ) -> Result<(), EngineError> {
+        self.run_with(b, kind, queries, ks, &[], each)
+    }
+
+    /// [`Self::run`] with the fit batch's per-query frames (`fit`, one per query).
+    fn run_with(
+        &self,
+        b: &mut Buffers,
+        kind: Kind,
+        queries: &[Query],
+        ks: &[u64],
+        fit: &[layout::FitQuery],
+        each: &mut dyn FnMut(usize, batch::Output) -> Result<(), EngineError>,
+    ) -> Result<(), EngineError> {
         let t = std::time::Instant::now();
         let mut waited = 0.0;
         let mut todo: Vec<std::ops::Range<usize>> = (0..queries.len())
@@ -220,6 +242,7 @@ impl GpuEngine {
             .collect();
         while let Some(r) = todo.pop() {
             let ks = if ks.is_empty() { ks } else { &ks[r.clone()] };
+            let fit = if fit.is_empty() { fit } else { &fit[r.clone()] };
             let ctx = &self.ctx;
             let out = ctx.scoped("running a batch", || {
                 batch::submit(
@@ -232,6 +255,7 @@ impl GpuEngine {
                     kind,
                     &queries[r.clone()],
                     ks,
+                    fit,
                 )
             })??;
             match out {
@@ -454,6 +478,108 @@ impl GpuEngine {
     }
 }
 
+impl GpuEngine {
+    /// The edge fit's step of every query: the ridge on the device (`fit.wgsl`) over the
+    /// members the batch lists there, converted back to scene units. A query whose members
+    /// include a flagged boundary point, whose ridge the kernel left to the host, whose
+    /// weight lies within f32 rounding of `fit_min_points`, or that the device could not
+    /// take, is fitted on the host from its exact members (`host_fallbacks` counts them).
+    fn fit_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+        ask: &FitAsk<'_>,
+    ) -> Result<Vec<FitAnswer>, EngineError> {
+        use crate::refine::fit::{How, LineFit};
+        let grid = &*self.grid;
+        let cell = grid.cell;
+        let p = ask.params;
+        let frames: Vec<layout::FitQuery> = queries
+            .iter()
+            .map(|q| {
+                let (e1, e2) = crate::refine::fit::basis(q.seg.dir());
+                let inv_r = if q.r > 0.0 { cell / q.r } else { 0.0 };
+                layout::FitQuery {
+                    e1x: e1.x as f32,
+                    e1y: e1.y as f32,
+                    e1z: e1.z as f32,
+                    e2x: e2.x as f32,
+                    e2y: e2.y as f32,
+                    e2z: e2.z as f32,
+                    inv_r: inv_r as f32,
+                    h_min: p.fit_bandwidth as f32,
+                    mid: if q.r > 0.0 {
+                        (0.5 * q.seg.length() / q.r) as f32
+                    } else {
+                        0.0
+                    },
+                }
+            })
+            .collect();
+        let min_points = p.fit_min_points as f64;
+        let mut out: Vec<FitAnswer> = vec![(None, How::Unclear); queries.len()];
+        let fallbacks = &self.fallbacks;
+        self.run_with(b, Kind::Fit, queries, &[], &frames, &mut |first, o| {
+            let n = o.results.len();
+            let qs = &queries[first..first + n];
+            let spans = host::spans(&o.flags, n);
+            out[first..first + n]
+                .par_iter_mut()
+                .enumerate()
+                .with_min_len(8)
+                .for_each(|(i, a)| {
+                    let q = &qs[i];
+                    let device = o.results[i].status & layout::STATUS_HOST == 0
+                        && !o.bad
+                        && q.r.is_finite()
+                        && q.r > 0.0
+                        && !o.flags[spans[i].clone()].iter().any(|f| {
+                            f.0 & layout::FLAG_CANDIDATE == 0 && host::is_member(grid, q, f.1)
+                        });
+                    let answer = o
+                        .fits
+                        .get(i)
+                        .filter(|_| device)
+                        .and_then(|f| match f.status {
+                            layout::FIT_NONE => Some((None, How::Unclear)),
+                            layout::FIT_OK | layout::FIT_SPREAD => {
+                                let w = f.weight as f64;
+                                // Within f32 rounding of the threshold: the host decides.
+                                if (w - min_points).abs() <= 1e-4 * min_points.max(1.0) {
+                                    return None;
+                                }
+                                if w < min_points {
+                                    return Some((None, How::Unclear));
+                                }
+                                if f.status == layout::FIT_SPREAD {
+                                    return None;
+                                }
+                                let r = q.r;
+                                let line = LineFit {
+                                    t0: f.t0 as f64 * r + 0.5 * q.seg.length(),
+                                    a: glam::DVec2::new(f.ax as f64, f.ay as f64) * r,
+                                    b: glam::DVec2::new(f.bx as f64, f.by as f64),
+                                };
+                                // A decision of the caller's close to its threshold: exact.
+                                if ask.sensitive.is_some_and(|s| s(first + i, &line)) {
+                                    return None;
+                                }
+                                Some((Some(line), How::Ridge))
+                            }
+                            _ => None,
+                        });
+                    *a = answer.unwrap_or_else(|| {
+                        fallbacks.fetch_add(1, Ordering::Relaxed);
+                        let m = super::cpu::member_list(grid, q);
+                        crate::refine::fit::steps(std::slice::from_ref(q), &[m], ask)[0]
+                    });
+                });
+            Ok(())
+        })?;
+        Ok(out)
+    }
+}
+
 impl Engine for GpuEngine {
     fn backend(&self) -> &'static str {
         "gpu"
@@ -514,6 +640,33 @@ impl Engine for GpuEngine {
         self.count_batch(queries.len());
         let mut b = self.lock();
         self.members_batch(&mut b, queries)
+    }
+
+    /// With [`GpuOptions::device_fit`], the ridge on the device where the fit is the plain
+    /// ridge: no normals (the two-face
+    /// fit stays on the host), no opacity weights, and one part of the point store (the
+    /// member pass's output is per part); otherwise [`Engine::members`] on the device and
+    /// the host's step.
+    fn fit_lines(
+        &self,
+        queries: &[Query],
+        ask: &FitAsk<'_>,
+    ) -> Result<Vec<FitAnswer>, EngineError> {
+        let device = self.device_fit
+            && ask.attrs.normals.is_none()
+            && !ask.params.fit_opacity_weight
+            && self.statics.parts.len() == 1
+            && !self.grid.is_empty();
+        if !device {
+            let members = self.members(queries)?;
+            let t = std::time::Instant::now();
+            let out = crate::refine::fit::steps(queries, &members, ask);
+            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+            return Ok(out);
+        }
+        self.count_batch(queries.len());
+        let mut b = self.lock();
+        self.fit_batch(&mut b, queries, ask)
     }
 
     fn counters(&self) -> Counters {
