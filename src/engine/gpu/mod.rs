@@ -66,6 +66,35 @@ pub struct GpuOptions {
     /// thousand (see the README's GPU engine section). `LINEGS_GPU_DEVICE_FIT=1` turns it
     /// on for the commands.
     pub device_fit: bool,
+    /// Batches of at most this many queries are answered by the CPU engine's code over
+    /// the same grid, on the host: a device round trip (submit, wait, read back) costs more
+    /// than such a batch. 0 (the default here, so that tests exercise the kernels with
+    /// any batch): never. The commands use [`SMALL_BATCH`].
+    pub small_batch: usize,
+}
+
+/// The commands' [`GpuOptions::small_batch`]: the tail rounds of merge/join and crop ask
+/// a few queries at a time, which the host answers in microseconds; a device round trip
+/// costs a fraction of a millisecond on a real GPU (about one on lavapipe).
+pub const SMALL_BATCH: usize = 16;
+
+impl GpuOptions {
+    /// The options the commands use: the defaults, with batches of at most
+    /// [`SMALL_BATCH`] queries on the host (`LINEGS_GPU_SMALL_BATCH=N` sets another bound;
+    /// 0 sends every batch to the device), and the device fit with
+    /// `LINEGS_GPU_DEVICE_FIT=1`.
+    pub fn for_commands() -> Self {
+        let small_batch = std::env::var("LINEGS_GPU_SMALL_BATCH")
+            .ok()
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or(SMALL_BATCH);
+        let device_fit = std::env::var_os("LINEGS_GPU_DEVICE_FIT").is_some_and(|v| v == "1");
+        GpuOptions {
+            small_batch,
+            device_fit,
+            ..Default::default()
+        }
+    }
 }
 
 impl Default for GpuOptions {
@@ -76,6 +105,7 @@ impl Default for GpuOptions {
             max_workgroups_x: 65_535,
             max_queries: 1 << 16,
             device_fit: false,
+            small_batch: 0,
         }
     }
 }
@@ -127,6 +157,11 @@ pub struct GpuEngine {
     fallbacks: AtomicU64,
     device_fit: bool,
     clock: Clock,
+    /// Answers the batches of at most `small_batch` queries, over the same grid.
+    cpu: super::cpu::CpuEngine,
+    small_batch: usize,
+    cpu_batches: AtomicU64,
+    cpu_queries: AtomicU64,
 }
 
 impl GpuEngine {
@@ -162,6 +197,10 @@ impl GpuEngine {
         let (kernels, statics) = (kernels?, statics?);
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         Ok(GpuEngine {
+            cpu: super::cpu::CpuEngine::new(grid.clone()),
+            small_batch: opts.small_batch,
+            cpu_batches: AtomicU64::new(0),
+            cpu_queries: AtomicU64::new(0),
             grid,
             ctx,
             kernels,
@@ -600,6 +639,15 @@ impl Engine for GpuEngine {
     fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
         ask.nearest.check(queries.len())?;
         self.count_batch(queries.len());
+        if !queries.is_empty() && queries.len() <= self.small_batch {
+            let t = std::time::Instant::now();
+            let out = self.cpu.query(queries, ask);
+            self.cpu_batches.fetch_add(1, Ordering::Relaxed);
+            self.cpu_queries
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
+            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+            return out;
+        }
         let mut b = self.lock();
         let stats_batch = ask.nearest == Nearest::No
             || ask.coverage
@@ -636,23 +684,34 @@ impl Engine for GpuEngine {
     /// One device batch: the walk and the stats pass, a scan of the items' member counts
     /// and a member pass that writes each query's sure members contiguously; the host
     /// measures them (and decides the flagged points) in f64, as the CPU engine does.
+    /// Batches of at most `small_batch` queries (the fit's last iterations) are answered
+    /// on the host, like small [`Engine::query`] batches.
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
+        if !queries.is_empty() && queries.len() <= self.small_batch {
+            let t = std::time::Instant::now();
+            let out = self.cpu.members(queries);
+            self.cpu_batches.fetch_add(1, Ordering::Relaxed);
+            self.cpu_queries
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
+            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+            return out;
+        }
         let mut b = self.lock();
         self.members_batch(&mut b, queries)
     }
 
     /// With [`GpuOptions::device_fit`], the ridge on the device where the fit is the plain
-    /// ridge: no normals (the two-face
-    /// fit stays on the host), no opacity weights, and one part of the point store (the
-    /// member pass's output is per part); otherwise [`Engine::members`] on the device and
-    /// the host's step.
+    /// ridge: no normals (the two-face fit stays on the host), no opacity weights, one part
+    /// of the point store, more than `small_batch` queries; otherwise [`Engine::members`]
+    /// and the host's step.
     fn fit_lines(
         &self,
         queries: &[Query],
         ask: &FitAsk<'_>,
     ) -> Result<Vec<FitAnswer>, EngineError> {
         let device = self.device_fit
+            && queries.len() > self.small_batch
             && ask.attrs.normals.is_none()
             && !ask.params.fit_opacity_weight
             && self.statics.parts.len() == 1
@@ -674,6 +733,8 @@ impl Engine for GpuEngine {
             uploads: self.uploads.load(Ordering::Relaxed),
             batches: self.batches.load(Ordering::Relaxed),
             queries: self.queries.load(Ordering::Relaxed),
+            cpu_batches: self.cpu_batches.load(Ordering::Relaxed),
+            cpu_queries: self.cpu_queries.load(Ordering::Relaxed),
         }
     }
 
