@@ -190,8 +190,11 @@ pub struct FitAsk<'a> {
     /// answer lies within 1e-5 r of a threshold. An engine that fits to float precision
     /// (the GPU engine's device ridge) fits those queries exactly on the host instead, so
     /// that every decision is the exact engine's; exact engines ignore it.
-    pub sensitive: Option<&'a (dyn Fn(usize, &crate::refine::fit::LineFit) -> bool + Sync)>,
+    pub sensitive: Option<&'a Sensitive<'a>>,
 }
+
+/// [`FitAsk::sensitive`]: `(query index, its line) -> near a threshold`.
+pub type Sensitive<'a> = dyn Fn(usize, &crate::refine::fit::LineFit) -> bool + Sync + 'a;
 
 /// One query's fit step: the line in its segment's cross-section frame (`None`: stay),
 /// and how it was decided.
