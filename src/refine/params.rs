@@ -220,11 +220,11 @@ pub struct Params {
     #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
     pub max_sagitta: f64,
     /// After crop, split a segment where a stretch of its cylinder holds no Gaussian
-    /// (and cut an empty stretch off an end): a stretch is empty beyond chance when, at
-    /// the segment's own density, the chance of so long an empty stretch among the
-    /// segment's gaps (2 at the ends, N + 1 inside) is at most this. Pieces with fewer
-    /// than fit-min-points points are dropped. 0: off. Default: the profile's (0.01 for
-    /// default, 0 for reference).
+    /// (and cut an empty stretch off an end): a stretch at least r long is empty beyond
+    /// chance when, at the segment's own density, the chance of so long an empty stretch
+    /// among the segment's gaps (2 at the ends, N + 1 inside) is at most this. Pieces
+    /// with fewer than fit-min-points points are dropped. 0: off. Default: the profile's
+    /// (0.01 for default, 0 for reference).
     #[arg(long, value_parser = fraction)]
     pub split_gaps: Option<f64>,
 
@@ -571,6 +571,8 @@ mod tests {
         let r = Params::reference().fixes();
         assert!(!r.cluster_distance && !r.merge_extent && !r.join_order && !r.join_gap);
         assert!(!r.crop_density && r.order_endpoints && r.r_l == RlMode::Authors);
+        assert_eq!(Params::default().split_gaps(), 0.01);
+        assert_eq!(Params::reference().split_gaps(), 0.0);
         let one = Params {
             fix_join_gap: Some(true),
             ..Params::reference()
