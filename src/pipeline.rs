@@ -632,6 +632,7 @@ impl Job {
         report.refine = Some(steps);
         report.sweep = sweep;
         report.ground_truth = ground_truth;
+        report.engine_counters = Some(refiner.engine().counters());
         report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();
         Ok(Outcome {
             lines: out.lines,
@@ -677,6 +678,7 @@ impl Job {
         report.after = after;
         report.sweep = sweep;
         report.ground_truth = ground_truth;
+        report.engine_counters = Some(refiner.engine().counters());
         report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();
         Ok(report)
     }

@@ -75,6 +75,10 @@ pub struct Report {
     pub scene: Option<String>,
     /// What choosing the engine said (which adapter `auto` picked, or why the CPU).
     pub notes: Vec<String>,
+    /// The engine's work: batches and queries answered (GPU engine: how many of them were
+    /// small enough for the host, `cpu_batches` / `cpu_queries`).
+    #[serde(default)]
+    pub engine_counters: Option<crate::engine::Counters>,
     pub warnings: Vec<String>,
 }
 
@@ -118,6 +122,7 @@ impl Report {
             refine: None,
             scene: scene.description.clone(),
             notes: r.notes().to_vec(),
+            engine_counters: None,
             warnings: scene.warnings.clone(),
         }
     }

@@ -118,7 +118,7 @@ fn refine_writes_output_and_a_report_with_every_key() {
 }
 
 /// The top-level keys of every report (refine, eval, demo, each batch scene): one shape.
-const REPORT_KEYS: [&str; 21] = [
+const REPORT_KEYS: [&str; 22] = [
     "tool",
     "version",
     "command",
@@ -139,6 +139,7 @@ const REPORT_KEYS: [&str; 21] = [
     "refine",
     "scene",
     "notes",
+    "engine_counters",
     "warnings",
 ];
 

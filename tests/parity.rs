@@ -367,6 +367,7 @@ fn split_buffers_sub_batches_and_tiled_dispatches_give_the_same_answers() {
         max_items: 400,
         max_workgroups_x: 2,
         max_queries: 11,
+        small_batch: 0,
     };
     let Some((_, cpu, gpu)) = engines(&pts, 0.03, small) else {
         return;
@@ -387,6 +388,40 @@ fn split_buffers_sub_batches_and_tiled_dispatches_give_the_same_answers() {
         "{}",
         gpu.host_fallbacks()
     );
+}
+
+#[test]
+fn small_batches_are_answered_on_the_host_with_the_cpu_engines_answers() {
+    // Kernel tests use the default options: every batch goes to the device.
+    assert_eq!(GpuOptions::default().small_batch, 0);
+    let pts = random_scene(20_000, 61);
+    let qs = random_queries(40, 62, 0.05);
+    let opts = GpuOptions {
+        small_batch: 8,
+        ..GpuOptions::default()
+    };
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, opts) else {
+        return;
+    };
+    let ask = Ask {
+        want: Want::ALL,
+        nearest: Nearest::Keep(0.4),
+        coverage: true,
+    };
+    // A batch of 5: the CPU engine's code over the same grid, so the very same answers.
+    let small = gpu.query(&qs[..5], &ask).unwrap();
+    assert_eq!(small, cpu.query(&qs[..5], &ask).unwrap());
+    assert!(small.stats.iter().any(|s| s.count > 0));
+    let c = gpu.counters();
+    assert_eq!(
+        (c.batches, c.queries, c.cpu_batches, c.cpu_queries),
+        (1, 5, 1, 5)
+    );
+    // A batch of 40 goes to the device (float sums, not the CPU's to the bit).
+    check_parity(&cpu, &gpu, &qs);
+    let c = gpu.counters();
+    assert_eq!((c.cpu_batches, c.cpu_queries), (1, 5));
+    assert!(c.batches > 1);
 }
 
 #[test]

@@ -70,6 +70,9 @@ struct RunTiming {
     host_seconds: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     device_seconds: Option<f64>,
+    /// Batches and queries the engine answered (GPU engine: how many small batches went
+    /// to the host).
+    engine_counters: Option<linegs_gpu::engine::Counters>,
     peak_rss_mb: Option<f64>,
 }
 
@@ -106,6 +109,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
                     let run = RunTiming {
                         host_seconds,
                         device_seconds,
+                        engine_counters: r.engine_counters,
                         backend: r.backend,
                         adapter: r.adapter,
                         n_box: r.input.n_box,
@@ -200,6 +204,12 @@ fn print_case(c: &Case) {
             println!(
                 "  {}: host {h:.3} s, waiting for the device {d:.3} s",
                 r.backend
+            );
+        }
+        if let Some(c) = r.engine_counters.filter(|c| c.cpu_batches > 0) {
+            println!(
+                "  {}: {} of {} batches ({} queries) small enough for the host",
+                r.backend, c.cpu_batches, c.batches, c.cpu_queries
             );
         }
     }

@@ -77,8 +77,9 @@ pub struct InputArgs {
 /// The engine choice of the commands that query the Gaussians (`render` only draws).
 #[derive(Args, Debug, Clone)]
 pub struct BackendArgs {
-    /// Which engine answers the cylinder queries: `auto` (a GPU adapter when there is
-    /// one, lavapipe included, else the CPU), `gpu` or `cpu`.
+    /// Which engine answers the cylinder queries: `auto` (a hardware GPU adapter when
+    /// there is one, else the CPU engine), `gpu` (any adapter, software ones such as
+    /// lavapipe included) or `cpu`.
     #[arg(long, value_enum, default_value_t = Backend::Auto)]
     pub backend: Backend,
 }

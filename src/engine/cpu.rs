@@ -209,6 +209,7 @@ impl Engine for CpuEngine {
             uploads: 0,
             batches: self.batches.load(Ordering::Relaxed),
             queries: self.queries.load(Ordering::Relaxed),
+            ..Default::default()
         }
     }
 }

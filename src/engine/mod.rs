@@ -179,8 +179,8 @@ pub struct Member {
     pub offset: DVec3,
 }
 
-/// Work counters, for tests that prove batching and upload-once.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// Work counters, for tests that prove batching and upload-once, and for the report.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Counters {
     /// Times the Gaussians were uploaded to a device (GPU engine: 1).
     pub uploads: u64,
@@ -188,6 +188,13 @@ pub struct Counters {
     pub batches: u64,
     /// Queries answered.
     pub queries: u64,
+    /// GPU engine: of those, the batches small enough that the CPU engine's code answered
+    /// them over the same grid (a device round trip costs more than such a batch), and
+    /// their queries. 0 for the CPU engine.
+    #[serde(default)]
+    pub cpu_batches: u64,
+    #[serde(default)]
+    pub cpu_queries: u64,
 }
 
 #[derive(thiserror::Error, Debug)]

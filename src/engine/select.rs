@@ -59,12 +59,14 @@ pub fn make_engine(
             let pick = auto_pick(&infos);
             choose(backend, grid, |g| match pick {
                 Pick::Hardware(i) => {
-                    GpuEngine::on_adapter(&adapters[i], g, GpuOptions::default()).map(Some)
+                    GpuEngine::on_adapter(&adapters[i], g, GpuOptions::for_commands()).map(Some)
                 }
                 Pick::None(why) | Pick::SoftwareOnly(why) => Err(EngineError::NoAdapter(why)),
             })
         }
-        _ => choose(backend, grid, |g| GpuEngine::new(g).map(Some)),
+        _ => choose(backend, grid, |g| {
+            GpuEngine::with_options(g, GpuOptions::for_commands()).map(Some)
+        }),
     }
 }
 

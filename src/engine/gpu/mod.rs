@@ -60,6 +60,32 @@ pub struct GpuOptions {
     pub max_workgroups_x: u32,
     /// Most queries per sub-batch (bounds the per-query buffers).
     pub max_queries: usize,
+    /// Batches of at most this many queries are answered by the CPU engine's code over
+    /// the same grid, on the host: a device round trip (submit, wait, read back) costs more
+    /// than such a batch. 0 (the default here, so that tests exercise the kernels with
+    /// any batch): never. The commands use [`SMALL_BATCH`].
+    pub small_batch: usize,
+}
+
+/// The commands' [`GpuOptions::small_batch`]: the tail rounds of merge/join and crop ask
+/// a few queries at a time, which the host answers in microseconds; a device round trip
+/// costs a fraction of a millisecond on a real GPU (about one on lavapipe).
+pub const SMALL_BATCH: usize = 16;
+
+impl GpuOptions {
+    /// The options the commands use: the defaults, with batches of at most
+    /// [`SMALL_BATCH`] queries on the host (`LINEGS_GPU_SMALL_BATCH=N` sets another bound;
+    /// 0 sends every batch to the device).
+    pub fn for_commands() -> Self {
+        let small_batch = std::env::var("LINEGS_GPU_SMALL_BATCH")
+            .ok()
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or(SMALL_BATCH);
+        GpuOptions {
+            small_batch,
+            ..Default::default()
+        }
+    }
 }
 
 impl Default for GpuOptions {
@@ -69,6 +95,7 @@ impl Default for GpuOptions {
             max_items: 1 << 24,
             max_workgroups_x: 65_535,
             max_queries: 1 << 16,
+            small_batch: 0,
         }
     }
 }
@@ -119,6 +146,11 @@ pub struct GpuEngine {
     /// boundary member); rare by design.
     fallbacks: AtomicU64,
     clock: Clock,
+    /// Answers the batches of at most `small_batch` queries, over the same grid.
+    cpu: super::cpu::CpuEngine,
+    small_batch: usize,
+    cpu_batches: AtomicU64,
+    cpu_queries: AtomicU64,
 }
 
 impl GpuEngine {
@@ -154,6 +186,10 @@ impl GpuEngine {
         let (kernels, statics) = (kernels?, statics?);
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         Ok(GpuEngine {
+            cpu: super::cpu::CpuEngine::new(grid.clone()),
+            small_batch: opts.small_batch,
+            cpu_batches: AtomicU64::new(0),
+            cpu_queries: AtomicU64::new(0),
             grid,
             ctx,
             kernels,
@@ -411,6 +447,15 @@ impl Engine for GpuEngine {
     fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
         ask.nearest.check(queries.len())?;
         self.count_batch(queries.len());
+        if !queries.is_empty() && queries.len() <= self.small_batch {
+            let t = std::time::Instant::now();
+            let out = self.cpu.query(queries, ask);
+            self.cpu_batches.fetch_add(1, Ordering::Relaxed);
+            self.cpu_queries
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
+            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+            return out;
+        }
         let mut b = self.lock();
         let stats_batch = ask.nearest == Nearest::No
             || ask.coverage
@@ -456,6 +501,8 @@ impl Engine for GpuEngine {
             uploads: self.uploads.load(Ordering::Relaxed),
             batches: self.batches.load(Ordering::Relaxed),
             queries: self.queries.load(Ordering::Relaxed),
+            cpu_batches: self.cpu_batches.load(Ordering::Relaxed),
+            cpu_queries: self.cpu_queries.load(Ordering::Relaxed),
         }
     }
 
