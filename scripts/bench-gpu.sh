@@ -5,11 +5,18 @@
 # software adapter (lavapipe, WARP, SwiftShader) is measured too, with a warning.
 # Usage: scripts/bench-gpu.sh [extra `linegs-gpu bench` options, e.g. --profile reference]
 # Pick an adapter with WGPU_ADAPTER_NAME=<part of its name> (see `vulkaninfo --summary`).
+# LINEGS_GPU_BIN=<path> uses that binary instead of building one; BENCH_GPU_SIZES="G S
+# LIMIT;..." replaces the two sizes (Gaussians, segments, time limit in seconds), as the
+# smoke test in tests/cli.rs does.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-cargo build --release --quiet --bin linegs-gpu
-bin=target/release/linegs-gpu
+if [ -n "${LINEGS_GPU_BIN:-}" ]; then
+  bin=$LINEGS_GPU_BIN
+else
+  cargo build --release --quiet --bin linegs-gpu
+  bin=target/release/linegs-gpu
+fi
 
 echo "== machine: $(nproc) CPU threads; $(uname -srm)"
 if command -v nvidia-smi >/dev/null; then
@@ -18,10 +25,11 @@ fi
 
 # Each size in one process (CPU then GPU); the time limits keep the script under 5 minutes.
 extra=("$@")
-for size in "1000000 10000 60" "10000000 100000 220"; do
+IFS=';' read -r -a sizes <<<"${BENCH_GPU_SIZES:-1000000 10000 60;10000000 100000 220}"
+for size in "${sizes[@]}"; do
   read -r g s limit <<<"$size"
-  out=$(timeout "$limit" "$bin" bench --gaussians "$g" --segments "$s" --backend cpu,gpu \
-    "${extra[@]}") || {
+  out=$(timeout "$limit" "$bin" bench --num-gaussians "$g" --num-segments "$s" \
+    --backend cpu,gpu "${extra[@]}") || {
     echo "bench at $g x $s failed or ran past $limit s" >&2
     exit 1
   }

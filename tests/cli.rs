@@ -748,3 +748,32 @@ fn a_gpu_run_without_xdg_runtime_dir_prints_no_error() {
     let left: Vec<_> = std::fs::read_dir(&tmp).unwrap().collect();
     assert!(left.is_empty(), "left in the temp folder: {left:?}");
 }
+
+/// `scripts/bench-gpu.sh` (the real-GPU benchmark anyone with a GPU is asked to run), at a
+/// tiny size: it must run `bench` with options that exist and print both engines' columns
+/// and the ratio.
+#[test]
+fn the_gpu_benchmark_script_runs() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let o = std::process::Command::new("bash")
+        .arg(format!("{root}/scripts/bench-gpu.sh"))
+        .env("LINEGS_GPU_BIN", env!("CARGO_BIN_EXE_linegs-gpu"))
+        .env("BENCH_GPU_SIZES", "20000 200 120")
+        .output()
+        .unwrap();
+    let (out, err) = (stdout(&o), stderr(&o));
+    if !o.status.success()
+        && err.contains("adapter")
+        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
+    {
+        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({err})");
+        return;
+    }
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(out.contains("20000 Gaussians x 200 segments"), "{out}");
+    assert!(
+        out.contains("\n  cpu: ") && out.contains("\n  gpu: "),
+        "{out}"
+    );
+    assert!(out.contains("gpu / cpu total time: "), "{out}");
+}

@@ -19,7 +19,11 @@ fn refine_cpu(points: &[[f32; 3]], lines: &LineSet, params: &Params) -> Refined 
 }
 
 fn assert_sane(out: &Refined, input: usize) {
-    assert!(!out.lines.is_empty() && out.lines.len() <= input);
+    // The steps up to crop never add segments; `--split-gaps` may split one into pieces.
+    let crop = out.stages.iter().find(|s| s.name == "crop").unwrap();
+    assert!(!out.lines.is_empty() && crop.segments <= input);
+    let split = out.steps.gaps_split.unwrap_or(0);
+    assert!(split > 0 || out.lines.len() <= crop.segments);
     for s in &out.lines.segments {
         assert!(
             s.p1.is_finite() && s.p2.is_finite() && s.length() > 0.0,

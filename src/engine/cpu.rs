@@ -27,6 +27,16 @@ impl CpuEngine {
         }
     }
 
+    /// The engine over `points` alone: a grid of `cell`-sized cells over their bounding
+    /// box (for tests and small tools; a refinement builds its grid from the working set).
+    pub fn over_points(points: &[[f32; 3]], cell: f64) -> Self {
+        let mut b = crate::geom::Aabb::empty();
+        for p in points {
+            b.extend(p64(*p));
+        }
+        CpuEngine::new(Arc::new(Grid::build(points, b, cell)))
+    }
+
     pub fn grid(&self) -> &Grid {
         &self.grid
     }

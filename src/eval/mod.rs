@@ -136,17 +136,10 @@ pub fn sweep(
 mod tests {
     use super::*;
     use crate::engine::cpu::CpuEngine;
-    use crate::geom::{p64, Aabb};
-    use crate::index::Grid;
     use glam::DVec3;
-    use std::sync::Arc;
 
     fn engine(points: &[[f32; 3]]) -> CpuEngine {
-        let mut b = Aabb::empty();
-        for p in points {
-            b.extend(p64(*p));
-        }
-        CpuEngine::new(Arc::new(Grid::build(points, b, 0.1)))
+        CpuEngine::over_points(points, 0.1)
     }
 
     #[test]

@@ -10,6 +10,7 @@ pub use params::{
 pub mod cluster;
 pub mod crop;
 pub mod fit;
+pub mod gaps;
 pub mod mergejoin;
 pub mod outliers;
 pub mod straight;
@@ -92,6 +93,11 @@ pub struct StepNotes {
     pub scale_cut: Option<usize>,
     /// `--max-sagitta`: segments dropped as curves (null when off).
     pub curved_dropped: Option<usize>,
+    /// `--split-gaps`: ends cut at an empty end stretch, segments split at an empty
+    /// interior stretch, and pieces dropped as too few points (null when off).
+    pub gaps_ends_cut: Option<usize>,
+    pub gaps_split: Option<usize>,
+    pub gaps_pieces_dropped: Option<usize>,
     pub warnings: Vec<String>,
 }
 
@@ -136,6 +142,9 @@ pub fn run_steps_noted(
         lengths: Vec::new(),
         scale_cut: None,
         curved_dropped: None,
+        gaps_ends_cut: None,
+        gaps_split: None,
+        gaps_pieces_dropped: None,
         warnings: Vec::new(),
     };
     let mut last_len = total_length(&lines.segments);
@@ -207,6 +216,18 @@ pub fn run_steps_noted(
     lines.segments = crop::crop(engine, &lines.segments, s)?;
     note_len("crop", &lines.segments, &mut notes);
     stage("crop", lines.len(), t);
+
+    let alpha = p.split_gaps();
+    if alpha > 0.0 {
+        let t = Instant::now();
+        let (split, g) = gaps::split_gaps(engine, &lines, r, alpha, p.fit_min_points)?;
+        lines = split;
+        notes.gaps_ends_cut = Some(g.ends_cut);
+        notes.gaps_split = Some(g.split);
+        notes.gaps_pieces_dropped = Some(g.pieces_dropped);
+        note_len("split_gaps", &lines.segments, &mut notes);
+        stage("split_gaps", lines.len(), t);
+    }
 
     if p.max_sagitta > 0.0 {
         let t = Instant::now();

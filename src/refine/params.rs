@@ -219,6 +219,14 @@ pub struct Params {
     /// points is not judged. Runs after crop; 0: off.
     #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
     pub max_sagitta: f64,
+    /// After crop, split a segment where a stretch of its cylinder holds no Gaussian
+    /// (and cut an empty stretch off an end): a stretch at least r long is empty beyond
+    /// chance when, at the segment's own density, the chance of so long an empty stretch
+    /// among the segment's gaps (2 at the ends, N + 1 inside) is at most this. Pieces
+    /// with fewer than fit-min-points points are dropped. 0: off. Default: the profile's
+    /// (0.01 for default, 0 for reference).
+    #[arg(long, value_parser = fraction)]
+    pub split_gaps: Option<f64>,
 
     /// Outliers: drop segments with density <= ratio x mean density; -1 uses
     /// max(mean - 2 std, 0).
@@ -351,6 +359,7 @@ impl Default for Params {
             fit_opacity_weight: false,
             max_scale: None,
             max_sagitta: 0.0,
+            split_gaps: None,
             outlier_ratio: 0.2,
             collinear_merge: true,
             cluster_min_weight: 0.4,
@@ -519,6 +528,15 @@ impl Params {
         })
     }
 
+    /// `--split-gaps` in effect: the user's, else the profile's (0.01 for default, 0 for
+    /// reference).
+    pub fn split_gaps(&self) -> f64 {
+        self.split_gaps.unwrap_or(match self.profile {
+            Profile::Default => 0.01,
+            Profile::Reference => 0.0,
+        })
+    }
+
     pub fn fixes(&self) -> Fixes {
         let on = self.profile == Profile::Default;
         Fixes {
@@ -553,6 +571,8 @@ mod tests {
         let r = Params::reference().fixes();
         assert!(!r.cluster_distance && !r.merge_extent && !r.join_order && !r.join_gap);
         assert!(!r.crop_density && r.order_endpoints && r.r_l == RlMode::Authors);
+        assert_eq!(Params::default().split_gaps(), 0.01);
+        assert_eq!(Params::reference().split_gaps(), 0.0);
         let one = Params {
             fix_join_gap: Some(true),
             ..Params::reference()

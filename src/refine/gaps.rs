@@ -1,0 +1,227 @@
+//! Beyond the paper, `--split-gaps`: a segment spanning a stretch of its cylinder that
+//! holds no Gaussian is split there (the empty stretch removed), and an empty stretch at
+//! an end is cut off. Crop looks only at the ends' windows against the middle's density;
+//! this looks at the whole cylinder, at the resolution of the points themselves.
+//!
+//! Which gaps count: along a segment uniformly covered at density `rho = N / L`, a given
+//! stretch of length `g` is empty with probability `exp(-rho g)` (Poisson). An end gap is
+//! one of two tested, so it is cut when `2 exp(-rho g) <= alpha`; an interior gap is the
+//! largest of about `N + 1`, so it splits when `(N + 1) exp(-rho g) <= alpha`. With
+//! `alpha = 0.01` a segment of 100 points splits at a gap holding no point where about 9
+//! were expected. No stretch shorter than r is cut: below the cylinder's own radius a
+//! hole is not a break in the line (and where the Gaussians cluster, as along a trained
+//! or noisy edge, short holes are more common than the uniform model says). Pieces of a
+//! split holding fewer than `fit_min_points` points are dropped (a few stray points past
+//! a gap are not a line). One `members` batch for all segments.
+
+use crate::engine::{Engine, EngineError, Query};
+use crate::geom::{LineSet, Segment};
+
+/// What [`split_gaps`] did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct GapNotes {
+    /// Ends cut back to the last point before an empty end stretch.
+    pub ends_cut: usize,
+    /// Segments split at one or more interior gaps.
+    pub split: usize,
+    /// Pieces of splits dropped as too few points.
+    pub pieces_dropped: usize,
+}
+
+/// The kept `[a, b]` intervals (axial, from P1) of one segment of length `l`, given its
+/// members' sorted axial positions `t`; no stretch shorter than `min_gap` is cut.
+pub fn pieces(
+    t: &[f64],
+    l: f64,
+    alpha: f64,
+    min_gap: f64,
+    min_points: u32,
+) -> (Vec<(f64, f64)>, GapNotes) {
+    let mut notes = GapNotes::default();
+    let n = t.len();
+    if n < 2 || l <= 0.0 || alpha <= 0.0 {
+        return (vec![(0.0, l)], notes);
+    }
+    let rho = n as f64 / l;
+    let end_gap = ((2.0 / alpha).ln() / rho).max(min_gap);
+    let inner_gap = (((n as f64 + 1.0) / alpha).ln() / rho).max(min_gap);
+    let (mut lo, mut hi) = (0.0, l);
+    if t[0] >= end_gap {
+        lo = t[0];
+        notes.ends_cut += 1;
+    }
+    if l - t[n - 1] >= end_gap {
+        hi = t[n - 1];
+        notes.ends_cut += 1;
+    }
+    // Runs of points separated by interior gaps: [start index, end index].
+    let mut runs = vec![(0usize, n - 1)];
+    for i in 0..n - 1 {
+        if t[i + 1] - t[i] >= inner_gap {
+            runs.last_mut().expect("one run").1 = i;
+            runs.push((i + 1, n - 1));
+        }
+    }
+    if runs.len() == 1 {
+        return (vec![(lo, hi)], notes);
+    }
+    notes.split = 1;
+    let last = runs.len() - 1;
+    let mut out = Vec::with_capacity(runs.len());
+    for (k, &(i, j)) in runs.iter().enumerate() {
+        if ((j - i + 1) as u64) < u64::from(min_points) {
+            notes.pieces_dropped += 1;
+            continue;
+        }
+        let a = if k == 0 { lo } else { t[i] };
+        let b = if k == last { hi } else { t[j] };
+        if b > a {
+            out.push((a, b));
+        } else {
+            notes.pieces_dropped += 1;
+        }
+    }
+    (out, notes)
+}
+
+/// Splits every segment of `lines` at its empty stretches (see the module); a split's
+/// pieces keep the segment's group and place. `alpha <= 0`: unchanged.
+pub fn split_gaps(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    r: f64,
+    alpha: f64,
+    min_points: u32,
+) -> Result<(LineSet, GapNotes), EngineError> {
+    let mut total = GapNotes::default();
+    if alpha <= 0.0 || lines.is_empty() {
+        return Ok((lines.clone(), total));
+    }
+    let queries: Vec<Query> = lines.segments.iter().map(|s| Query::new(*s, r)).collect();
+    let members = engine.members(&queries)?;
+    let mut segments = Vec::with_capacity(lines.len());
+    let mut groups = lines
+        .groups
+        .as_ref()
+        .map(|_| Vec::with_capacity(lines.len()));
+    for (i, (s, m)) in lines.segments.iter().zip(&members).enumerate() {
+        let l = s.length();
+        let mut t: Vec<f64> = m.iter().map(|x| x.t.clamp(0.0, l)).collect();
+        t.sort_by(f64::total_cmp);
+        let (kept, notes) = pieces(&t, l, alpha, r, min_points);
+        total.ends_cut += notes.ends_cut;
+        total.split += notes.split;
+        total.pieces_dropped += notes.pieces_dropped;
+        for (a, b) in kept {
+            segments.push(if a == 0.0 && b == l {
+                *s
+            } else {
+                Segment::new(
+                    if a == 0.0 { s.p1 } else { s.point_at(a) },
+                    if b == l { s.p2 } else { s.point_at(b) },
+                )
+            });
+            if let (Some(g), Some(src)) = (groups.as_mut(), lines.groups.as_ref()) {
+                g.push(src[i]);
+            }
+        }
+    }
+    Ok((LineSet { segments, groups }, total))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::cpu::CpuEngine;
+    use glam::DVec3;
+
+    fn engine(points: &[[f32; 3]]) -> CpuEngine {
+        CpuEngine::over_points(points, 0.1)
+    }
+
+    /// Points every `step` along x in `[a, b)`, alternating a little off the axis.
+    fn row(a: f64, b: f64, step: f64, out: &mut Vec<[f32; 3]>) {
+        let mut x = a;
+        let mut k = 0;
+        while x < b {
+            let y = if k % 2 == 0 { 0.002 } else { -0.002 };
+            out.push([x as f32, y, 0.0]);
+            x += step;
+            k += 1;
+        }
+    }
+
+    #[test]
+    fn a_segment_across_an_empty_middle_third_is_split_there() {
+        // Dense on [0, 0.27] and [0.54, 0.81], nothing between: the NEF case.
+        let mut pts = Vec::new();
+        row(0.0, 0.27, 0.002, &mut pts);
+        row(0.54, 0.81, 0.002, &mut pts);
+        let e = engine(&pts);
+        let lines = LineSet {
+            segments: vec![Segment::new(DVec3::ZERO, DVec3::new(0.81, 0.0, 0.0))],
+            groups: Some(vec![7]),
+        };
+        let (out, notes) = split_gaps(&e, &lines, 0.01, 0.01, 8).unwrap();
+        assert_eq!(out.len(), 2, "{:?}", out.segments);
+        assert_eq!(notes.split, 1);
+        assert_eq!(out.groups, Some(vec![7, 7]));
+        let (a, b) = (out.segments[0], out.segments[1]);
+        assert!(
+            a.p1.x.abs() < 1e-9 && (a.p2.x - 0.27).abs() < 0.003,
+            "{a:?}"
+        );
+        assert!(
+            (b.p1.x - 0.54).abs() < 0.003 && (b.p2.x - 0.81).abs() < 1e-9,
+            "{b:?}"
+        );
+        // Off: unchanged.
+        let (same, _) = split_gaps(&e, &lines, 0.01, 0.0, 8).unwrap();
+        assert_eq!(same, lines);
+    }
+
+    #[test]
+    fn a_gap_plausible_among_many_does_not_split_and_an_empty_end_is_cut() {
+        // Points every 0.001 on [0, 0.3] but for one gap of 0.007 (about 7 points
+        // expected): unlikely at a given place, but among ~300 gaps the largest is often
+        // this long, so no split.
+        let mut pts = Vec::new();
+        row(0.0, 0.15, 0.001, &mut pts);
+        row(0.157, 0.3, 0.001, &mut pts);
+        let e = engine(&pts);
+        // The segment runs 0.1 past the last point: that end is cut, the other kept. (r
+        // 0.005: the gap is longer than r, so only the statistics keep it.)
+        let lines = LineSet::new(vec![Segment::new(DVec3::ZERO, DVec3::new(0.4, 0.0, 0.0))]);
+        let (out, notes) = split_gaps(&e, &lines, 0.005, 0.01, 8).unwrap();
+        assert_eq!(out.len(), 1, "{:?}", out.segments);
+        assert_eq!((notes.split, notes.ends_cut), (0, 1));
+        let s = out.segments[0];
+        assert_eq!(s.p1, DVec3::ZERO);
+        assert!((s.p2.x - 0.3).abs() < 0.002, "{s:?}");
+    }
+
+    #[test]
+    fn a_few_stray_points_past_a_gap_are_dropped() {
+        let mut t: Vec<f64> = (0..200).map(|i| i as f64 * 0.001).collect();
+        t.extend([0.5, 0.501, 0.502]);
+        let (kept, notes) = pieces(&t, 0.51, 0.01, 0.01, 8);
+        assert_eq!(kept.len(), 1, "{kept:?}");
+        assert_eq!((notes.split, notes.pieces_dropped), (1, 1));
+        assert!((kept[0].1 - 0.199).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_hole_shorter_than_r_is_not_a_break() {
+        // 1000 points over [0, 0.1] but for a hole of 0.005 (50 expected): certain
+        // beyond chance, but shorter than r = 0.01.
+        let t: Vec<f64> = (0..1050)
+            .map(|i| i as f64 * 1e-4)
+            .filter(|&x| !(0.05..0.055).contains(&x))
+            .collect();
+        let l = t[t.len() - 1];
+        let (kept, notes) = pieces(&t, l, 0.01, 0.01, 8);
+        assert_eq!((kept.len(), notes.split), (1, 0), "{kept:?}");
+        let (kept, notes) = pieces(&t, l, 0.01, 0.001, 8);
+        assert_eq!((kept.len(), notes.split), (2, 1), "{kept:?}");
+    }
+}
