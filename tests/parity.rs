@@ -396,6 +396,7 @@ fn split_buffers_sub_batches_and_tiled_dispatches_give_the_same_answers() {
         max_queries: 11,
         small_batch: 0,
         device_fit: false,
+        ..GpuOptions::default()
     };
     let Some((_, cpu, gpu)) = engines(&pts, 0.03, small) else {
         return;
@@ -450,6 +451,36 @@ fn small_batches_are_answered_on_the_host_with_the_cpu_engines_answers() {
     let c = gpu.counters();
     assert_eq!((c.cpu_batches, c.cpu_queries), (1, 5));
     assert!(c.batches > 1);
+}
+
+#[test]
+fn member_lists_go_where_the_option_says() {
+    use linegs_gpu::engine::gpu::MembersOn;
+    let pts = random_scene(20_000, 71);
+    let qs = random_queries(40, 72, 0.05);
+    let mut lists = Vec::new();
+    for on in [MembersOn::Device, MembersOn::Host, MembersOn::Auto] {
+        let opts = GpuOptions {
+            members: on,
+            ..GpuOptions::default()
+        };
+        let Some((_, cpu, gpu)) = engines(&pts, 0.03, opts) else {
+            return;
+        };
+        let m = gpu.members(&qs).unwrap();
+        assert_eq!(m, cpu.members(&qs).unwrap());
+        // Auto: the host on a software adapter (lavapipe), the device on a hardware one.
+        let host = on == MembersOn::Host || (on == MembersOn::Auto && gpu.is_software());
+        let c = gpu.counters();
+        assert_eq!(
+            c.cpu_batches,
+            u64::from(host),
+            "{on:?} on {}",
+            gpu.adapter()
+        );
+        lists.push(m);
+    }
+    assert!(lists[0].iter().any(|l| !l.is_empty()));
 }
 
 #[test]

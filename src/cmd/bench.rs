@@ -208,7 +208,7 @@ fn print_case(c: &Case) {
         }
         if let Some(c) = r.engine_counters.filter(|c| c.cpu_batches > 0) {
             println!(
-                "  {}: {} of {} batches ({} queries) small enough for the host",
+                "  {}: {} of {} batches ({} queries) answered on the host (small batches; member lists on a software adapter)",
                 r.backend, c.cpu_batches, c.batches, c.cpu_queries
             );
         }

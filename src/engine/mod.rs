@@ -209,9 +209,10 @@ pub struct Counters {
     pub batches: u64,
     /// Queries answered.
     pub queries: u64,
-    /// GPU engine: of those, the batches small enough that the CPU engine's code answered
-    /// them over the same grid (a device round trip costs more than such a batch), and
-    /// their queries. 0 for the CPU engine.
+    /// GPU engine: of those, the batches the CPU engine's code answered over the same
+    /// grid, and their queries: batches small enough that a device round trip costs more,
+    /// and member lists on a software adapter (`GpuOptions::members`). 0 for the CPU
+    /// engine.
     #[serde(default)]
     pub cpu_batches: u64,
     #[serde(default)]
