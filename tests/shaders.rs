@@ -140,3 +140,27 @@ fn the_layout_check_catches_a_drifted_struct() {
     assert_eq!(bad.len(), 1, "{bad:?}");
     assert!(bad[0].starts_with("GQuery"), "{bad:?}");
 }
+
+/// The evaluation kernel as the engine compiles it, once per mode with the mode a
+/// constant: every variant validates, and the mode really is replaced.
+#[test]
+fn every_evaluation_mode_variant_validates() {
+    for mode in [
+        layout::MODE_STATS,
+        layout::MODE_STATS_SIDES,
+        layout::MODE_HIST,
+        layout::MODE_BELOW,
+        layout::MODE_MEMBERS,
+    ] {
+        let src = linegs_gpu::engine::gpu::eval_source(mode);
+        assert!(src.contains(&format!("let mode = {mode}u;")));
+        assert!(!src.contains("let mode = params.mode;"));
+        let module = parse(&src, Path::new("eval.wgsl")).unwrap();
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::empty(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("mode {mode}: {e:?}"));
+    }
+}

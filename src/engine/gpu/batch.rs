@@ -87,7 +87,9 @@ pub struct Kernels {
     scan: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
     args: wgpu::ComputePipeline,
-    eval: wgpu::ComputePipeline,
+    /// One evaluation pipeline per mode ([`EVAL_MODES`]), each compiled with its mode as a
+    /// constant ([`super::eval_source`]).
+    eval: Vec<wgpu::ComputePipeline>,
     cut: wgpu::ComputePipeline,
     reduce: wgpu::ComputePipeline,
     gather: wgpu::ComputePipeline,
@@ -107,7 +109,10 @@ impl Kernels {
             scan: k("scan", scan, "main"),
             scan_add: k("scan add", scan, "add"),
             args: k("args", include_str!("../../../shaders/args.wgsl"), "main"),
-            eval: k("eval", include_str!("../../../shaders/eval.wgsl"), "main"),
+            eval: EVAL_MODES
+                .iter()
+                .map(|&m| ctx.pipeline("eval", &super::eval_source(m), "main"))
+                .collect(),
             cut: k("cut", include_str!("../../../shaders/cut.wgsl"), "main"),
             reduce: k(
                 "reduce",
@@ -118,6 +123,26 @@ impl Kernels {
             scatter: k("members scatter", members, "scatter"),
             fit: k("fit", include_str!("../../../shaders/fit.wgsl"), "main"),
         }
+    }
+}
+
+/// The evaluation kernel's modes, each its own pipeline.
+pub const EVAL_MODES: [u32; 5] = [
+    MODE_STATS,
+    MODE_STATS_SIDES,
+    MODE_HIST,
+    MODE_BELOW,
+    MODE_MEMBERS,
+];
+
+impl Kernels {
+    /// The evaluation pipeline of `mode` (one of [`EVAL_MODES`]).
+    fn eval(&self, mode: u32) -> &wgpu::ComputePipeline {
+        let i = EVAL_MODES
+            .iter()
+            .position(|&m| m == mode)
+            .expect("an evaluation mode");
+        &self.eval[i]
     }
 }
 
@@ -683,10 +708,10 @@ fn attempt(
     };
     let scan_group =
         |p: &wgpu::ComputePipeline, s: usize| bind(p, vec![slot(&params, s), h(&scan, scan_bytes)]);
-    let eval_group = |s: usize, part: usize| {
+    let eval_group = |pipeline: &wgpu::ComputePipeline, s: usize, part: usize| {
         let (pb, pbytes) = &st.parts[part];
         bind(
-            &k.eval,
+            pipeline,
             vec![
                 slot(&params, s),
                 h(&queries, q_bytes),
@@ -750,9 +775,10 @@ fn attempt(
         pass.set_bind_group(0, &g, &[]);
         // Sized by `args`: empty when the items do not fit.
         pass.dispatch_workgroups_indirect(&indirect, 12);
-        pass.set_pipeline(&k.eval);
+        let ev = k.eval(eval_mode);
+        pass.set_pipeline(ev);
         for (p, &s) in eval_slots.iter().enumerate() {
-            let g = eval_group(s, p);
+            let g = eval_group(ev, s, p);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups_indirect(&indirect, 0);
         }
@@ -791,9 +817,10 @@ fn attempt(
             pass.set_pipeline(&k.scatter);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups_indirect(&indirect, 0);
-            pass.set_pipeline(&k.eval);
+            let ev = k.eval(MODE_MEMBERS);
+            pass.set_pipeline(ev);
             for (p, &s) in member_slots.iter().enumerate() {
-                let g = eval_group(s, p);
+                let g = eval_group(ev, s, p);
                 pass.set_bind_group(0, &g, &[]);
                 pass.dispatch_workgroups_indirect(&indirect, 0);
             }
@@ -811,9 +838,10 @@ fn attempt(
             pass.set_pipeline(&k.cut);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
-            pass.set_pipeline(&k.eval);
+            let ev = k.eval(MODE_BELOW);
+            pass.set_pipeline(ev);
             for (p, &s) in below_slots.iter().enumerate() {
-                let g = eval_group(s, p);
+                let g = eval_group(ev, s, p);
                 pass.set_bind_group(0, &g, &[]);
                 pass.dispatch_workgroups_indirect(&indirect, 0);
             }
