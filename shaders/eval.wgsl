@@ -56,12 +56,13 @@ fn main(
     let xr = f32((it.cell % params.dims_x) & 0xFFFFu);
     let n = min(it.count, CHUNK);
     let first = it.start - params.part_base;
-    // The engine compiles one pipeline per mode with this line's uniform read replaced by
-    // the mode's constant (`eval_source` in src/engine/gpu/mod.rs), so that each carries
-    // only its own branches.
+    // The engine compiles one pipeline per mode (and coverage switch) with these uniform
+    // reads replaced by constants (`eval_source` in src/engine/gpu/mod.rs), so that each
+    // carries only its own branches.
     let mode = params.mode;
     let sides = mode == MODE_STATS_SIDES;
-    let cover = params.cover != 0u && (mode == MODE_STATS || sides);
+    let cover_on = params.cover != 0u;
+    let cover = cover_on && (mode == MODE_STATS || sides);
     var count = 0u;
     var side = 0u;
     var d2 = 0.0;

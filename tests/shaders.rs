@@ -152,9 +152,11 @@ fn every_evaluation_mode_variant_validates() {
         layout::MODE_BELOW,
         layout::MODE_MEMBERS,
     ] {
-        let src = linegs_gpu::engine::gpu::eval_source(mode);
+        let cover = mode == layout::MODE_STATS || mode == layout::MODE_STATS_SIDES;
+        let src = linegs_gpu::engine::gpu::eval_source(mode, cover);
         assert!(src.contains(&format!("let mode = {mode}u;")));
-        assert!(!src.contains("let mode = params.mode;"));
+        assert!(src.contains(&format!("let cover_on = {cover};")));
+        assert!(!src.contains("= params.mode;") && !src.contains("= params.cover"));
         let module = parse(&src, Path::new("eval.wgsl")).unwrap();
         naga::valid::Validator::new(
             naga::valid::ValidationFlags::all(),

@@ -87,8 +87,8 @@ pub struct Kernels {
     scan: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
     args: wgpu::ComputePipeline,
-    /// One evaluation pipeline per mode ([`EVAL_MODES`]), each compiled with its mode as a
-    /// constant ([`super::eval_source`]).
+    /// One evaluation pipeline per mode and coverage switch ([`EVAL_VARIANTS`]), each
+    /// compiled with both as constants ([`super::eval_source`]).
     eval: Vec<wgpu::ComputePipeline>,
     cut: wgpu::ComputePipeline,
     reduce: wgpu::ComputePipeline,
@@ -109,9 +109,9 @@ impl Kernels {
             scan: k("scan", scan, "main"),
             scan_add: k("scan add", scan, "add"),
             args: k("args", include_str!("../../../shaders/args.wgsl"), "main"),
-            eval: EVAL_MODES
+            eval: EVAL_VARIANTS
                 .iter()
-                .map(|&m| ctx.pipeline("eval", &super::eval_source(m), "main"))
+                .map(|&(m, c)| ctx.pipeline("eval", &super::eval_source(m, c), "main"))
                 .collect(),
             cut: k("cut", include_str!("../../../shaders/cut.wgsl"), "main"),
             reduce: k(
@@ -126,22 +126,25 @@ impl Kernels {
     }
 }
 
-/// The evaluation kernel's modes, each its own pipeline.
-pub const EVAL_MODES: [u32; 5] = [
-    MODE_STATS,
-    MODE_STATS_SIDES,
-    MODE_HIST,
-    MODE_BELOW,
-    MODE_MEMBERS,
+/// The evaluation kernel's variants, each its own pipeline: (mode, coverage bits).
+pub const EVAL_VARIANTS: [(u32, bool); 7] = [
+    (MODE_STATS, false),
+    (MODE_STATS, true),
+    (MODE_STATS_SIDES, false),
+    (MODE_STATS_SIDES, true),
+    (MODE_HIST, false),
+    (MODE_BELOW, false),
+    (MODE_MEMBERS, false),
 ];
 
 impl Kernels {
-    /// The evaluation pipeline of `mode` (one of [`EVAL_MODES`]).
-    fn eval(&self, mode: u32) -> &wgpu::ComputePipeline {
-        let i = EVAL_MODES
+    /// The evaluation pipeline of `mode` (coverage bits only in the stats modes).
+    fn eval(&self, mode: u32, cover: bool) -> &wgpu::ComputePipeline {
+        let cover = cover && (mode == MODE_STATS || mode == MODE_STATS_SIDES);
+        let i = EVAL_VARIANTS
             .iter()
-            .position(|&m| m == mode)
-            .expect("an evaluation mode");
+            .position(|&v| v == (mode, cover))
+            .expect("an evaluation variant");
         &self.eval[i]
     }
 }
@@ -775,7 +778,7 @@ fn attempt(
         pass.set_bind_group(0, &g, &[]);
         // Sized by `args`: empty when the items do not fit.
         pass.dispatch_workgroups_indirect(&indirect, 12);
-        let ev = k.eval(eval_mode);
+        let ev = k.eval(eval_mode, base.cover != 0);
         pass.set_pipeline(ev);
         for (p, &s) in eval_slots.iter().enumerate() {
             let g = eval_group(ev, s, p);
@@ -817,7 +820,7 @@ fn attempt(
             pass.set_pipeline(&k.scatter);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups_indirect(&indirect, 0);
-            let ev = k.eval(MODE_MEMBERS);
+            let ev = k.eval(MODE_MEMBERS, false);
             pass.set_pipeline(ev);
             for (p, &s) in member_slots.iter().enumerate() {
                 let g = eval_group(ev, s, p);
@@ -838,7 +841,7 @@ fn attempt(
             pass.set_pipeline(&k.cut);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
-            let ev = k.eval(MODE_BELOW);
+            let ev = k.eval(MODE_BELOW, false);
             pass.set_pipeline(ev);
             for (p, &s) in below_slots.iter().enumerate() {
                 let g = eval_group(ev, s, p);

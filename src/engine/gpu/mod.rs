@@ -150,16 +150,25 @@ pub fn kernel_source(kernel: &str) -> String {
     format!("{}\n{kernel}", common_wgsl())
 }
 
-/// The line of `eval.wgsl` that reads the evaluation mode from the uniform.
+/// The lines of `eval.wgsl` that read the evaluation mode and the coverage switch from
+/// the uniform.
 const EVAL_MODE_LINE: &str = "let mode = params.mode;";
+const EVAL_COVER_LINE: &str = "let cover_on = params.cover != 0u;";
 
-/// The evaluation kernel compiled for one mode: the mode is a constant instead of the
-/// uniform's, so each pipeline carries only its own branches (on lavapipe the stats pass
-/// then costs about 40 % less CPU time; on GPUs fewer registers).
-pub fn eval_source(mode: u32) -> String {
+/// The evaluation kernel compiled for one mode (and, for the stats modes, with or without
+/// the coverage bits): both are constants instead of the uniform's, so each pipeline
+/// carries only its own branches (on lavapipe the stats pass then costs about 40 % less
+/// CPU time; on GPUs fewer registers).
+pub fn eval_source(mode: u32, cover: bool) -> String {
     let src = include_str!("../../../shaders/eval.wgsl");
-    assert!(src.contains(EVAL_MODE_LINE), "eval.wgsl reads its mode");
-    kernel_source(&src.replace(EVAL_MODE_LINE, &format!("let mode = {mode}u;")))
+    assert!(
+        src.contains(EVAL_MODE_LINE) && src.contains(EVAL_COVER_LINE),
+        "eval.wgsl reads its mode and coverage switch"
+    );
+    kernel_source(
+        &src.replace(EVAL_MODE_LINE, &format!("let mode = {mode}u;"))
+            .replace(EVAL_COVER_LINE, &format!("let cover_on = {cover};")),
+    )
 }
 
 /// Seconds of host work and of waiting for the device, accumulated over the engine's life.
