@@ -586,17 +586,19 @@ fn attempt(
         mode: MODE_EMIT,
         ..base
     });
-    let scan_slots: Vec<usize> = levels
-        .iter()
-        .map(|&(b0, len, sums)| {
-            push(Params {
+    // The uniform of each level of a multi-level scan.
+    let scan_params = |levels: &[(u32, u32, u32)]| -> Vec<Params> {
+        levels
+            .iter()
+            .map(|&(b0, len, sums)| Params {
                 n: len,
                 base: b0,
                 sums,
                 ..base
             })
-        })
-        .collect();
+            .collect()
+    };
+    let scan_slots: Vec<usize> = scan_params(&levels).into_iter().map(&mut push).collect();
     let args_slot = push(base);
     let eval_mode = match kind {
         Kind::Stats { sides: false, .. } | Kind::Members | Kind::Fit => MODE_STATS,
@@ -623,17 +625,7 @@ fn attempt(
     };
     let (gather_slot, mscan_slots, member_slots) = if members {
         let g = push(base);
-        let levels: Vec<usize> = mlevels
-            .iter()
-            .map(|&(b0, len, sums)| {
-                push(Params {
-                    n: len,
-                    base: b0,
-                    sums,
-                    ..base
-                })
-            })
-            .collect();
+        let levels: Vec<usize> = scan_params(&mlevels).into_iter().map(&mut push).collect();
         (g, levels, part_slots(MODE_MEMBERS, &mut push))
     } else {
         (0, Vec::new(), Vec::new())
