@@ -329,11 +329,15 @@ fn two_planes(
 }
 
 /// [`step`] of every query's segment (`q.seg`, radius `q.r`) from its members: the
-/// default [`Engine::fit_lines`], and the host's answer wherever an engine has none.
+/// default [`Engine::fit_lines`], and the host's answer wherever an engine has none. The
+/// segments are fitted in parallel; each step depends only on its own members, so the
+/// answers are the same for every thread count.
 pub fn steps(queries: &[Query], members: &[Vec<Member>], ask: &FitAsk<'_>) -> Vec<FitAnswer> {
+    use rayon::prelude::*;
     queries
-        .iter()
+        .par_iter()
         .zip(members)
+        .with_min_len(4)
         .map(|(q, m)| step(&q.seg, m, ask.attrs, q.r, ask.params))
         .collect()
 }
