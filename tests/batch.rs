@@ -2,11 +2,15 @@
 //! Slurm's variables), resumed with `--skip-existing`, and a failing scene that does not
 //! stop the others.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
+use common::{linegs, stderr, stdout};
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+/// `linegs-gpu args` with `env` set and no Slurm variables of the test's own environment.
 fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_linegs-gpu"));
+    let mut c = linegs();
     c.args(args);
     for k in [
         "SLURM_ARRAY_TASK_ID",
@@ -19,10 +23,6 @@ fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
         c.env(k, v);
     }
     c.output().unwrap()
-}
-
-fn text(b: &[u8]) -> String {
-    String::from_utf8_lossy(b).into_owned()
 }
 
 /// Three toy scenes in `dir/s1..s3` (the first with ground truth) and their manifest.
@@ -49,7 +49,7 @@ fn scenes(dir: &Path) -> PathBuf {
             ],
             &[],
         );
-        assert!(o.status.success(), "{}", text(&o.stderr));
+        assert!(o.status.success(), "{}", stderr(&o));
     }
     let m = dir.join("scenes.csv");
     std::fs::write(
@@ -81,7 +81,7 @@ fn two_shards_then_a_resume_give_every_scene_and_a_summary_with_a_mean() {
         &["batch", ms, "-o", os, "--shard", "0/2", "--backend", "cpu"],
         &[],
     );
-    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert!(o.status.success(), "{}", stderr(&o));
     assert!(out.join("first/report.json").is_file() && out.join("third/report.json").is_file());
     assert!(!out.join("second").exists());
     // the second shard from Slurm's array variables
@@ -92,24 +92,15 @@ fn two_shards_then_a_resume_give_every_scene_and_a_summary_with_a_mean() {
             ("SLURM_ARRAY_TASK_COUNT", "2"),
         ],
     );
-    assert!(o.status.success(), "{}", text(&o.stderr));
-    assert!(
-        text(&o.stdout).contains("shard 1/2 runs 1"),
-        "{}",
-        text(&o.stdout)
-    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("shard 1/2 runs 1"), "{}", stdout(&o));
     let before = std::fs::read(out.join("first/report.json")).unwrap();
     let o = run(
         &["batch", ms, "-o", os, "--skip-existing", "--backend", "cpu"],
         &[],
     );
-    assert!(o.status.success(), "{}", text(&o.stderr));
-    assert_eq!(
-        text(&o.stdout).matches("skipped").count(),
-        3,
-        "{}",
-        text(&o.stdout)
-    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(stdout(&o).matches("skipped").count(), 3, "{}", stdout(&o));
     assert_eq!(
         std::fs::read(out.join("first/report.json")).unwrap(),
         before
@@ -181,12 +172,8 @@ fn a_failing_scene_is_reported_and_the_others_finish() {
         ],
         &[],
     );
-    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
-    assert!(
-        text(&o.stderr).contains("1 of 3 scenes"),
-        "{}",
-        text(&o.stderr)
-    );
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("1 of 3 scenes"), "{}", stderr(&o));
     assert!(out.join("first/report.json").is_file() && out.join("third/report.json").is_file());
     let err = std::fs::read_to_string(out.join("second/error.txt")).unwrap();
     assert!(err.contains("l.txt"), "{err}");
@@ -207,10 +194,6 @@ fn a_failing_scene_is_reported_and_the_others_finish() {
         &[],
     );
     assert_eq!(o.status.code(), Some(2));
-    assert!(
-        text(&o.stderr).contains("bad.csv: line 1"),
-        "{}",
-        text(&o.stderr)
-    );
+    assert!(stderr(&o).contains("bad.csv: line 1"), "{}", stderr(&o));
     assert!(!o2.exists());
 }
