@@ -4,7 +4,8 @@
 // contiguous from the offset of the query's first item): first the ridge's position by
 // mean shift with a Gaussian kernel whose width shrinks from r/2 by 0.8 a step to
 // `h_min`, stopped once at `h_min` when a step moves less than 1e-5 r (at most FIT_STEPS
-// steps); then the kernel-weighted line fit of offset on axial position around it. The
+// steps); then the kernel-weighted line fit of offset on axial position around it (its
+// slope only where the axial spread is at least MIN_ELONGATION times the cross spread). The
 // same schedule and termination rule as the host's; in the segment's cross-section frame
 // in units of r (offsets are at most r, so f32 is ample). Each sum is a fixed-order tree
 // reduction in workgroup memory (no float atomics: repeat runs are identical). Decisions
@@ -157,15 +158,24 @@ fn main(
                 let w = exp(-dot(dq, dq) * k);
                 let dt = p.x - t0;
                 let wdt = w * dt;
-                acc2 = acc_add(acc2, vec4<f32>(wdt * dt, (dq.x - da.x) * wdt, (dq.y - da.y) * wdt, 0.0));
+                let dd = dq - da;
+                acc2 = acc_add(acc2, vec4<f32>(wdt * dt, dd.x * wdt, dd.y * wdt, w * dot(dd, dd)));
             }
             let s2 = reduce4(lane, acc2.s);
             out.t0 = t0;
             out.ax = c.x + da.x;
             out.ay = c.y + da.y;
             if s2.x > 1e-12 * s.x {
-                out.bx = s2.y / s2.x;
-                out.by = s2.z / s2.x;
+                // The ridge turns only where the axial spread is MIN_ELONGATION times the
+                // cross spread or more (`weighted_line`); within f32 rounding of that
+                // ratio, the host decides.
+                let lim = MIN_ELONGATION * s2.w;
+                if abs(s2.x - lim) <= 1e-4 * s2.x {
+                    status = FIT_HOST;
+                } else if s2.x > lim {
+                    out.bx = s2.y / s2.x;
+                    out.by = s2.z / s2.x;
+                }
             } else {
                 // The members' axial spread is within f32 rounding of none.
                 status = FIT_SPREAD;

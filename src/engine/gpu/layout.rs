@@ -287,6 +287,11 @@ pub fn prelude() -> String {
     for (name, v) in consts {
         s += &format!("const {name}: u32 = {v}u;\n");
     }
+    // The fit's elongation rule, as the host's f64 constant rounded to f32.
+    s += &format!(
+        "const MIN_ELONGATION: f32 = {:?};\n",
+        crate::refine::fit::MIN_ELONGATION as f32
+    );
     for st in [
         GQuery::WGSL,
         Item::WGSL,
