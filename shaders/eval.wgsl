@@ -10,9 +10,9 @@
 //     into the item's slot, and the members of the cut band flagged as candidates.
 //   MODE_MEMBERS: after a stats pass (members.wgsl scans its counts), the sorted indices
 //     of the item's sure members into the member list (`aux`) from the item's offset
-//     (`partials[id].first`) on (with `params.fit`, each member's axial position and
-//     offset vector instead, 4 words); an item that finds a different number than the stats
-//     pass counted raises ctl[CTL_MEMBERS_BAD] (the host then answers the sub-batch).
+//     (`partials[id].first`) on (the host's lists, or the fit kernel's input); an item
+//     that finds a different number than the stats pass counted raises
+//     ctl[CTL_MEMBERS_BAD] (the host then answers the sub-batch).
 // Loop bound: min(count, CHUNK) points per invocation (then at most 8 words), far below
 // the 65,535 iterations after which lavapipe silently stops an invocation.
 
@@ -104,15 +104,7 @@ fn main(
         } else if mode == MODE_MEMBERS {
             let at = slot0 + count;
             if count < expect && at < params.member_cap {
-                if params.fit != 0u {
-                    // The fit's input: t1 = u - lo and the offset vector (cell units).
-                    atomicStore(&aux[4u * at], bitcast<u32>(t.u - g.lo));
-                    atomicStore(&aux[4u * at + 1u], bitcast<u32>(t.v.x));
-                    atomicStore(&aux[4u * at + 2u], bitcast<u32>(t.v.y));
-                    atomicStore(&aux[4u * at + 3u], bitcast<u32>(t.v.z));
-                } else {
-                    atomicStore(&aux[at], it.start + i);
-                }
+                atomicStore(&aux[at], it.start + i);
             }
             count += 1u;
         } else {

@@ -1,32 +1,37 @@
-// The edge fit's ridge (src/refine/fit.rs `ridge`, with unit point weights), one
-// workgroup of FIT_WG lanes per query, over the query's sure members as the member pass
-// of eval.wgsl left them on the device (axial position and offset vector in cell units,
-// contiguous from the offset of the query's first item): first the ridge's position by
-// mean shift with a Gaussian kernel whose width shrinks from r/2 by 0.8 a step to
-// `h_min`, stopped once at `h_min` when a step moves less than 1e-5 r (at most FIT_STEPS
-// steps); then the kernel-weighted line fit of offset on axial position around it (its
-// slope only where the axial spread is at least MIN_ELONGATION times the cross spread). The
-// same schedule and termination rule as the host's; in the segment's cross-section frame
-// in units of r (offsets are at most r, so f32 is ample). Each sum is a fixed-order tree
-// reduction in workgroup memory (no float atomics: repeat runs are identical). Decisions
-// within f32 rounding of their threshold (the stop rule, a degenerate axial spread, a
-// vanishing kernel weight) and queries with more than MAX_FIT_MEMBERS members are left to
-// the host (FIT_HOST), which also refits the queries with flagged boundary members.
+// The edge fit's ridge (src/refine/fit.rs `ridge` and `weighted_line`, with unit point
+// weights), one workgroup of FIT_WG lanes per query, in f64 (`SHADER_F64`; the engine
+// compiles this kernel only where the adapter has it), over the query's sure members as
+// the member pass of eval.wgsl listed them on the device (their sorted indices, contiguous
+// from the offset of the query's first item). Each member's axial position and offset are
+// the host's (`Cylinder::test`, then the segment's basis), computed in f64 from the
+// point's own f32 coordinates (`world`), so the answer agrees with the host's to f64
+// rounding: only the order of the sums differs. First the ridge's position by mean shift
+// with a Gaussian kernel whose width shrinks from r/2 by 0.8 a step to `h_min`, stopped
+// once at `h_min` when a step moves less than 1e-5 r (at most FIT_STEPS steps); then the
+// kernel-weighted line fit of offset on axial position around it, its slope only where
+// the axial spread is at least MIN_ELONGATION times the cross spread. Each sum is a
+// fixed-order tree reduction in workgroup memory (no float atomics: repeat runs are
+// identical). Decisions within 1e-9 (relative) of their threshold (the stop rule, the
+// elongation rule) and degenerate sums, which f64 rounding could turn, and queries with
+// more than MAX_FIT_MEMBERS members are left to the host (FIT_HOST), which also refits
+// the queries with flagged boundary members.
 // Loop bound: (FIT_STEPS + 2) passes of at most MAX_FIT_MEMBERS / FIT_WG member steps and
-// log2(FIT_WG) reduction steps: 26,724 iterations, below lavapipe's 65,535.
+// log2(FIT_WG) reduction steps: 26,724 iterations, below lavapipe's 65,535 (`exp64` has
+// no loop).
 
 @group(0) @binding(1) var<storage, read> fitq: array<FitQuery>;
 @group(0) @binding(2) var<storage, read> scan: array<u32>;
 @group(0) @binding(3) var<storage, read> partials: array<Partial>;
 @group(0) @binding(4) var<storage, read> results: array<QResult>;
-@group(0) @binding(5) var<storage, read> mdata: array<vec4<f32>>;
-@group(0) @binding(6) var<storage, read_write> fitout: array<FitOut>;
+@group(0) @binding(5) var<storage, read> mlist: array<u32>;
+@group(0) @binding(6) var<storage, read> world: array<f32>;
+@group(0) @binding(7) var<storage, read_write> fitout: array<FitOut>;
 
-var<workgroup> red: array<vec4<f32>, FIT_WG>;
-var<workgroup> total: vec4<f32>;
+var<workgroup> red: array<vec4<f64>, FIT_WG>;
+var<workgroup> total: vec4<f64>;
 
 // The workgroup's sum of every lane's `x`, in a fixed tree order, the same in every lane.
-fn reduce4(lane: u32, x: vec4<f32>) -> vec4<f32> {
+fn reduce4(lane: u32, x: vec4<f64>) -> vec4<f64> {
     red[lane] = x;
     workgroupBarrier();
     for (var s = FIT_WG / 2u; s > 0u; s = s / 2u) {
@@ -42,24 +47,61 @@ fn reduce4(lane: u32, x: vec4<f32>) -> vec4<f32> {
     return t;
 }
 
-// Member j of the query: (t, q.x, q.y) in units of r, in the frame e1, e2, with t from
-// the segment's midpoint.
-fn member(at: u32, e1: vec3<f32>, e2: vec3<f32>, inv_r: f32, mid: f32) -> vec3<f32> {
-    let m = mdata[at];
-    let p = vec3<f32>(m.x, dot(m.yzw, e1), dot(m.yzw, e2)) * inv_r;
-    return vec3<f32>(p.x - mid, p.y, p.z);
+// exp(x) for x <= 0 to about 1 ulp (0 below -708, where the host's is subnormal or 0):
+// x = k ln2 + f with |f| <= ln2 / 2 (ln2 in two parts, so f is exact to f64), e^f by its
+// Taylor series to f^14 (truncation below 1e-17), times 2^k built from exact powers of
+// two (no loop: lavapipe counts loop iterations).
+fn exp64(x: f64) -> f64 {
+    if !(x > -708.0lf) {
+        return 0.0lf;
+    }
+    let k = floor(x * 1.4426950408889634lf + 0.5lf);
+    let f = (x - k * 0.6931471803691238lf) - k * 1.9082149292705877e-10lf;
+    var p = 1.0lf / 87178291200.0lf;
+    p = p * f + 1.0lf / 6227020800.0lf;
+    p = p * f + 1.0lf / 479001600.0lf;
+    p = p * f + 1.0lf / 39916800.0lf;
+    p = p * f + 1.0lf / 3628800.0lf;
+    p = p * f + 1.0lf / 362880.0lf;
+    p = p * f + 1.0lf / 40320.0lf;
+    p = p * f + 1.0lf / 5040.0lf;
+    p = p * f + 1.0lf / 720.0lf;
+    p = p * f + 1.0lf / 120.0lf;
+    p = p * f + 1.0lf / 24.0lf;
+    p = p * f + 1.0lf / 6.0lf;
+    p = p * f + 0.5lf;
+    p = p * f + 1.0lf;
+    p = p * f + 1.0lf;
+    // 2^k for k in [-1022, 0]: the bits of -k, each an exact power of two.
+    let n = u32(-k);
+    var s = 1.0lf;
+    s = select(s, s * 0.5lf, (n & 1u) != 0u);
+    s = select(s, s * 0.25lf, (n & 2u) != 0u);
+    s = select(s, s * 0.0625lf, (n & 4u) != 0u);
+    s = select(s, s * 0.00390625lf, (n & 8u) != 0u);
+    s = select(s, s * 1.52587890625e-5lf, (n & 16u) != 0u);
+    s = select(s, s * 2.3283064365386963e-10lf, (n & 32u) != 0u);
+    s = select(s, s * 5.421010862427522e-20lf, (n & 64u) != 0u);
+    s = select(s, s * 2.938735877055719e-39lf, (n & 128u) != 0u);
+    s = select(s, s * 8.636168555094445e-78lf, (n & 256u) != 0u);
+    s = select(s, s * 7.458340731200207e-155lf, (n & 512u) != 0u);
+    return p * s;
 }
 
-// Kahan-compensated running sum of vec4s (a lane's share of the members).
-struct Acc {
-    s: vec4<f32>,
-    c: vec4<f32>,
+// Member `at` of the list: its axial position t from P1 and its offset in the basis
+// (e1, e2), as the host computes them.
+struct Pt {
+    t: f64,
+    q: vec2<f64>,
 }
 
-fn acc_add(a: Acc, x: vec4<f32>) -> Acc {
-    let y = x - a.c;
-    let t = a.s + y;
-    return Acc(t, (t - a.s) - y);
+fn member(at: u32, p1: vec3<f64>, d: vec3<f64>, e1: vec3<f64>, e2: vec3<f64>) -> Pt {
+    let g = mlist[at];
+    let p = vec3<f64>(f64(world[3u * g]), f64(world[3u * g + 1u]), f64(world[3u * g + 2u]));
+    let w = p - p1;
+    let t = dot(w, d);
+    let v = w - d * t;
+    return Pt(t, vec2<f64>(dot(v, e1), dot(v, e2)));
 }
 
 @compute @workgroup_size(64)
@@ -91,96 +133,88 @@ fn main(
         return;
     }
     let first = partials[scan[qi]].first;
-    let e1 = vec3<f32>(fq.e1x, fq.e1y, fq.e1z);
-    let e2 = vec3<f32>(fq.e2x, fq.e2y, fq.e2z);
-    let inv_r = fq.inv_r;
-    let mid = fq.mid;
+    let p1 = vec3<f64>(fq.p1x, fq.p1y, fq.p1z);
+    let d = vec3<f64>(fq.dx, fq.dy, fq.dz);
+    let e1 = vec3<f64>(fq.e1x, fq.e1y, fq.e1z);
+    let e2 = vec3<f64>(fq.e2x, fq.e2y, fq.e2z);
+    let r = fq.r;
     let h_min = fq.h_min;
-    var h = max(0.5, h_min);
-    var c = vec2<f32>(0.0);
+    var h = max(0.5lf * r, h_min);
+    var c = vec2<f64>(0.0lf);
     var status = FIT_OK;
     var steps = 0u;
-    // Sums are taken of the offsets from the current centre (small near the mode), so
-    // that the step, and the stop rule on it, carry f32 rounding of the step's size.
+    let stop = 1e-5lf * r;
     for (var it = 0u; it < FIT_STEPS; it++) {
-        let k = 1.0 / (2.0 * h * h);
-        var acc = Acc(vec4<f32>(0.0), vec4<f32>(0.0));
+        let k2 = 2.0lf * h * h;
+        var acc = vec4<f64>(0.0lf);
         for (var j = lane; j < n; j += FIT_WG) {
-            let p = member(first + j, e1, e2, inv_r, mid);
-            let dq = p.yz - c;
-            let w = exp(-dot(dq, dq) * k);
-            acc = acc_add(acc, vec4<f32>(w, w * dq.x, w * dq.y, 0.0));
+            let m = member(first + j, p1, d, e1, e2);
+            let dq = m.q - c;
+            let w = exp64(-dot(dq, dq) / k2);
+            acc = acc + vec4<f64>(w, m.q.x * w, m.q.y * w, 0.0lf);
         }
-        let s = reduce4(lane, acc.s);
+        let s = reduce4(lane, acc);
         steps = it + 1u;
-        if !(s.x > 1e-20) {
-            // No weight left, or so little that f32 may differ from f64: the host.
-            status = FIT_HOST;
+        if !(s.x > 1e-250lf) {
+            // No weight (the host answers "unclear"), or so little that rounding decides.
+            status = select(FIT_HOST, FIT_NONE, s.x == 0.0lf);
             break;
         }
-        let step = s.yz / s.x;
-        let moved = length(step);
-        c = c + step;
+        let next = s.yz / s.x;
+        let moved = length(next - c);
+        c = next;
         if h > h_min {
-            h = max(h * 0.8, h_min);
+            h = max(h * 0.8lf, h_min);
         } else {
-            if abs(moved - 1e-5) < 1e-7 {
+            if abs(moved - stop) <= 1e-9lf * stop {
                 status = FIT_HOST;
                 break;
             }
-            if moved < 1e-5 {
+            if moved < stop {
                 break;
             }
         }
     }
     out.steps = steps;
+    out.ax = c.x;
+    out.ay = c.y;
     if status == FIT_OK {
-        let k = 1.0 / (2.0 * h_min * h_min);
-        var acc = Acc(vec4<f32>(0.0), vec4<f32>(0.0));
+        let k2 = 2.0lf * h_min * h_min;
+        var acc = vec4<f64>(0.0lf);
         for (var j = lane; j < n; j += FIT_WG) {
-            let p = member(first + j, e1, e2, inv_r, mid);
-            let dq = p.yz - c;
-            let w = exp(-dot(dq, dq) * k);
-            acc = acc_add(acc, vec4<f32>(w, w * p.x, w * dq.x, w * dq.y));
+            let m = member(first + j, p1, d, e1, e2);
+            let dq = m.q - c;
+            let w = exp64(-dot(dq, dq) / k2);
+            acc = acc + vec4<f64>(w, m.t * w, m.q.x * w, m.q.y * w);
         }
-        let s = reduce4(lane, acc.s);
+        let s = reduce4(lane, acc);
         out.weight = s.x;
-        out.ax = c.x;
-        out.ay = c.y;
-        if s.x > 1e-20 {
+        if s.x > 1e-250lf {
             let t0 = s.y / s.x;
-            // a - c: the weighted mean offset from the centre.
-            let da = s.zw / s.x;
-            var acc2 = Acc(vec4<f32>(0.0), vec4<f32>(0.0));
+            let a = s.zw / s.x;
+            var acc2 = vec4<f64>(0.0lf);
             for (var j = lane; j < n; j += FIT_WG) {
-                let p = member(first + j, e1, e2, inv_r, mid);
-                let dq = p.yz - c;
-                let w = exp(-dot(dq, dq) * k);
-                let dt = p.x - t0;
+                let m = member(first + j, p1, d, e1, e2);
+                let dq = m.q - c;
+                let w = exp64(-dot(dq, dq) / k2);
+                let dt = m.t - t0;
+                let da = m.q - a;
                 let wdt = w * dt;
-                let dd = dq - da;
-                acc2 = acc_add(acc2, vec4<f32>(wdt * dt, dd.x * wdt, dd.y * wdt, w * dot(dd, dd)));
+                acc2 = acc2 + vec4<f64>(wdt * dt, da.x * wdt, da.y * wdt, w * dot(da, da));
             }
-            let s2 = reduce4(lane, acc2.s);
+            let s2 = reduce4(lane, acc2);
             out.t0 = t0;
-            out.ax = c.x + da.x;
-            out.ay = c.y + da.y;
-            if s2.x > 1e-12 * s.x {
-                // The ridge turns only where the axial spread is MIN_ELONGATION times the
-                // cross spread or more (`weighted_line`); within f32 rounding of that
-                // ratio, the host decides.
-                let lim = MIN_ELONGATION * s2.w;
-                if abs(s2.x - lim) <= 1e-4 * s2.x {
-                    status = FIT_HOST;
-                } else if s2.x > lim {
-                    out.bx = s2.y / s2.x;
-                    out.by = s2.z / s2.x;
-                }
-            } else {
-                // The members' axial spread is within f32 rounding of none.
-                status = FIT_SPREAD;
+            out.ax = a.x;
+            out.ay = a.y;
+            let lim = MIN_ELONGATION * s2.w;
+            if !(s2.x > 1e-280lf) || abs(s2.x - lim) <= 1e-9lf * s2.x {
+                // A spread within rounding of none, or of the elongation rule: the host.
+                status = FIT_HOST;
+            } else if s2.x >= lim {
+                out.bx = s2.y / s2.x;
+                out.by = s2.z / s2.x;
             }
-        } else if s.x != 0.0 {
+        } else if s.x != 0.0lf {
             status = FIT_HOST;
         }
     }

@@ -2,7 +2,7 @@
 //! not in a user's run. And every struct the host and the kernels share has, in naga's
 //! reflection of each kernel, the offsets and size of the Rust struct the host writes.
 
-use linegs_gpu::engine::gpu::{common_wgsl, kernel_source, layout};
+use linegs_gpu::engine::gpu::{common_wgsl, fit_source, kernel_source, layout};
 use std::path::Path;
 
 /// A kernel as the engine loads it: the generated prelude and `common.wgsl` first.
@@ -10,9 +10,17 @@ fn source(path: &Path) -> Result<String, String> {
     let src = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(if path.file_name().is_some_and(|n| n == "common.wgsl") {
         common_wgsl()
+    } else if is_fit(path) {
+        fit_source()
     } else {
         kernel_source(&src)
     })
+}
+
+/// The fit kernel runs in f64: the one kernel that needs a capability (`SHADER_F64`), and
+/// the one with the fit's shared structs.
+fn is_fit(path: &Path) -> bool {
+    path.file_name().is_some_and(|n| n == "fit.wgsl")
 }
 
 fn parse(src: &str, path: &Path) -> Result<naga::Module, String> {
@@ -25,8 +33,12 @@ fn validate(path: &Path) -> Result<naga::valid::ModuleInfo, String> {
     let module = parse(&src, path)?;
     naga::valid::Validator::new(
         naga::valid::ValidationFlags::all(),
-        // No subgroups, no f64, nothing beyond core WebGPU.
-        naga::valid::Capabilities::empty(),
+        // No subgroups, nothing beyond core WebGPU; f64 in the fit kernel only.
+        if is_fit(path) {
+            naga::valid::Capabilities::FLOAT64
+        } else {
+            naga::valid::Capabilities::empty()
+        },
     )
     .validate(&module)
     .map_err(|e| e.emit_to_string_with_path(&src, path.to_string_lossy().as_ref()))
@@ -100,10 +112,15 @@ fn reflect(module: &naga::Module, name: &str) -> Option<(usize, Vec<(String, usi
     }
 }
 
-/// Compares every shared struct in `module` with the Rust layout; returns the mismatches.
-fn layout_mismatches(module: &naga::Module) -> Vec<String> {
+/// Compares every shared struct in `module` with the Rust layout (with `fit`, the fit
+/// kernel's too); returns the mismatches.
+fn layout_mismatches(module: &naga::Module, fit: bool) -> Vec<String> {
     let mut bad = Vec::new();
-    for (name, size, fields) in layout::layouts() {
+    let mut all = layout::layouts();
+    if fit {
+        all.extend(layout::fit_layouts());
+    }
+    for (name, size, fields) in all {
         let want: Vec<(String, usize)> = fields.iter().map(|(f, o)| (f.to_string(), *o)).collect();
         match reflect(module, name) {
             Some((s, got)) if s == size && got == want => {}
@@ -120,7 +137,7 @@ fn layout_mismatches(module: &naga::Module) -> Vec<String> {
 fn every_kernel_lays_out_the_shared_structs_as_the_host_writes_them() {
     for path in kernels() {
         let module = parse(&source(&path).unwrap(), &path).unwrap();
-        let bad = layout_mismatches(&module);
+        let bad = layout_mismatches(&module, is_fit(&path));
         assert!(bad.is_empty(), "{}: {bad:#?}", path.display());
     }
 }
@@ -136,7 +153,7 @@ fn the_layout_check_catches_a_drifted_struct() {
     assert_ne!(src, common_wgsl());
     let src = src.replace("q.fx, q.fy, q.fz", "q.f.x, q.f.y, q.f.z");
     let module = parse(&src, Path::new("drifted.wgsl")).unwrap();
-    let bad = layout_mismatches(&module);
+    let bad = layout_mismatches(&module, false);
     assert_eq!(bad.len(), 1, "{bad:?}");
     assert!(bad[0].starts_with("GQuery"), "{bad:?}");
 }

@@ -212,6 +212,12 @@ fn print_case(c: &Case) {
                 r.backend, c.cpu_batches, c.batches, c.cpu_queries
             );
         }
+        if let Some(c) = r.engine_counters.filter(|c| c.device_fits > 0) {
+            println!(
+                "  {}: {} edge-fit steps fitted on the device (f64)",
+                r.backend, c.device_fits
+            );
+        }
     }
     if let Some(x) = c.gpu_over_cpu {
         println!("gpu / cpu total time: {x:.2}");

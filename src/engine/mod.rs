@@ -217,6 +217,10 @@ pub struct Counters {
     pub cpu_batches: u64,
     #[serde(default)]
     pub cpu_queries: u64,
+    /// GPU engine: edge-fit steps (one per segment and iteration) whose ridge the device
+    /// fitted (`GpuOptions::fit`); the others took the host's step. 0 for the CPU engine.
+    #[serde(default)]
+    pub device_fits: u64,
 }
 
 #[derive(thiserror::Error, Debug)]

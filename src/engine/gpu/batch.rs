@@ -94,7 +94,8 @@ pub struct Kernels {
     reduce: wgpu::ComputePipeline,
     gather: wgpu::ComputePipeline,
     scatter: wgpu::ComputePipeline,
-    fit: wgpu::ComputePipeline,
+    /// The edge fit's ridge, in f64: only on a device with `SHADER_F64`.
+    pub fit: Option<wgpu::ComputePipeline>,
 }
 
 impl Kernels {
@@ -121,7 +122,9 @@ impl Kernels {
             ),
             gather: k("members gather", members, "gather"),
             scatter: k("members scatter", members, "scatter"),
-            fit: k("fit", include_str!("../../../shaders/fit.wgsl"), "main"),
+            fit: ctx
+                .f64
+                .then(|| ctx.pipeline("fit", &super::fit_source(), "main")),
         }
     }
 }
@@ -155,13 +158,22 @@ pub struct Statics {
     cell_bytes: u64,
     pub parts: Vec<(wgpu::Buffer, u64)>,
     dims: [u32; 3],
+    /// The sorted centers' own f32 coordinates (3 words each), for the fit kernel's f64
+    /// geometry; uploaded only for the device fit, and only when one binding holds them.
+    pub world: Option<(wgpu::Buffer, u64)>,
 }
 
 impl Statics {
     /// Uploads the cell table and the sorted centers, each as its offset from its own
     /// cell's corner in cell units (computed in f64, so the f32 keeps ~1e-7 of a cell) and
-    /// its cell's x index.
-    pub fn upload(ctx: &Context, grid: &Grid, lim: &Limits) -> Result<Statics, EngineError> {
+    /// its cell's x index; with `world`, also the centers' own coordinates where one
+    /// binding holds them.
+    pub fn upload(
+        ctx: &Context,
+        grid: &Grid,
+        lim: &Limits,
+        world: bool,
+    ) -> Result<Statics, EngineError> {
         let cell_bytes = (grid.cell_start.len() * 4) as u64;
         if cell_bytes > lim.device_binding {
             return Err(EngineError::Gpu(format!(
@@ -204,11 +216,19 @@ impl Statics {
             if parts.is_empty() {
                 parts.push((ctx.buffer("points", 16, storage), 16));
             }
+            let world_bytes = (grid.points.len() * 12).max(12) as u64;
+            let world = (world && world_bytes <= lim.device_binding).then(|| {
+                let buf = ctx.buffer("world", world_bytes, storage);
+                ctx.queue
+                    .write_buffer(&buf, 0, bytemuck::cast_slice(&grid.points));
+                (buf, world_bytes)
+            });
             ctx.queue.submit([]);
             Statics {
                 cell_start,
                 cell_bytes,
                 parts,
+                world,
                 dims: grid.dims,
             }
         })
@@ -458,12 +478,7 @@ pub fn submit(
         .collect();
     let mut waited = 0.0;
     let mut rerun = false;
-    // A fit batch's entries are four times as large.
-    let member_max = if kind == Kind::Fit {
-        (lim.member_max / 4).max(1)
-    } else {
-        lim.member_max
-    };
+    let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
     loop {
         let (out, w, total, n_flags, n_members) =
@@ -542,8 +557,7 @@ fn attempt(
     // the device); entries past the total do not change the offsets before it.
     let (mlevels, _, mscan_len) = scan_levels(item_cap.min(member_scan_max(lim)));
     let mscan_bytes = if members { mscan_len as u64 * 4 } else { 4 };
-    // A fit batch's entries are 4 words: the member's t and offset vector.
-    let mem_bytes = member_cap as u64 * if fitting { 16 } else { 4 };
+    let mem_bytes = member_cap as u64 * 4;
     let fitq_bytes = n as u64 * std::mem::size_of::<FitQuery>() as u64;
     let fitout_bytes = n as u64 * std::mem::size_of::<FitOut>() as u64;
 
@@ -570,7 +584,6 @@ fn attempt(
         total: total_idx,
         cover: matches!(kind, Kind::Stats { cover: true, .. }) as u32,
         member_cap,
-        fit: fitting as u32,
         ..Default::default()
     };
     let mut slots: Vec<Params> = Vec::new();
@@ -855,10 +868,12 @@ fn attempt(
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
         }
-        if let (Some(fitq), Some(fitout)) = (&fitq, &fitout) {
+        if let (Some(fitq), Some(fitout), Some(fit), Some((world, world_bytes))) =
+            (&fitq, &fitout, &k.fit, &st.world)
+        {
             // One workgroup per query, after the reduction has counted its members.
             let g = bind(
-                &k.fit,
+                fit,
                 vec![
                     slot(&params, fit_slot),
                     h(fitq, fitq_bytes),
@@ -866,11 +881,12 @@ fn attempt(
                     h(&partials, part_bytes),
                     h(&results, res_bytes),
                     h(&aux, mem_bytes),
+                    h(world, *world_bytes),
                     h(fitout, fitout_bytes),
                 ],
             );
             let groups = device::tiles(n as u64 * FIT_WG as u64, FIT_WG as u64, lim.max_x);
-            pass.set_pipeline(&k.fit);
+            pass.set_pipeline(fit);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups(groups.0, groups.1, 1);
         }

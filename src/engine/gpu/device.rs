@@ -11,6 +11,9 @@ pub struct Context {
     pub queue: wgpu::Queue,
     pub info: wgpu::AdapterInfo,
     pub limits: wgpu::Limits,
+    /// Whether the device runs f64 in shaders (`SHADER_F64`, requested where the adapter
+    /// has it): the edge fit's kernel needs it.
+    pub f64: bool,
     /// Errors that escaped every error scope, and device loss; checked after each batch
     /// so that they come back as `EngineError::Gpu` instead of the default handler's panic.
     stray: Arc<Mutex<Option<String>>>,
@@ -91,9 +94,14 @@ impl Context {
                 adapter.get_info().name
             )));
         }
+        let f64 = adapter.features().contains(wgpu::Features::SHADER_F64);
         let desc = wgpu::DeviceDescriptor {
             label: Some("linegs"),
-            required_features: wgpu::Features::empty(),
+            required_features: if f64 {
+                wgpu::Features::SHADER_F64
+            } else {
+                wgpu::Features::empty()
+            },
             required_limits: limits.clone(),
             ..Default::default()
         };
@@ -115,6 +123,7 @@ impl Context {
             queue,
             info: adapter.get_info(),
             limits,
+            f64,
             stray,
         })
     }

@@ -62,15 +62,12 @@ pub const FIT_STEPS: u32 = 100;
 /// 65,535.
 pub const MAX_FIT_MEMBERS: u32 = 16_384;
 /// `FitOut::status`: the ridge found (`t0`, `a`, `b`, `weight`); no weight left (no
-/// members, or the kernel lost them all: "unclear"); or a decision too close to f32's
-/// rounding (or a query too large) for the device: the host fits the query.
+/// members, or the kernel lost them all: "unclear"); or a decision too close to its
+/// threshold for rounding to be sure of (or a query too large) for the device: the host
+/// fits the query.
 pub const FIT_OK: u32 = 0;
 pub const FIT_NONE: u32 = 1;
 pub const FIT_HOST: u32 = 2;
-/// `FitOut::status`: the line found, but its slope rests on an axial spread within f32
-/// rounding of none: the host fits the query unless the weight says "unclear" anyway.
-pub const FIT_SPREAD: u32 = 3;
-
 /// Defines a `#[repr(C)]` Pod struct of 4-byte fields and its WGSL text (`Name::WGSL`),
 /// with `Name::FIELDS` (name, byte offset) for the layout test.
 macro_rules! shared {
@@ -211,9 +208,7 @@ shared! {
         cover: u32 => "u32",
         /// `MODE_MEMBERS`: capacity of the member list (entries).
         member_cap: u32 => "u32",
-        /// `MODE_MEMBERS`: 1 when each entry is the member's axial position and offset
-        /// vector (4 words, cell units: the fit's input) instead of its sorted index.
-        fit: u32 => "u32",
+        pad1: u32 => "u32",
         pad2: u32 => "u32",
         pad3: u32 => "u32",
         pad4: u32 => "u32",
@@ -221,31 +216,31 @@ shared! {
 }
 
 shared! {
-    /// One query's frame for the fit kernel: the cross-section basis `e1`, `e2` of its
-    /// segment (src/refine/fit.rs `basis`), `cell / r` (cell units to units of r), the
-    /// final kernel width `fit_bandwidth` (units of r) and the segment's half length
-    /// (units of r: axial positions are taken from the midpoint, for precision).
+    /// One query's segment for the fit kernel, in scene units and f64 (the kernel runs in
+    /// f64 with `SHADER_F64`, the host's arithmetic): `P1`, the unit direction `d`
+    /// (`Segment::dir`), the cross-section basis `e1`, `e2` (src/refine/fit.rs `basis`),
+    /// the radius and the final kernel width `fit_bandwidth x r`.
     struct FitQuery {
-        e1x: f32 => "f32", e1y: f32 => "f32", e1z: f32 => "f32",
-        e2x: f32 => "f32", e2y: f32 => "f32", e2z: f32 => "f32",
-        inv_r: f32 => "f32",
-        h_min: f32 => "f32",
-        mid: f32 => "f32",
+        p1x: f64 => "f64", p1y: f64 => "f64", p1z: f64 => "f64",
+        dx: f64 => "f64", dy: f64 => "f64", dz: f64 => "f64",
+        e1x: f64 => "f64", e1y: f64 => "f64", e1z: f64 => "f64",
+        e2x: f64 => "f64", e2y: f64 => "f64", e2z: f64 => "f64",
+        r: f64 => "f64",
+        h_min: f64 => "f64",
     }
 }
 
 shared! {
-    /// One query's ridge from the fit kernel, in units of r (the slope `b` is unitless):
-    /// the line `a + b (t - t0)` (`t0` from the segment's midpoint) and the weight under
-    /// the final kernel.
+    /// One query's ridge from the fit kernel, in scene units and f64: the line
+    /// `a + b (t - t0)` (`t` from `P1`) and the weight under the final kernel.
     struct FitOut {
         status: u32 => "u32",
         /// Mean-shift steps run.
         steps: u32 => "u32",
-        weight: f32 => "f32",
-        t0: f32 => "f32",
-        ax: f32 => "f32", ay: f32 => "f32",
-        bx: f32 => "f32", by: f32 => "f32",
+        weight: f64 => "f64",
+        t0: f64 => "f64",
+        ax: f64 => "f64", ay: f64 => "f64",
+        bx: f64 => "f64", by: f64 => "f64",
     }
 }
 
@@ -281,17 +276,11 @@ pub fn prelude() -> String {
         ("FIT_OK", FIT_OK),
         ("FIT_NONE", FIT_NONE),
         ("FIT_HOST", FIT_HOST),
-        ("FIT_SPREAD", FIT_SPREAD),
     ];
     let mut s = String::from("// Generated from src/engine/gpu/layout.rs: do not edit here.\n");
     for (name, v) in consts {
         s += &format!("const {name}: u32 = {v}u;\n");
     }
-    // The fit's elongation rule, as the host's f64 constant rounded to f32.
-    s += &format!(
-        "const MIN_ELONGATION: f32 = {:?};\n",
-        crate::refine::fit::MIN_ELONGATION as f32
-    );
     for st in [
         GQuery::WGSL,
         Item::WGSL,
@@ -299,12 +288,23 @@ pub fn prelude() -> String {
         QResult::WGSL,
         Plan::WGSL,
         Params::WGSL,
-        FitQuery::WGSL,
-        FitOut::WGSL,
     ] {
         s += st;
     }
     s
+}
+
+/// The fit kernel's own prelude, after the common one: its f64 structs and constants
+/// (a module that declares an f64 type needs `SHADER_F64`, so the other kernels do not
+/// carry them).
+pub fn fit_prelude() -> String {
+    format!(
+        "// Generated from src/engine/gpu/layout.rs: do not edit here.\n\
+         const MIN_ELONGATION: f64 = {:?}lf;\n{}{}",
+        crate::refine::fit::MIN_ELONGATION,
+        FitQuery::WGSL,
+        FitOut::WGSL
+    )
 }
 
 /// (name, size, fields with their offsets) of one shared struct.
@@ -319,6 +319,12 @@ pub fn layouts() -> Vec<Layout> {
         ("QResult", std::mem::size_of::<QResult>(), QResult::FIELDS),
         ("Plan", std::mem::size_of::<Plan>(), Plan::FIELDS),
         ("Params", std::mem::size_of::<Params>(), Params::FIELDS),
+    ]
+}
+
+/// The fit kernel's shared structs (in [`fit_prelude`]), for the layout test.
+pub fn fit_layouts() -> Vec<Layout> {
+    vec![
         (
             "FitQuery",
             std::mem::size_of::<FitQuery>(),

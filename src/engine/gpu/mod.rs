@@ -60,12 +60,9 @@ pub struct GpuOptions {
     pub max_workgroups_x: u32,
     /// Most queries per sub-batch (bounds the per-query buffers).
     pub max_queries: usize,
-    /// `--fit edge`'s ridge on the device (`fit.wgsl`, f32) instead of the host's step over
-    /// the device's member lists. Off by default: it answers like the host to ~1e-7 r,
-    /// but the later steps turn that into a different decision for a few segments in a
-    /// thousand (see the README's GPU engine section). `LINEGS_GPU_DEVICE_FIT=1` turns it
-    /// on for the commands.
-    pub device_fit: bool,
+    /// Where `--fit edge`'s ridge runs: on the device (`fit.wgsl`, in f64, over the
+    /// member lists the batch leaves there) or as the host's step over member lists.
+    pub fit: FitOn,
     /// Batches of at most this many queries are answered by the CPU engine's code over
     /// the same grid, on the host: a device round trip (submit, wait, read back) costs more
     /// than such a batch. 0 (the default here, so that tests exercise the kernels with
@@ -91,6 +88,23 @@ pub enum MembersOn {
     Auto,
 }
 
+/// Where the GPU engine runs the edge fit's ridge.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FitOn {
+    /// On the device where it can: an adapter with f64 in shaders (`SHADER_F64`: Vulkan
+    /// on NVIDIA, AMD, lavapipe; not Metal), the plain ridge (no normals, no opacity
+    /// weights) and the Gaussians' coordinates within one storage binding; the host's step
+    /// otherwise. The default here, so that tests exercise the kernel.
+    #[default]
+    Device,
+    /// The host's step over the member lists ([`GpuOptions::members`]).
+    Host,
+    /// The device on a hardware adapter, the host on a software one (on lavapipe the f64
+    /// kernel runs on the host's own cores, slower than the host's step). The commands'
+    /// choice.
+    Auto,
+}
+
 /// The commands' [`GpuOptions::small_batch`]: the tail rounds of merge/join and crop ask
 /// a few queries at a time, which the host answers in microseconds; a device round trip
 /// costs a fraction of a millisecond on a real GPU (about one on lavapipe).
@@ -99,14 +113,19 @@ pub const SMALL_BATCH: usize = 16;
 impl GpuOptions {
     /// The options the commands use: the defaults, with batches of at most
     /// [`SMALL_BATCH`] queries on the host (`LINEGS_GPU_SMALL_BATCH=N` sets another bound;
-    /// 0 sends every batch to the device), and the device fit with
-    /// `LINEGS_GPU_DEVICE_FIT=1`.
+    /// 0 sends every batch to the device), member lists and the edge fit by adapter
+    /// ([`MembersOn::Auto`], [`FitOn::Auto`]; `LINEGS_GPU_MEMBERS=device|host` and
+    /// `LINEGS_GPU_FIT=device|host` choose).
     pub fn for_commands() -> Self {
         let small_batch = std::env::var("LINEGS_GPU_SMALL_BATCH")
             .ok()
             .and_then(|v| v.trim().parse().ok())
             .unwrap_or(SMALL_BATCH);
-        let device_fit = std::env::var_os("LINEGS_GPU_DEVICE_FIT").is_some_and(|v| v == "1");
+        let fit = match std::env::var("LINEGS_GPU_FIT").as_deref() {
+            Ok("device") => FitOn::Device,
+            Ok("host") => FitOn::Host,
+            _ => FitOn::Auto,
+        };
         let members = match std::env::var("LINEGS_GPU_MEMBERS").as_deref() {
             Ok("device") => MembersOn::Device,
             Ok("host") => MembersOn::Host,
@@ -114,7 +133,7 @@ impl GpuOptions {
         };
         GpuOptions {
             small_batch,
-            device_fit,
+            fit,
             members,
             ..Default::default()
         }
@@ -128,7 +147,7 @@ impl Default for GpuOptions {
             max_items: 1 << 24,
             max_workgroups_x: 65_535,
             max_queries: 1 << 16,
-            device_fit: false,
+            fit: FitOn::Device,
             small_batch: 0,
             members: MembersOn::Device,
         }
@@ -148,6 +167,16 @@ pub fn common_wgsl() -> String {
 /// A kernel's full source: the shared prelude, then the kernel (WGSL has no include).
 pub fn kernel_source(kernel: &str) -> String {
     format!("{}\n{kernel}", common_wgsl())
+}
+
+/// The fit kernel's full source: the shared prelude, its own f64 prelude, then
+/// `fit.wgsl` (compiled only on a device with `SHADER_F64`).
+pub fn fit_source() -> String {
+    kernel_source(&format!(
+        "{}\n{}",
+        layout::fit_prelude(),
+        include_str!("../../../shaders/fit.wgsl")
+    ))
 }
 
 /// The lines of `eval.wgsl` that read the evaluation mode and the coverage switch from
@@ -201,6 +230,8 @@ pub struct GpuEngine {
     /// Queries answered wholly on the host (walks too long, or k-nearest sets with a
     /// boundary member); rare by design.
     fallbacks: AtomicU64,
+    /// [`GpuOptions::fit`] resolved for this adapter (and the kernel compiled, the
+    /// coordinates uploaded).
     device_fit: bool,
     clock: Clock,
     /// Answers the batches of at most `small_batch` queries, over the same grid.
@@ -210,6 +241,7 @@ pub struct GpuEngine {
     members_on_host: bool,
     cpu_batches: AtomicU64,
     cpu_queries: AtomicU64,
+    device_fits: AtomicU64,
 }
 
 impl GpuEngine {
@@ -232,11 +264,19 @@ impl GpuEngine {
     ) -> Result<Self, EngineError> {
         let ctx = Context::new(adapter)?;
         let limits = batch::Limits::new(&ctx, &opts, grid.len());
+        let software = ctx.info.device_type == wgpu::DeviceType::Cpu;
+        // (the same test as `is_software`, before the engine exists)
+        let fit_wanted = ctx.f64
+            && match opts.fit {
+                FitOn::Device => true,
+                FitOn::Host => false,
+                FitOn::Auto => !software,
+            };
         // The kernels compile on one thread while the grid uploads on the others.
         let (kernels, statics) = std::thread::scope(|s| {
             let kernels =
                 s.spawn(|| ctx.scoped("compiling the kernels", || batch::Kernels::new(&ctx)));
-            let statics = batch::Statics::upload(&ctx, &grid, &limits);
+            let statics = batch::Statics::upload(&ctx, &grid, &limits, fit_wanted);
             let kernels = kernels
                 .join()
                 .unwrap_or_else(|p| std::panic::resume_unwind(p));
@@ -244,17 +284,18 @@ impl GpuEngine {
         });
         let (kernels, statics) = (kernels?, statics?);
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
+        let device_fit = fit_wanted && kernels.fit.is_some() && statics.world.is_some();
         Ok(GpuEngine {
             cpu: super::cpu::CpuEngine::new(grid.clone()),
             small_batch: opts.small_batch,
             members_on_host: match opts.members {
                 MembersOn::Device => false,
                 MembersOn::Host => true,
-                MembersOn::Auto => ctx.info.device_type == wgpu::DeviceType::Cpu,
-                // (the same test as `is_software`, before the engine exists)
+                MembersOn::Auto => software,
             },
             cpu_batches: AtomicU64::new(0),
             cpu_queries: AtomicU64::new(0),
+            device_fits: AtomicU64::new(0),
             grid,
             ctx,
             kernels,
@@ -265,7 +306,7 @@ impl GpuEngine {
             batches: AtomicU64::new(0),
             queries: AtomicU64::new(0),
             fallbacks: AtomicU64::new(0),
-            device_fit: opts.device_fit,
+            device_fit,
             clock: Clock::default(),
         })
     }
@@ -274,6 +315,12 @@ impl GpuEngine {
     /// SwiftShader).
     pub fn is_software(&self) -> bool {
         self.ctx.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// Whether `--fit edge`'s ridge runs on this device ([`GpuOptions::fit`], resolved:
+    /// f64 in shaders, the coordinates within one binding).
+    pub fn fits_on_device(&self) -> bool {
+        self.device_fit
     }
 
     /// Queries answered wholly on the host; 0 on ordinary scenes.
@@ -578,11 +625,11 @@ impl GpuEngine {
 }
 
 impl GpuEngine {
-    /// The edge fit's step of every query: the ridge on the device (`fit.wgsl`) over the
-    /// members the batch lists there, converted back to scene units. A query whose members
-    /// include a flagged boundary point, whose ridge the kernel left to the host, whose
-    /// weight lies within f32 rounding of `fit_min_points`, or that the device could not
-    /// take, is fitted on the host from its exact members (`host_fallbacks` counts them).
+    /// The edge fit's step of every query: the ridge on the device (`fit.wgsl`, f64) over
+    /// the members the batch lists there. A query whose members include a flagged
+    /// boundary point, whose ridge the kernel left to the host, whose weight lies within
+    /// 1e-9 (relative) of `fit_min_points`, or that the device could not take, is fitted
+    /// on the host from its exact members (`host_fallbacks` counts them).
     fn fit_batch(
         &self,
         b: &mut Buffers,
@@ -591,33 +638,36 @@ impl GpuEngine {
     ) -> Result<Vec<FitAnswer>, EngineError> {
         use crate::refine::fit::{How, LineFit};
         let grid = &*self.grid;
-        let cell = grid.cell;
         let p = ask.params;
+        // The host's own values (`Cylinder::new`, `basis`, `ridge`'s h_min).
         let frames: Vec<layout::FitQuery> = queries
             .iter()
             .map(|q| {
-                let (e1, e2) = crate::refine::fit::basis(q.seg.dir());
-                let inv_r = if q.r > 0.0 { cell / q.r } else { 0.0 };
+                let d = q.seg.dir();
+                let (e1, e2) = crate::refine::fit::basis(d);
+                let p1 = q.seg.p1;
                 layout::FitQuery {
-                    e1x: e1.x as f32,
-                    e1y: e1.y as f32,
-                    e1z: e1.z as f32,
-                    e2x: e2.x as f32,
-                    e2y: e2.y as f32,
-                    e2z: e2.z as f32,
-                    inv_r: inv_r as f32,
-                    h_min: p.fit_bandwidth as f32,
-                    mid: if q.r > 0.0 {
-                        (0.5 * q.seg.length() / q.r) as f32
-                    } else {
-                        0.0
-                    },
+                    p1x: p1.x,
+                    p1y: p1.y,
+                    p1z: p1.z,
+                    dx: d.x,
+                    dy: d.y,
+                    dz: d.z,
+                    e1x: e1.x,
+                    e1y: e1.y,
+                    e1z: e1.z,
+                    e2x: e2.x,
+                    e2y: e2.y,
+                    e2z: e2.z,
+                    r: q.r,
+                    h_min: p.fit_bandwidth * q.r,
                 }
             })
             .collect();
         let min_points = p.fit_min_points as f64;
         let mut out: Vec<FitAnswer> = vec![(None, How::Unclear); queries.len()];
         let fallbacks = &self.fallbacks;
+        let device_fits = &self.device_fits;
         self.run_with(b, Kind::Fit, queries, &[], &frames, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -641,23 +691,19 @@ impl GpuEngine {
                         .filter(|_| device)
                         .and_then(|f| match f.status {
                             layout::FIT_NONE => Some((None, How::Unclear)),
-                            layout::FIT_OK | layout::FIT_SPREAD => {
-                                let w = f.weight as f64;
-                                // Within f32 rounding of the threshold: the host decides.
-                                if (w - min_points).abs() <= 1e-4 * min_points.max(1.0) {
+                            layout::FIT_OK => {
+                                let w = f.weight;
+                                // Within rounding of the threshold: the host decides.
+                                if (w - min_points).abs() <= 1e-9 * min_points.max(1.0) {
                                     return None;
                                 }
                                 if w < min_points {
                                     return Some((None, How::Unclear));
                                 }
-                                if f.status == layout::FIT_SPREAD {
-                                    return None;
-                                }
-                                let r = q.r;
                                 let line = LineFit {
-                                    t0: f.t0 as f64 * r + 0.5 * q.seg.length(),
-                                    a: glam::DVec2::new(f.ax as f64, f.ay as f64) * r,
-                                    b: glam::DVec2::new(f.bx as f64, f.by as f64),
+                                    t0: f.t0,
+                                    a: glam::DVec2::new(f.ax, f.ay),
+                                    b: glam::DVec2::new(f.bx, f.by),
                                 };
                                 // A decision of the caller's close to its threshold: exact.
                                 if ask.sensitive.is_some_and(|s| s(first + i, &line)) {
@@ -667,11 +713,17 @@ impl GpuEngine {
                             }
                             _ => None,
                         });
-                    *a = answer.unwrap_or_else(|| {
-                        fallbacks.fetch_add(1, Ordering::Relaxed);
-                        let m = super::cpu::member_list(grid, q);
-                        crate::refine::fit::steps(std::slice::from_ref(q), &[m], ask)[0]
-                    });
+                    *a = match answer {
+                        Some(a) => {
+                            device_fits.fetch_add(1, Ordering::Relaxed);
+                            a
+                        }
+                        None => {
+                            fallbacks.fetch_add(1, Ordering::Relaxed);
+                            let m = super::cpu::member_list(grid, q);
+                            crate::refine::fit::steps(std::slice::from_ref(q), &[m], ask)[0]
+                        }
+                    };
                 });
             Ok(())
         })?;
@@ -762,10 +814,9 @@ impl Engine for GpuEngine {
         self.members_batch(&mut b, queries)
     }
 
-    /// With [`GpuOptions::device_fit`], the ridge on the device where the fit is the plain
-    /// ridge: no normals (the two-face fit stays on the host), no opacity weights, one part
-    /// of the point store, more than `small_batch` queries; otherwise [`Engine::members`]
-    /// and the host's step.
+    /// With [`GpuOptions::fit`] on the device, the ridge there where the fit is the plain
+    /// ridge: no normals (the two-face fit stays on the host), no opacity weights, more
+    /// than `small_batch` queries; otherwise [`Engine::members`] and the host's step.
     fn fit_lines(
         &self,
         queries: &[Query],
@@ -775,7 +826,6 @@ impl Engine for GpuEngine {
             && queries.len() > self.small_batch
             && ask.attrs.normals.is_none()
             && !ask.params.fit_opacity_weight
-            && self.statics.parts.len() == 1
             && !self.grid.is_empty();
         if !device {
             let members = self.members(queries)?;
@@ -796,6 +846,7 @@ impl Engine for GpuEngine {
             queries: self.queries.load(Ordering::Relaxed),
             cpu_batches: self.cpu_batches.load(Ordering::Relaxed),
             cpu_queries: self.cpu_queries.load(Ordering::Relaxed),
+            device_fits: self.device_fits.load(Ordering::Relaxed),
         }
     }
 
