@@ -214,8 +214,8 @@ fn print_case(c: &Case) {
         }
         if let Some(c) = r.engine_counters.filter(|c| c.device_fits > 0) {
             println!(
-                "  {}: {} edge-fit steps fitted on the device (f64)",
-                r.backend, c.device_fits
+                "  {}: {} edge-fit steps fitted on the device (f64), {} of those sent there refitted on the host",
+                r.backend, c.device_fits, c.device_fits_refitted
             );
         }
     }

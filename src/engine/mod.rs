@@ -218,9 +218,13 @@ pub struct Counters {
     #[serde(default)]
     pub cpu_queries: u64,
     /// GPU engine: edge-fit steps (one per segment and iteration) whose ridge the device
-    /// fitted (`GpuOptions::fit`); the others took the host's step. 0 for the CPU engine.
+    /// fitted (`GpuOptions::fit`), and of the steps sent to the device those it left to
+    /// the host (a flagged boundary member, a decision within rounding of its threshold).
+    /// 0 for the CPU engine.
     #[serde(default)]
     pub device_fits: u64,
+    #[serde(default)]
+    pub device_fits_refitted: u64,
 }
 
 #[derive(thiserror::Error, Debug)]

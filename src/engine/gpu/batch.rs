@@ -99,7 +99,8 @@ pub struct Kernels {
 }
 
 impl Kernels {
-    pub fn new(ctx: &Context) -> Kernels {
+    /// Compiles every kernel; the fit kernel only with `fit` (and f64 on the device).
+    pub fn new(ctx: &Context, fit: bool) -> Kernels {
         let k = |name: &str, src: &str, entry: &str| {
             ctx.pipeline(name, &super::kernel_source(src), entry)
         };
@@ -122,9 +123,7 @@ impl Kernels {
             ),
             gather: k("members gather", members, "gather"),
             scatter: k("members scatter", members, "scatter"),
-            fit: ctx
-                .f64
-                .then(|| ctx.pipeline("fit", &super::fit_source(), "main")),
+            fit: (fit && ctx.f64).then(|| ctx.pipeline("fit", &super::fit_source(), "main")),
         }
     }
 }

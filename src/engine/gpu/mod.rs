@@ -242,6 +242,7 @@ pub struct GpuEngine {
     cpu_batches: AtomicU64,
     cpu_queries: AtomicU64,
     device_fits: AtomicU64,
+    device_fits_refitted: AtomicU64,
 }
 
 impl GpuEngine {
@@ -274,8 +275,11 @@ impl GpuEngine {
             };
         // The kernels compile on one thread while the grid uploads on the others.
         let (kernels, statics) = std::thread::scope(|s| {
-            let kernels =
-                s.spawn(|| ctx.scoped("compiling the kernels", || batch::Kernels::new(&ctx)));
+            let kernels = s.spawn(|| {
+                ctx.scoped("compiling the kernels", || {
+                    batch::Kernels::new(&ctx, fit_wanted)
+                })
+            });
             let statics = batch::Statics::upload(&ctx, &grid, &limits, fit_wanted);
             let kernels = kernels
                 .join()
@@ -296,6 +300,7 @@ impl GpuEngine {
             cpu_batches: AtomicU64::new(0),
             cpu_queries: AtomicU64::new(0),
             device_fits: AtomicU64::new(0),
+            device_fits_refitted: AtomicU64::new(0),
             grid,
             ctx,
             kernels,
@@ -667,7 +672,7 @@ impl GpuEngine {
         let min_points = p.fit_min_points as f64;
         let mut out: Vec<FitAnswer> = vec![(None, How::Unclear); queries.len()];
         let fallbacks = &self.fallbacks;
-        let device_fits = &self.device_fits;
+        let (device_fits, refitted) = (&self.device_fits, &self.device_fits_refitted);
         self.run_with(b, Kind::Fit, queries, &[], &frames, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -720,6 +725,7 @@ impl GpuEngine {
                         }
                         None => {
                             fallbacks.fetch_add(1, Ordering::Relaxed);
+                            refitted.fetch_add(1, Ordering::Relaxed);
                             let m = super::cpu::member_list(grid, q);
                             crate::refine::fit::steps(std::slice::from_ref(q), &[m], ask)[0]
                         }
@@ -847,6 +853,7 @@ impl Engine for GpuEngine {
             cpu_batches: self.cpu_batches.load(Ordering::Relaxed),
             cpu_queries: self.cpu_queries.load(Ordering::Relaxed),
             device_fits: self.device_fits.load(Ordering::Relaxed),
+            device_fits_refitted: self.device_fits_refitted.load(Ordering::Relaxed),
         }
     }
 
