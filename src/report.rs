@@ -75,8 +75,9 @@ pub struct Report {
     pub scene: Option<String>,
     /// What choosing the engine said (which adapter `auto` picked, or why the CPU).
     pub notes: Vec<String>,
-    /// The engine's work: batches and queries answered (GPU engine: how many of them were
-    /// small enough for the host, `cpu_batches` / `cpu_queries`).
+    /// The engine's work: batches and queries answered (GPU engine: how many of them the
+    /// host answered, `cpu_batches` / `cpu_queries`, and the edge-fit steps the device
+    /// fitted, `device_fits` / `device_fits_refitted`).
     #[serde(default)]
     pub engine_counters: Option<crate::engine::Counters>,
     pub warnings: Vec<String>,
