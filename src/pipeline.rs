@@ -11,7 +11,7 @@
 //!    refine, eval and demo.
 
 use crate::engine::dedup::Dedup;
-use crate::engine::select::{make_engine, Backend};
+use crate::engine::select::{prepare, Backend};
 use crate::engine::{Engine, EngineError};
 use crate::eval::{self, gt, Metrics};
 use crate::geom::{LineSet, Segment, MIN_LENGTH};
@@ -286,9 +286,9 @@ impl Refiner {
         params: &Params,
         backend: Backend,
     ) -> Result<Refiner, RunError> {
-        Refiner::with_engine(gaussians, segments, params, |grid| {
-            make_engine(backend, grid)
-        })
+        // The device opens (and its kernels compile) while the grid is built.
+        let pending = prepare(backend);
+        Refiner::with_engine(gaussians, segments, params, |grid| pending.finish(grid))
     }
 
     /// [`Refiner::new`] with an engine of the caller's making (tests: a GPU engine with

@@ -1,7 +1,7 @@
 //! `--backend auto|gpu|cpu` (SPEC 4): which engine answers the queries.
 
 use super::cpu::CpuEngine;
-use super::gpu::{GpuEngine, GpuOptions};
+use super::gpu::{GpuDevice, GpuEngine, GpuOptions};
 use super::{Engine, EngineError};
 use crate::index::Grid;
 use std::sync::Arc;
@@ -52,21 +52,47 @@ pub fn make_engine(
     backend: Backend,
     grid: Arc<Grid>,
 ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
-    match backend {
+    prepare(backend).finish(grid)
+}
+
+/// The engine of a backend in the making ([`prepare`]).
+pub struct Pending {
+    backend: Backend,
+    device: Option<std::thread::JoinHandle<Result<GpuDevice, EngineError>>>,
+}
+
+/// Starts making the engine of `backend`: for `gpu` and `auto` the adapter is picked and
+/// opened and the kernels compiled on a thread of their own, which needs no Gaussians, so
+/// that it runs while the caller builds the grid; [`Pending::finish`] uploads the grid.
+pub fn prepare(backend: Backend) -> Pending {
+    let open = move || match backend {
         Backend::Auto => {
             let adapters = crate::engine::gpu::enumerate_adapters();
             let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
-            let pick = auto_pick(&infos);
-            choose(backend, grid, |g| match pick {
-                Pick::Hardware(i) => {
-                    GpuEngine::on_adapter(&adapters[i], g, GpuOptions::for_commands()).map(Some)
-                }
+            match auto_pick(&infos) {
+                Pick::Hardware(i) => GpuDevice::open(&adapters[i], GpuOptions::for_commands()),
                 Pick::None(why) | Pick::SoftwareOnly(why) => Err(EngineError::NoAdapter(why)),
-            })
+            }
         }
-        _ => choose(backend, grid, |g| {
-            GpuEngine::with_options(g, GpuOptions::for_commands()).map(Some)
-        }),
+        _ => GpuDevice::open_default(GpuOptions::for_commands()),
+    };
+    Pending {
+        backend,
+        device: (backend != Backend::Cpu).then(|| std::thread::spawn(open)),
+    }
+}
+
+impl Pending {
+    /// The engine over `grid`, with the messages the user should see: for `auto`, which
+    /// adapter it picked, or why it chose the CPU engine.
+    pub fn finish(self, grid: Arc<Grid>) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
+        let device = self
+            .device
+            .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)));
+        choose(self.backend, grid, |g| match device {
+            Some(d) => d?.engine(g).map(Some),
+            None => Err(EngineError::NoAdapter("no adapter was opened".into())),
+        })
     }
 }
 

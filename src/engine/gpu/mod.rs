@@ -245,48 +245,61 @@ pub struct GpuEngine {
     device_fits_refitted: AtomicU64,
 }
 
-impl GpuEngine {
-    /// Opens the adapter chosen by `WGPU_ADAPTER_NAME` / `WGPU_BACKEND` (or wgpu's default)
-    /// and uploads the grid.
-    pub fn new(grid: Arc<Grid>) -> Result<Self, EngineError> {
-        Self::with_options(grid, GpuOptions::default())
+/// An opened device with the kernels compiled, before any Gaussians: what does not depend
+/// on the grid, so that the commands can open it while the grid is built
+/// (`select::prepare`). [`GpuDevice::engine`] uploads a grid and gives the engine.
+pub struct GpuDevice {
+    ctx: Context,
+    kernels: batch::Kernels,
+    opts: GpuOptions,
+    fit_wanted: bool,
+    software: bool,
+}
+
+impl GpuDevice {
+    /// The adapter chosen by `WGPU_ADAPTER_NAME` / `WGPU_BACKEND` (or wgpu's default).
+    pub fn open_default(opts: GpuOptions) -> Result<GpuDevice, EngineError> {
+        GpuDevice::open(&device::pick_adapter()?, opts)
     }
 
-    pub fn with_options(grid: Arc<Grid>, opts: GpuOptions) -> Result<Self, EngineError> {
-        let adapter = device::pick_adapter()?;
-        Self::on_adapter(&adapter, grid, opts)
-    }
-
-    /// The engine on a given adapter (`select.rs` picks it).
-    pub fn on_adapter(
-        adapter: &wgpu::Adapter,
-        grid: Arc<Grid>,
-        opts: GpuOptions,
-    ) -> Result<Self, EngineError> {
+    /// Opens `adapter` and compiles the kernels.
+    pub fn open(adapter: &wgpu::Adapter, opts: GpuOptions) -> Result<GpuDevice, EngineError> {
         let ctx = Context::new(adapter)?;
-        let limits = batch::Limits::new(&ctx, &opts, grid.len());
         let software = ctx.info.device_type == wgpu::DeviceType::Cpu;
-        // (the same test as `is_software`, before the engine exists)
         let fit_wanted = ctx.f64
             && match opts.fit {
                 FitOn::Device => true,
                 FitOn::Host => false,
                 FitOn::Auto => !software,
             };
-        // The kernels compile on one thread while the grid uploads on the others.
-        let (kernels, statics) = std::thread::scope(|s| {
-            let kernels = s.spawn(|| {
-                ctx.scoped("compiling the kernels", || {
-                    batch::Kernels::new(&ctx, fit_wanted)
-                })
-            });
-            let statics = batch::Statics::upload(&ctx, &grid, &limits, fit_wanted);
-            let kernels = kernels
-                .join()
-                .unwrap_or_else(|p| std::panic::resume_unwind(p));
-            (kernels, statics)
-        });
-        let (kernels, statics) = (kernels?, statics?);
+        let kernels = ctx.scoped("compiling the kernels", || {
+            batch::Kernels::new(&ctx, fit_wanted)
+        })?;
+        Ok(GpuDevice {
+            ctx,
+            kernels,
+            opts,
+            fit_wanted,
+            software,
+        })
+    }
+
+    /// The adapter's name and driver.
+    pub fn adapter(&self) -> String {
+        self.ctx.describe()
+    }
+
+    /// Uploads `grid` (once: every batch of the engine's life reads it there).
+    pub fn engine(self, grid: Arc<Grid>) -> Result<GpuEngine, EngineError> {
+        let GpuDevice {
+            ctx,
+            kernels,
+            opts,
+            fit_wanted,
+            software,
+        } = self;
+        let limits = batch::Limits::new(&ctx, &opts, grid.len());
+        let statics = batch::Statics::upload(&ctx, &grid, &limits, fit_wanted)?;
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         let device_fit = fit_wanted && kernels.fit.is_some() && statics.world.is_some();
         Ok(GpuEngine {
@@ -314,6 +327,27 @@ impl GpuEngine {
             device_fit,
             clock: Clock::default(),
         })
+    }
+}
+
+impl GpuEngine {
+    /// Opens the adapter chosen by `WGPU_ADAPTER_NAME` / `WGPU_BACKEND` (or wgpu's default)
+    /// and uploads the grid.
+    pub fn new(grid: Arc<Grid>) -> Result<Self, EngineError> {
+        Self::with_options(grid, GpuOptions::default())
+    }
+
+    pub fn with_options(grid: Arc<Grid>, opts: GpuOptions) -> Result<Self, EngineError> {
+        GpuDevice::open_default(opts)?.engine(grid)
+    }
+
+    /// The engine on a given adapter (`select.rs` picks it).
+    pub fn on_adapter(
+        adapter: &wgpu::Adapter,
+        grid: Arc<Grid>,
+        opts: GpuOptions,
+    ) -> Result<Self, EngineError> {
+        GpuDevice::open(adapter, opts)?.engine(grid)
     }
 
     /// Whether the adapter is a software one (`DeviceType::Cpu`: lavapipe, WARP,
