@@ -295,6 +295,40 @@ fn a_query_with_more_than_65535_members_in_one_cell() {
     assert!(m[0].windows(2).all(|w| w[0].id < w[1].id));
     assert_eq!(m, cpu.members(&qs).unwrap());
     assert_eq!(gpu.host_fallbacks(), 0);
+
+    // The edge fit: 16,000 members, just under the kernel's MAX_FIT_MEMBERS (each lane
+    // then takes 250 of them a pass, at most 102 passes: 25,500 iterations), on the device
+    // and like the host; the 100,000-member query goes to the host whole.
+    use linegs_gpu::engine::FitAsk;
+    let part = Segment::new(DVec3::new(0.3, 0.5, 0.5), DVec3::new(0.428, 0.5, 0.5));
+    let fq = [Query::new(part, 0.02), Query::new(seg, 0.02)];
+    let n = cpu.members(&fq[..1]).unwrap()[0].len();
+    assert!((15_000..16_384).contains(&n), "{n}");
+    let (attrs, params) = (Default::default(), Default::default());
+    let ask = FitAsk {
+        attrs: &attrs,
+        params: &params,
+        sensitive: None,
+    };
+    let before = gpu.counters();
+    let want = cpu.fit_lines(&fq, &ask).unwrap();
+    let got = gpu.fit_lines(&fq, &ask).unwrap();
+    let c = gpu.counters();
+    assert_eq!(
+        (
+            c.device_fits - before.device_fits,
+            c.device_fits_refitted - before.device_fits_refitted
+        ),
+        (1, 1)
+    );
+    for (w, g) in want.iter().zip(&got) {
+        assert_eq!(w.1, g.1);
+        let (w, g) = (w.0.unwrap(), g.0.unwrap());
+        for t in [0.0, part.length()] {
+            let d = (w.a + w.b * (t - w.t0)) - (g.a + g.b * (t - g.t0));
+            assert!(d.length() <= 1e-12 * 0.02, "{w:?} vs {g:?}");
+        }
+    }
 }
 
 #[test]

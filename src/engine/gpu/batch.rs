@@ -123,7 +123,16 @@ impl Kernels {
             ),
             gather: k("members gather", members, "gather"),
             scatter: k("members scatter", members, "scatter"),
-            fit: (fit && ctx.f64).then(|| ctx.pipeline("fit", &super::fit_source(), "main")),
+            // In its own error scope: a driver that offers f64 but cannot compile the
+            // kernel costs the device fit (the host's step takes over), not the engine.
+            fit: (fit && ctx.f64)
+                .then(|| {
+                    ctx.scoped("compiling the fit kernel", || {
+                        ctx.pipeline("fit", &super::fit_source(), "main")
+                    })
+                    .ok()
+                })
+                .flatten(),
         }
     }
 }
