@@ -104,6 +104,13 @@ fn member(at: u32, p1: vec3<f64>, d: vec3<f64>, e1: vec3<f64>, e2: vec3<f64>) ->
     return Pt(t, vec2<f64>(dot(v, e1), dot(v, e2)));
 }
 
+// The Gaussian kernel's weight of member `m` around the centre `c` (`k2` = 2 h^2), as the
+// host's `exp(-|q - c|^2 / (2 h^2))`.
+fn weight(m: Pt, c: vec2<f64>, k2: f64) -> f64 {
+    let dq = m.q - c;
+    return exp64(-dot(dq, dq) / k2);
+}
+
 @compute @workgroup_size(64)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
@@ -149,8 +156,7 @@ fn main(
         var acc = vec4<f64>(0.0lf);
         for (var j = lane; j < n; j += FIT_WG) {
             let m = member(first + j, p1, d, e1, e2);
-            let dq = m.q - c;
-            let w = exp64(-dot(dq, dq) / k2);
+            let w = weight(m, c, k2);
             acc = acc + vec4<f64>(w, m.q.x * w, m.q.y * w, 0.0lf);
         }
         let s = reduce4(lane, acc);
@@ -183,8 +189,7 @@ fn main(
         var acc = vec4<f64>(0.0lf);
         for (var j = lane; j < n; j += FIT_WG) {
             let m = member(first + j, p1, d, e1, e2);
-            let dq = m.q - c;
-            let w = exp64(-dot(dq, dq) / k2);
+            let w = weight(m, c, k2);
             acc = acc + vec4<f64>(w, m.t * w, m.q.x * w, m.q.y * w);
         }
         let s = reduce4(lane, acc);
@@ -195,8 +200,7 @@ fn main(
             var acc2 = vec4<f64>(0.0lf);
             for (var j = lane; j < n; j += FIT_WG) {
                 let m = member(first + j, p1, d, e1, e2);
-                let dq = m.q - c;
-                let w = exp64(-dot(dq, dq) / k2);
+                let w = weight(m, c, k2);
                 let dt = m.t - t0;
                 let da = m.q - a;
                 let wdt = w * dt;
