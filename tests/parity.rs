@@ -522,6 +522,39 @@ fn member_lists_go_where_the_option_says() {
 }
 
 #[test]
+fn the_edge_fit_runs_where_the_option_says() {
+    use linegs_gpu::engine::gpu::FitOn;
+    use linegs_gpu::engine::FitAsk;
+    let r = 0.03;
+    let (pts, qs) = ridge_scene(r);
+    let (attrs, params) = (Default::default(), Default::default());
+    let ask = FitAsk {
+        attrs: &attrs,
+        params: &params,
+        sensitive: None,
+    };
+    for on in [FitOn::Device, FitOn::Host, FitOn::Auto] {
+        let opts = GpuOptions {
+            fit: on,
+            ..GpuOptions::default()
+        };
+        let Some((_, cpu, gpu)) = engines(&pts, 0.03, opts) else {
+            return;
+        };
+        // Auto: the host on a software adapter (lavapipe), the device on a hardware one
+        // (both with f64 in shaders).
+        let device = on == FitOn::Device || (on == FitOn::Auto && !gpu.is_software());
+        assert_eq!(gpu.fits_on_device(), device, "{on:?} on {}", gpu.adapter());
+        let got = gpu.fit_lines(&qs, &ask).unwrap();
+        assert_eq!(gpu.counters().device_fits > 0, device, "{on:?}");
+        if !device {
+            // the host's step over the device's member lists: the CPU engine's answers
+            assert_eq!(got, cpu.fit_lines(&qs, &ask).unwrap());
+        }
+    }
+}
+
+#[test]
 fn repeated_runs_are_identical_and_the_points_are_uploaded_once() {
     let pts = random_scene(30_000, 51);
     let qs = random_queries(500, 52, 0.05);
