@@ -85,14 +85,28 @@ pub fn prepare(backend: Backend) -> Pending {
 impl Pending {
     /// The engine over `grid`, with the messages the user should see: for `auto`, which
     /// adapter it picked, or why it chose the CPU engine.
-    pub fn finish(self, grid: Arc<Grid>) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
+    pub fn finish(
+        mut self,
+        grid: Arc<Grid>,
+    ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
         let device = self
             .device
+            .take()
             .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)));
         choose(self.backend, grid, |g| match device {
             Some(d) => d?.engine(g).map(Some),
             None => Err(EngineError::NoAdapter("no adapter was opened".into())),
         })
+    }
+}
+
+impl Drop for Pending {
+    /// Not finished (the grid could not be built): the opening thread is waited for, so
+    /// that no driver is still starting while the process exits.
+    fn drop(&mut self) {
+        if let Some(h) = self.device.take() {
+            let _ = h.join();
+        }
     }
 }
 
