@@ -777,3 +777,35 @@ fn the_gpu_benchmark_script_runs() {
     );
     assert!(out.contains("gpu / cpu total time: "), "{out}");
 }
+
+#[test]
+fn an_input_error_while_the_device_opens_exits_2_cleanly() {
+    // `--radius auto` fails on the grid's side (no Gaussian near the lines) while the GPU
+    // backend's device is being opened on another thread: the error, exit 2, nothing
+    // written, and no driver left starting at exit.
+    let dir = tempfile::tempdir().unwrap();
+    let (g, _) = toy(dir.path());
+    let far = dir.path().join("far.txt");
+    std::fs::write(&far, "100 100 100 101 100 100\n").unwrap();
+    let out = dir.path().join("out.obj");
+    for backend in ["gpu", "auto"] {
+        let o = run(&[
+            "refine",
+            "--gaussians",
+            g.to_str().unwrap(),
+            "--lines",
+            far.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--backend",
+            backend,
+            "--radius",
+            "auto",
+            // (no scale cut, which would resolve the radius before the engine is asked for)
+            "--max-scale",
+            "0",
+        ]);
+        assert_input_error(&o, "--radius auto needs Gaussian centers near the lines");
+        assert!(!out.exists(), "no partial output");
+    }
+}
