@@ -723,3 +723,81 @@ fn the_device_fit_answers_like_the_host() {
         gpu.fit_lines(&qs, &ask).unwrap()
     );
 }
+
+#[test]
+fn the_side_nearest_and_member_kernels_compile_on_first_use() {
+    let pts = random_scene(20_000, 61);
+    let qs = random_queries(200, 62, 0.04);
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, GpuOptions::default()) else {
+        return;
+    };
+    // Plain counts and sums (with coverage): nothing beyond the kernels compiled at open.
+    let ask = Ask {
+        want: Want::SUMS,
+        coverage: true,
+        ..Default::default()
+    };
+    let (a, b) = (cpu.query(&qs, &ask).unwrap(), gpu.query(&qs, &ask).unwrap());
+    assert_eq!(a.coverage, b.coverage);
+    assert!(
+        gpu.kernels_compiled_on_use().is_empty(),
+        "{:?}",
+        gpu.kernels_compiled_on_use()
+    );
+    // Each kind of batch compiles its own kernels when first asked for, and answers.
+    let s = gpu.stats(&qs, Want::SIDES).unwrap();
+    let c = cpu.stats(&qs, Want::SIDES).unwrap();
+    let sides = |v: &[linegs_gpu::engine::CylStats]| -> Vec<(u64, u64)> {
+        v.iter().map(|x| (x.count, x.side_pos)).collect()
+    };
+    assert_eq!(sides(&s), sides(&c));
+    assert_eq!(gpu.kernels_compiled_on_use(), ["eval sides"]);
+    let k: Vec<u64> = c.iter().map(|x| x.count / 3).collect();
+    let (n1, n2) = (cpu.nearest(&qs, &k).unwrap(), gpu.nearest(&qs, &k).unwrap());
+    for (i, (x, y)) in n1.iter().zip(&n2).enumerate() {
+        assert!(nearest_close(x, y, qs[i].r), "query {i}: {x:?} vs {y:?}");
+    }
+    assert_eq!(
+        gpu.kernels_compiled_on_use(),
+        ["eval sides", "eval histogram", "eval below", "cut"]
+    );
+    assert_eq!(cpu.members(&qs).unwrap(), gpu.members(&qs).unwrap());
+    assert_eq!(
+        gpu.kernels_compiled_on_use(),
+        [
+            "eval sides",
+            "eval histogram",
+            "eval below",
+            "eval members",
+            "cut",
+            "members"
+        ]
+    );
+}
+
+#[test]
+fn a_point_store_computed_for_another_grid_is_not_uploaded() {
+    use linegs_gpu::engine::gpu::{GpuDevice, PointStore};
+    let (a, b) = (random_scene(20_000, 71), random_scene(20_000, 72));
+    let qs = random_queries(300, 73, 0.04);
+    let (ga, gb) = (Arc::new(grid_of(&a, 0.03)), Arc::new(grid_of(&b, 0.03)));
+    let open = || match GpuDevice::open_default(GpuOptions::default()) {
+        Ok(d) => Some(d),
+        Err(EngineError::NoAdapter(_)) if linegs_gpu::engine::gpu::skip_gpu_tests() => None,
+        Err(e) => panic!("GPU engine failed to start: {e}"),
+    };
+    let Some(device) = open() else {
+        return;
+    };
+    // The store of grid a, handed to an engine over grid b: b's own points are uploaded.
+    let gpu = device
+        .engine_with(gb.clone(), Some(PointStore::of(&ga)))
+        .unwrap();
+    check_parity(&CpuEngine::new(gb.clone()), &gpu, &qs);
+    // Its own grid's store is used as given.
+    let gpu = open()
+        .unwrap()
+        .engine_with(ga.clone(), Some(PointStore::of(&ga)))
+        .unwrap();
+    check_parity(&CpuEngine::new(ga), &gpu, &qs);
+}

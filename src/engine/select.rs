@@ -1,7 +1,7 @@
 //! `--backend auto|gpu|cpu` (SPEC 4): which engine answers the queries.
 
 use super::cpu::CpuEngine;
-use super::gpu::{GpuDevice, GpuEngine, GpuOptions};
+use super::gpu::{GpuDevice, GpuEngine, GpuOptions, PointStore};
 use super::{Engine, EngineError};
 use crate::index::Grid;
 use std::sync::Arc;
@@ -89,12 +89,19 @@ impl Pending {
         mut self,
         grid: Arc<Grid>,
     ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
+        // While the device is still opening (drivers and kernel compilers take a good
+        // part of a second), the point store it will upload is computed here.
+        let store = self
+            .device
+            .as_ref()
+            .filter(|h| !h.is_finished())
+            .map(|_| PointStore::of(&grid));
         let device = self
             .device
             .take()
             .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)));
         choose(self.backend, grid, |g| match device {
-            Some(d) => d?.engine(g).map(Some),
+            Some(d) => d?.engine_with(g, store).map(Some),
             None => Err(EngineError::NoAdapter("no adapter was opened".into())),
         })
     }

@@ -10,6 +10,7 @@ use crate::geom::p64;
 use crate::index::Grid;
 use glam::DVec3;
 use rayon::prelude::*;
+use std::sync::OnceLock;
 
 /// What a batch asks of the evaluation kernel.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -88,12 +89,15 @@ pub struct Kernels {
     scan_add: wgpu::ComputePipeline,
     args: wgpu::ComputePipeline,
     /// One evaluation pipeline per mode and coverage switch ([`EVAL_VARIANTS`]), each
-    /// compiled with both as constants ([`super::eval_source`]).
-    eval: Vec<wgpu::ComputePipeline>,
-    cut: wgpu::ComputePipeline,
+    /// compiled with both as constants ([`super::eval_source`]): the plain stats modes
+    /// (every evaluation, outlier test, crop and merge) when the device opens, the others
+    /// (sides, k nearest, member lists) on first use, like the k-nearest cut and the member
+    /// lists' gather and scatter: a run that never asks for them never compiles them.
+    eval: Vec<OnceLock<wgpu::ComputePipeline>>,
+    cut: OnceLock<wgpu::ComputePipeline>,
     reduce: wgpu::ComputePipeline,
-    gather: wgpu::ComputePipeline,
-    scatter: wgpu::ComputePipeline,
+    gather: OnceLock<wgpu::ComputePipeline>,
+    scatter: OnceLock<wgpu::ComputePipeline>,
     /// The edge fit's ridge, in f64: only on a device with `SHADER_F64`.
     pub fit: Option<wgpu::ComputePipeline>,
 }
@@ -105,7 +109,6 @@ impl Kernels {
             ctx.pipeline(name, &super::kernel_source(src), entry)
         };
         let scan = include_str!("../../../shaders/scan.wgsl");
-        let members = include_str!("../../../shaders/members.wgsl");
         Kernels {
             walk: k("walk", include_str!("../../../shaders/walk.wgsl"), "main"),
             scan: k("scan", scan, "main"),
@@ -113,16 +116,22 @@ impl Kernels {
             args: k("args", include_str!("../../../shaders/args.wgsl"), "main"),
             eval: EVAL_VARIANTS
                 .iter()
-                .map(|&(m, c)| ctx.pipeline("eval", &super::eval_source(m, c), "main"))
+                .map(|&(m, c)| {
+                    let cell = OnceLock::new();
+                    if m == MODE_STATS {
+                        let _ = cell.set(ctx.pipeline("eval", &super::eval_source(m, c), "main"));
+                    }
+                    cell
+                })
                 .collect(),
-            cut: k("cut", include_str!("../../../shaders/cut.wgsl"), "main"),
+            cut: OnceLock::new(),
             reduce: k(
                 "reduce",
                 include_str!("../../../shaders/reduce.wgsl"),
                 "main",
             ),
-            gather: k("members gather", members, "gather"),
-            scatter: k("members scatter", members, "scatter"),
+            gather: OnceLock::new(),
+            scatter: OnceLock::new(),
             // In its own error scope: a driver that offers f64 but cannot compile the
             // kernel costs the device fit (the host's step takes over), not the engine.
             fit: (fit && ctx.f64)
@@ -149,15 +158,88 @@ pub const EVAL_VARIANTS: [(u32, bool); 7] = [
 ];
 
 impl Kernels {
-    /// The evaluation pipeline of `mode` (coverage bits only in the stats modes).
-    fn eval(&self, mode: u32, cover: bool) -> &wgpu::ComputePipeline {
+    /// The evaluation pipeline of `mode` (coverage bits only in the stats modes),
+    /// compiled now if this is its first use.
+    fn eval(
+        &self,
+        ctx: &Context,
+        mode: u32,
+        cover: bool,
+    ) -> Result<&wgpu::ComputePipeline, EngineError> {
         let cover = cover && (mode == MODE_STATS || mode == MODE_STATS_SIDES);
         let i = EVAL_VARIANTS
             .iter()
             .position(|&v| v == (mode, cover))
             .expect("an evaluation variant");
-        &self.eval[i]
+        lazy(&self.eval[i], ctx, "compiling an evaluation kernel", || {
+            ctx.pipeline("eval", &super::eval_source(mode, cover), "main")
+        })
     }
+
+    /// The k-nearest cut (nearest batches).
+    fn cut(&self, ctx: &Context) -> Result<&wgpu::ComputePipeline, EngineError> {
+        lazy(&self.cut, ctx, "compiling the cut kernel", || {
+            let src = super::kernel_source(include_str!("../../../shaders/cut.wgsl"));
+            ctx.pipeline("cut", &src, "main")
+        })
+    }
+
+    /// The member lists' gather and scatter of the items' counts (members batches).
+    fn members(
+        &self,
+        ctx: &Context,
+    ) -> Result<(&wgpu::ComputePipeline, &wgpu::ComputePipeline), EngineError> {
+        let src = || super::kernel_source(include_str!("../../../shaders/members.wgsl"));
+        let gather = lazy(&self.gather, ctx, "compiling the members kernels", || {
+            ctx.pipeline("members gather", &src(), "gather")
+        })?;
+        let scatter = lazy(&self.scatter, ctx, "compiling the members kernels", || {
+            ctx.pipeline("members scatter", &src(), "scatter")
+        })?;
+        Ok((gather, scatter))
+    }
+}
+
+impl Kernels {
+    /// The kernels compiled on first use that have been so far: `eval sides`, `eval sides
+    /// cover`, `eval histogram`, `eval below`, `eval members`, `cut`, `members`.
+    pub fn compiled_on_use(&self) -> Vec<String> {
+        let mut out: Vec<String> = EVAL_VARIANTS
+            .iter()
+            .zip(&self.eval)
+            .filter(|(&(m, _), cell)| m != MODE_STATS && cell.get().is_some())
+            .map(|(&(m, c), _)| {
+                let mode = match m {
+                    MODE_STATS_SIDES => "sides",
+                    MODE_HIST => "histogram",
+                    MODE_BELOW => "below",
+                    _ => "members",
+                };
+                format!("eval {mode}{}", if c { " cover" } else { "" })
+            })
+            .collect();
+        if self.cut.get().is_some() {
+            out.push("cut".into());
+        }
+        if self.gather.get().is_some() && self.scatter.get().is_some() {
+            out.push("members".into());
+        }
+        out
+    }
+}
+
+/// The pipeline in `cell`, compiled by `make` (in its own error scope) on first use.
+fn lazy<'a>(
+    cell: &'a OnceLock<wgpu::ComputePipeline>,
+    ctx: &Context,
+    what: &str,
+    make: impl FnOnce() -> wgpu::ComputePipeline,
+) -> Result<&'a wgpu::ComputePipeline, EngineError> {
+    if let Some(p) = cell.get() {
+        return Ok(p);
+    }
+    let p = ctx.scoped(what, make)?;
+    Ok(cell.get_or_init(|| p))
 }
 
 /// What lives on the device for the engine's whole life.
@@ -171,23 +253,18 @@ pub struct Statics {
     pub world: Option<(wgpu::Buffer, u64)>,
 }
 
-impl Statics {
-    /// Uploads the cell table and the sorted centers, each as its offset from its own
-    /// cell's corner in cell units (computed in f64, so the f32 keeps ~1e-7 of a cell) and
-    /// its cell's x index; with `world`, also the centers' own coordinates where one
-    /// binding holds them.
-    pub fn upload(
-        ctx: &Context,
-        grid: &Grid,
-        lim: &Limits,
-        world: bool,
-    ) -> Result<Statics, EngineError> {
-        let cell_bytes = (grid.cell_start.len() * 4) as u64;
-        if cell_bytes > lim.device_binding {
-            return Err(EngineError::Gpu(format!(
-                "the grid's cell table ({cell_bytes} bytes) is above the device's binding limit"
-            )));
-        }
+/// The point store's contents: every sorted center as its offset from its own cell's
+/// corner in cell units (computed in f64, so the f32 keeps ~1e-7 of a cell) and its cell's
+/// x index. Needs the grid, not the device: [`crate::engine::select`] computes it while the
+/// device is still opening.
+pub struct PointStore {
+    /// The grid it was computed from.
+    grid: std::sync::Weak<Grid>,
+    rel: Vec<[f32; 4]>,
+}
+
+impl PointStore {
+    pub fn of(grid: &std::sync::Arc<Grid>) -> PointStore {
         let (dx, dy) = (grid.dims[0], grid.dims[1]);
         let inv = 1.0 / grid.cell;
         let rel: Vec<[f32; 4]> = grid
@@ -209,6 +286,34 @@ impl Statics {
                 ]
             })
             .collect();
+        PointStore {
+            grid: std::sync::Arc::downgrade(grid),
+            rel,
+        }
+    }
+}
+
+impl Statics {
+    /// Uploads the cell table and the point store (computed now unless given for this
+    /// very grid); with `world`, also the centers' own coordinates where one binding holds
+    /// them.
+    pub fn upload(
+        ctx: &Context,
+        grid: &std::sync::Arc<Grid>,
+        store: Option<PointStore>,
+        lim: &Limits,
+        world: bool,
+    ) -> Result<Statics, EngineError> {
+        let cell_bytes = (grid.cell_start.len() * 4) as u64;
+        if cell_bytes > lim.device_binding {
+            return Err(EngineError::Gpu(format!(
+                "the grid's cell table ({cell_bytes} bytes) is above the device's binding limit"
+            )));
+        }
+        let rel = match store {
+            Some(s) if std::ptr::eq(s.grid.as_ptr(), std::sync::Arc::as_ptr(grid)) => s.rel,
+            _ => PointStore::of(grid).rel,
+        };
         ctx.scoped("uploading the Gaussians", || {
             let storage = wgpu::BufferUsages::STORAGE;
             let cell_start = ctx.buffer("cell_start", cell_bytes, storage);
@@ -791,7 +896,7 @@ fn attempt(
         pass.set_bind_group(0, &g, &[]);
         // Sized by `args`: empty when the items do not fit.
         pass.dispatch_workgroups_indirect(&indirect, 12);
-        let ev = k.eval(eval_mode, base.cover != 0);
+        let ev = k.eval(ctx, eval_mode, base.cover != 0)?;
         pass.set_pipeline(ev);
         for (p, &s) in eval_slots.iter().enumerate() {
             let g = eval_group(ev, s, p);
@@ -810,8 +915,9 @@ fn attempt(
                     ],
                 )
             };
-            let g = mgroup(&k.gather, gather_slot);
-            pass.set_pipeline(&k.gather);
+            let (gather, scatter) = k.members(ctx)?;
+            let g = mgroup(gather, gather_slot);
+            pass.set_pipeline(gather);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups_indirect(&indirect, 0);
             let sgroup = |p: &wgpu::ComputePipeline, s: usize| {
@@ -829,11 +935,11 @@ fn attempt(
                 pass.set_bind_group(0, &g, &[]);
                 pass.dispatch_workgroups(mlevels[i].1.div_ceil(SCAN_WG).max(1), 1, 1);
             }
-            let g = mgroup(&k.scatter, gather_slot);
-            pass.set_pipeline(&k.scatter);
+            let g = mgroup(scatter, gather_slot);
+            pass.set_pipeline(scatter);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups_indirect(&indirect, 0);
-            let ev = k.eval(MODE_MEMBERS, false);
+            let ev = k.eval(ctx, MODE_MEMBERS, false)?;
             pass.set_pipeline(ev);
             for (p, &s) in member_slots.iter().enumerate() {
                 let g = eval_group(ev, s, p);
@@ -842,8 +948,9 @@ fn attempt(
             }
         }
         if nearest {
+            let cut = k.cut(ctx)?;
             let g = bind(
-                &k.cut,
+                cut,
                 vec![
                     slot(&params, cut_slot),
                     h(&queries, q_bytes),
@@ -851,10 +958,10 @@ fn attempt(
                     h(&plans, plan_bytes),
                 ],
             );
-            pass.set_pipeline(&k.cut);
+            pass.set_pipeline(cut);
             pass.set_bind_group(0, &g, &[]);
             pass.dispatch_workgroups(groups_q.0, groups_q.1, 1);
-            let ev = k.eval(MODE_BELOW, false);
+            let ev = k.eval(ctx, MODE_BELOW, false)?;
             pass.set_pipeline(ev);
             for (p, &s) in below_slots.iter().enumerate() {
                 let g = eval_group(ev, s, p);

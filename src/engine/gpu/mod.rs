@@ -31,6 +31,7 @@ mod device;
 mod host;
 pub mod layout;
 
+pub use batch::PointStore;
 pub use device::{enumerate_adapters, skip_gpu_tests};
 pub use layout::CHUNK;
 
@@ -291,6 +292,16 @@ impl GpuDevice {
 
     /// Uploads `grid` (once: every batch of the engine's life reads it there).
     pub fn engine(self, grid: Arc<Grid>) -> Result<GpuEngine, EngineError> {
+        self.engine_with(grid, None)
+    }
+
+    /// [`Self::engine`] with the point store already computed from `grid` (while the
+    /// device opened).
+    pub fn engine_with(
+        self,
+        grid: Arc<Grid>,
+        store: Option<batch::PointStore>,
+    ) -> Result<GpuEngine, EngineError> {
         let GpuDevice {
             ctx,
             kernels,
@@ -299,7 +310,7 @@ impl GpuDevice {
             software,
         } = self;
         let limits = batch::Limits::new(&ctx, &opts, grid.len());
-        let statics = batch::Statics::upload(&ctx, &grid, &limits, fit_wanted)?;
+        let statics = batch::Statics::upload(&ctx, &grid, store, &limits, fit_wanted)?;
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         let device_fit = fit_wanted && kernels.fit.is_some() && statics.world.is_some();
         Ok(GpuEngine {
@@ -360,6 +371,13 @@ impl GpuEngine {
     /// f64 in shaders, the coordinates within one binding).
     pub fn fits_on_device(&self) -> bool {
         self.device_fit
+    }
+
+    /// The kernels this engine has compiled on first use (those of the side counts, the k
+    /// nearest and the member lists; the rest compile when the device opens), named as
+    /// `eval sides`, `eval histogram`, `eval below`, `eval members`, `cut`, `members`.
+    pub fn kernels_compiled_on_use(&self) -> Vec<String> {
+        self.kernels.compiled_on_use()
     }
 
     /// Queries answered wholly on the host; 0 on ordinary scenes.
