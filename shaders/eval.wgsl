@@ -13,8 +13,8 @@
 //     (`partials[id].first`) on (the host's lists, or the fit kernel's input); an item
 //     that finds a different number than the stats pass counted raises
 //     ctl[CTL_MEMBERS_BAD] (the host then answers the sub-batch).
-// Loop bound: min(count, CHUNK) points per invocation (then at most 8 words), far below
-// the 65,535 iterations after which lavapipe silently stops an invocation.
+// Loop bound: min(count, CHUNK) points per invocation, far below the 65,535 iterations
+// after which lavapipe silently stops an invocation.
 
 @group(0) @binding(1) var<storage, read> queries: array<GQuery>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
@@ -67,7 +67,13 @@ fn main(
     var side = 0u;
     var d2 = 0.0;
     var off = vec3<f32>(0.0);
-    var bits = array<u32, 8>(0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u);
+    // Coverage: the members' bits of one word of the mask at a time (`word`, in the mask's
+    // own alignment), OR-ed into the mask when a member falls in a later word and at the
+    // end: at most CHUNK / 32 + 1 atomics and no array in the invocation's memory (an
+    // array indexed by a varying index costs a memory access per member; on lavapipe it
+    // made coverage a third of the stats pass).
+    var word = it.start >> 5u;
+    var bits = 0u;
     var plan: Plan;
     if mode == MODE_BELOW {
         plan = plans[qi];
@@ -97,7 +103,15 @@ fn main(
             continue;
         }
         if cover {
-            bits[i >> 5u] |= 1u << (i & 31u);
+            let j = it.start + i;
+            if (j >> 5u) != word {
+                if bits != 0u {
+                    atomicOr(&aux[word], bits);
+                }
+                word = j >> 5u;
+                bits = 0u;
+            }
+            bits |= 1u << (j & 31u);
         }
         if mode == MODE_HIST {
             atomicAdd(&aux[qi * NBINS + bin_of(t.d2 * inv_r2)], 1u);
@@ -123,21 +137,8 @@ fn main(
             }
         }
     }
-    if cover {
-        // Chunks start anywhere, so word j of `bits` straddles two mask words.
-        let shift = it.start & 31u;
-        for (var j = 0u; j < 8u; j++) {
-            if bits[j] != 0u {
-                let word = (it.start >> 5u) + j;
-                atomicOr(&aux[word], bits[j] << shift);
-                if shift != 0u {
-                    let high = bits[j] >> (32u - shift);
-                    if high != 0u {
-                        atomicOr(&aux[word + 1u], high);
-                    }
-                }
-            }
-        }
+    if cover && bits != 0u {
+        atomicOr(&aux[word], bits);
     }
     if mode == MODE_MEMBERS {
         if count != expect {
