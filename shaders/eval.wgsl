@@ -13,8 +13,8 @@
 //     (`partials[id].first`) on (the host's lists, or the fit kernel's input); an item
 //     that finds a different number than the stats pass counted raises
 //     ctl[CTL_MEMBERS_BAD] (the host then answers the sub-batch).
-// Loop bound: min(count, CHUNK) points per invocation, far below the 65,535 iterations
-// after which lavapipe silently stops an invocation.
+// Loop bound: two loops of min(count, CHUNK) points per invocation, far below the 65,535
+// iterations after which lavapipe silently stops an invocation.
 
 @group(0) @binding(1) var<storage, read> queries: array<GQuery>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
@@ -30,6 +30,24 @@ fn flag(kind_query: u32, point: u32) {
         atomicStore(&ctl[CTL_HEAD + 2u * slot], kind_query);
         atomicStore(&ctl[CTL_HEAD + 2u * slot + 1u], point);
     }
+}
+
+fn cover_word(w: u32, bits: u32) {
+    if bits != 0u {
+        atomicOr(&aux[w], bits);
+    }
+}
+
+// Point `i` of the bound part in the frame of the cell whose x index is `xr`. Points are
+// stored relative to their own cell's corner, with that cell's x index (mod 2^16) in w:
+// moved into the item's frame (at most ROW_CELLS / 2 cells away along x), exactly in the
+// integer part and with one rounding below 2^-21 cells.
+fn point_in_frame(i: u32, xr: f32) -> vec3<f32> {
+    let pt = points[i];
+    var dx = pt.w - xr;
+    dx = select(dx, dx - 65536.0, dx > 32768.0);
+    dx = select(dx, dx + 65536.0, dx < -32768.0);
+    return vec3<f32>(pt.x + dx, pt.y, pt.z);
 }
 
 @compute @workgroup_size(64)
@@ -49,10 +67,7 @@ fn main(
     let qi = it.query;
     let q = queries[qi];
     let g = geom(q, it.cell);
-    // Points are stored relative to their own cell's corner, with that cell's x index
-    // (mod 2^16) in w: moved into the frame of the item's cell (at most ROW_CELLS / 2
-    // cells away along x), exactly in the integer part and with one rounding below 2^-21
-    // cells.
+    // The x index of the item's cell (its frame), as the point store keeps it.
     let xr = f32((it.cell % params.dims_x) & 0xFFFFu);
     let n = min(it.count, CHUNK);
     let first = it.start - params.part_base;
@@ -67,17 +82,30 @@ fn main(
     var side = 0u;
     var d2 = 0.0;
     var off = vec3<f32>(0.0);
-    // Coverage: the members' bits of one word of the mask at a time (`word`, in the mask's
-    // own alignment), OR-ed into the mask when a member falls in a later word and at the
-    // end: at most CHUNK / 32 + 1 atomics and no array in the invocation's memory (an
-    // array indexed by a varying index costs a memory access per member; on lavapipe it
-    // made coverage a third of the stats pass).
-    var word = it.start >> 5u;
-    var bits = 0u;
+    // Memory accesses inside the point loop are what the loop costs: SIMD implementations
+    // (llvmpipe) run both sides of a branch under a mask, so an access in a rarely taken
+    // branch is paid for at every point. The loop therefore reads its point and nothing
+    // else in the stats modes: the coverage bits stay in nine registers (a chunk of
+    // CHUNK <= 256 points spans at most nine words of the mask, from `w0`), and the points
+    // for the host (within the error bound of a boundary, or candidates of the cut band)
+    // are only counted, then flagged by a second loop that runs for the items that have
+    // any.
+    let w0 = it.start >> 5u;
+    var c0 = 0u;
+    var c1 = 0u;
+    var c2 = 0u;
+    var c3 = 0u;
+    var c4 = 0u;
+    var c5 = 0u;
+    var c6 = 0u;
+    var c7 = 0u;
+    var c8 = 0u;
+    var to_flag = 0u;
     var plan: Plan;
     if mode == MODE_BELOW {
         plan = plans[qi];
     }
+    let band = mode == MODE_BELOW && plan.cut != ALL_BELOW;
     var slot0 = 0u;
     var expect = 0u;
     if mode == MODE_MEMBERS {
@@ -87,31 +115,30 @@ fn main(
     }
     let inv_r2 = select(0.0, 1.0 / q.r2, q.r2 > 0.0);
     for (var i = 0u; i < n; i++) {
-        let pt = points[first + i];
-        var dx = pt.w - xr;
-        dx = select(dx, dx - 65536.0, dx > 32768.0);
-        dx = select(dx, dx + 65536.0, dx < -32768.0);
-        let t = classify(g, vec3<f32>(pt.x + dx, pt.y, pt.z), sides);
+        let t = classify(g, point_in_frame(first + i, xr), sides);
         if t.kind == OUT {
             continue;
         }
         if t.kind == NEAR {
             // The stats pass before a member pass has flagged them already.
             if mode != MODE_BELOW && mode != MODE_MEMBERS {
-                flag(qi | FLAG_BOUNDARY, it.start + i);
+                to_flag += 1u;
             }
             continue;
         }
         if cover {
             let j = it.start + i;
-            if (j >> 5u) != word {
-                if bits != 0u {
-                    atomicOr(&aux[word], bits);
-                }
-                word = j >> 5u;
-                bits = 0u;
-            }
-            bits |= 1u << (j & 31u);
+            let w = (j >> 5u) - w0;
+            let bit = 1u << (j & 31u);
+            c0 |= select(0u, bit, w == 0u);
+            c1 |= select(0u, bit, w == 1u);
+            c2 |= select(0u, bit, w == 2u);
+            c3 |= select(0u, bit, w == 3u);
+            c4 |= select(0u, bit, w == 4u);
+            c5 |= select(0u, bit, w == 5u);
+            c6 |= select(0u, bit, w == 6u);
+            c7 |= select(0u, bit, w == 7u);
+            c8 |= select(0u, bit, w == 8u);
         }
         if mode == MODE_HIST {
             atomicAdd(&aux[qi * NBINS + bin_of(t.d2 * inv_r2)], 1u);
@@ -123,11 +150,9 @@ fn main(
             count += 1u;
         } else {
             var take = true;
-            if mode == MODE_BELOW && plan.cut != ALL_BELOW {
+            if band {
                 take = t.d2 < plan.lo;
-                if !take && t.d2 <= plan.hi {
-                    flag(qi | FLAG_CANDIDATE, it.start + i);
-                }
+                to_flag += select(0u, 1u, !take && t.d2 <= plan.hi);
             }
             if take {
                 count += 1u;
@@ -137,8 +162,28 @@ fn main(
             }
         }
     }
-    if cover && bits != 0u {
-        atomicOr(&aux[word], bits);
+    if cover {
+        cover_word(w0, c0);
+        cover_word(w0 + 1u, c1);
+        cover_word(w0 + 2u, c2);
+        cover_word(w0 + 3u, c3);
+        cover_word(w0 + 4u, c4);
+        cover_word(w0 + 5u, c5);
+        cover_word(w0 + 6u, c6);
+        cover_word(w0 + 7u, c7);
+        cover_word(w0 + 8u, c8);
+    }
+    // The second loop: the same classification, for the items with points to flag.
+    let again = select(0u, n, to_flag > 0u);
+    for (var i = 0u; i < again; i++) {
+        let t = classify(g, point_in_frame(first + i, xr), sides);
+        if t.kind == NEAR {
+            if mode != MODE_BELOW && mode != MODE_MEMBERS {
+                flag(qi | FLAG_BOUNDARY, it.start + i);
+            }
+        } else if band && t.kind == IN && !(t.d2 < plan.lo) && t.d2 <= plan.hi {
+            flag(qi | FLAG_CANDIDATE, it.start + i);
+        }
     }
     if mode == MODE_MEMBERS {
         if count != expect {
