@@ -158,6 +158,23 @@ fn the_layout_check_catches_a_drifted_struct() {
     assert!(bad[0].starts_with("GQuery"), "{bad:?}");
 }
 
+/// The grid walk as the engine compiles it, once per pass with the pass a constant.
+#[test]
+fn both_walk_passes_validate() {
+    for emit in [false, true] {
+        let src = linegs_gpu::engine::gpu::walk_source(emit);
+        assert!(src.contains(&format!("let emit = {emit};")));
+        assert!(!src.contains("= params.mode"));
+        let module = parse(&src, Path::new("walk.wgsl")).unwrap();
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::empty(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("emit {emit}: {e:?}"));
+    }
+}
+
 /// The evaluation kernel as the engine compiles it, once per mode with the mode a
 /// constant: every variant validates, and the mode really is replaced.
 #[test]

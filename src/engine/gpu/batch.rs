@@ -84,7 +84,9 @@ impl Limits {
 }
 
 pub struct Kernels {
-    walk: wgpu::ComputePipeline,
+    /// The grid walk's count and emit passes ([`super::walk_source`]).
+    walk_count: wgpu::ComputePipeline,
+    walk_emit: wgpu::ComputePipeline,
     scan: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
     args: wgpu::ComputePipeline,
@@ -110,7 +112,8 @@ impl Kernels {
         };
         let scan = include_str!("../../../shaders/scan.wgsl");
         Kernels {
-            walk: k("walk", include_str!("../../../shaders/walk.wgsl"), "main"),
+            walk_count: ctx.pipeline("walk count", &super::walk_source(false), "main"),
+            walk_emit: ctx.pipeline("walk emit", &super::walk_source(true), "main"),
             scan: k("scan", scan, "main"),
             scan_add: k("scan add", scan, "add"),
             args: k("args", include_str!("../../../shaders/args.wgsl"), "main"),
@@ -814,9 +817,9 @@ fn attempt(
     let h = device::head;
     let cells = h(&st.cell_start, st.cell_bytes);
     let bind = |p: &wgpu::ComputePipeline, res: Vec<wgpu::BindingResource<'_>>| ctx.bind(p, &res);
-    let walk_group = |s: usize| {
+    let walk_group = |p: &wgpu::ComputePipeline, s: usize| {
         bind(
-            &k.walk,
+            p,
             vec![
                 slot(&params, s),
                 h(&queries, q_bytes),
@@ -854,8 +857,8 @@ fn attempt(
     {
         let groups_q = device::tiles(n as u64, WG as u64, lim.max_x);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-        let g = walk_group(walk_count);
-        pass.set_pipeline(&k.walk);
+        let g = walk_group(&k.walk_count, walk_count);
+        pass.set_pipeline(&k.walk_count);
         pass.set_bind_group(0, &g, &[]);
         // A rerun starts at the sizing: the counts and their scan are in place.
         let fresh = !rerun;
@@ -891,8 +894,8 @@ fn attempt(
         pass.set_pipeline(&k.args);
         pass.set_bind_group(0, &g, &[]);
         pass.dispatch_workgroups(1, 1, 1);
-        let g = walk_group(walk_emit);
-        pass.set_pipeline(&k.walk);
+        let g = walk_group(&k.walk_emit, walk_emit);
+        pass.set_pipeline(&k.walk_emit);
         pass.set_bind_group(0, &g, &[]);
         // Sized by `args`: empty when the items do not fit.
         pass.dispatch_workgroups_indirect(&indirect, 12);

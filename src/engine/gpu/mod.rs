@@ -201,6 +201,18 @@ pub fn eval_source(mode: u32, cover: bool) -> String {
     )
 }
 
+/// The line of `walk.wgsl` that reads its pass (count or emit) from the uniform.
+const WALK_EMIT_LINE: &str = "let emit = params.mode == MODE_EMIT;";
+
+/// The grid walk compiled for one pass, the pass a constant: the count pass then carries
+/// no item stores (a SIMD implementation such as lavapipe runs a branch's stores under a
+/// mask even where no lane takes it) and the emit pass no count bookkeeping.
+pub fn walk_source(emit: bool) -> String {
+    let src = include_str!("../../../shaders/walk.wgsl");
+    assert!(src.contains(WALK_EMIT_LINE), "walk.wgsl reads its pass");
+    kernel_source(&src.replace(WALK_EMIT_LINE, &format!("let emit = {emit};")))
+}
+
 /// Seconds of host work and of waiting for the device, accumulated over the engine's life.
 #[derive(Default)]
 struct Clock {
