@@ -14,7 +14,9 @@
 @group(0) @binding(1) var<storage, read> queries: array<GQuery>;
 @group(0) @binding(2) var<storage, read> cell_start: array<u32>;
 @group(0) @binding(3) var<storage, read_write> scan: array<u32>;
-@group(0) @binding(4) var<storage, read_write> items: array<Item>;
+// Items written as one vec4 each (query, cell, start, count: `Item`'s fields in order,
+// which tests/shaders.rs checks): one 16-byte store instead of four.
+@group(0) @binding(4) var<storage, read_write> items: array<vec4<u32>>;
 @group(0) @binding(5) var<storage, read_write> results: array<QResult>;
 
 // Range of p + t d over t in [t0, t1], grown by `grow`.
@@ -107,7 +109,7 @@ fn main(
                         let part_end = (s / params.part_len + 1u) * params.part_len;
                         let end = min(min(s + CHUNK, e), part_end);
                         if emit && at < params.item_cap {
-                            items[at] = Item(qi, c, s, end - s);
+                            items[at] = vec4<u32>(qi, c, s, end - s);
                         }
                         at++;
                         s = end;

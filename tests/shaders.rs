@@ -200,3 +200,16 @@ fn every_evaluation_mode_variant_validates() {
         .unwrap_or_else(|e| panic!("mode {mode}: {e:?}"));
     }
 }
+
+/// `walk.wgsl` writes each item as one vec4<u32> in `Item`'s field order.
+#[test]
+fn the_walk_writes_items_in_their_field_order() {
+    use linegs_gpu::engine::gpu::layout::Item;
+    assert_eq!(
+        Item::FIELDS,
+        [("query", 0), ("cell", 4), ("start", 8), ("count", 12)]
+    );
+    assert_eq!(std::mem::size_of::<Item>(), 16);
+    let walk = std::fs::read_to_string(shader_dir().join("walk.wgsl")).unwrap();
+    assert!(walk.contains("items[at] = vec4<u32>(qi, c, s, end - s);"));
+}
