@@ -13,8 +13,9 @@
 //     (`partials[id].first`) on (the host's lists, or the fit kernel's input); an item
 //     that finds a different number than the stats pass counted raises
 //     ctl[CTL_MEMBERS_BAD] (the host then answers the sub-batch).
-// Loop bound: two loops of min(count, CHUNK) points per invocation, far below the 65,535
-// iterations after which lavapipe silently stops an invocation.
+// Loop bound: two passes over min(count, CHUNK) points per invocation (the first in at
+// most nine words), far below the 65,535 iterations after which lavapipe silently stops an
+// invocation.
 
 @group(0) @binding(1) var<storage, read> queries: array<GQuery>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
@@ -29,12 +30,6 @@ fn flag(kind_query: u32, point: u32) {
     if slot < params.flag_cap {
         atomicStore(&ctl[CTL_HEAD + 2u * slot], kind_query);
         atomicStore(&ctl[CTL_HEAD + 2u * slot + 1u], point);
-    }
-}
-
-fn cover_word(w: u32, bits: u32) {
-    if bits != 0u {
-        atomicOr(&aux[w], bits);
     }
 }
 
@@ -85,21 +80,12 @@ fn main(
     // Memory accesses inside the point loop are what the loop costs: SIMD implementations
     // (llvmpipe) run both sides of a branch under a mask, so an access in a rarely taken
     // branch is paid for at every point. The loop therefore reads its point and nothing
-    // else in the stats modes: the coverage bits stay in nine registers (a chunk of
-    // CHUNK <= 256 points spans at most nine words of the mask, from `w0`), and the points
-    // for the host (within the error bound of a boundary, or candidates of the cut band)
-    // are only counted, then flagged by a second loop that runs for the items that have
-    // any.
-    let w0 = it.start >> 5u;
-    var c0 = 0u;
-    var c1 = 0u;
-    var c2 = 0u;
-    var c3 = 0u;
-    var c4 = 0u;
-    var c5 = 0u;
-    var c6 = 0u;
-    var c7 = 0u;
-    var c8 = 0u;
+    // else in the stats modes: it runs one word of the coverage mask at a time (words in
+    // the mask's own alignment), keeps the word's bits in a register and ORs them into
+    // the mask after the word, and the
+    // points for the host (within the error bound of a boundary, or candidates of the cut
+    // band) are only counted, then flagged by a second loop that runs for the items that
+    // have any.
     var to_flag = 0u;
     var plan: Plan;
     if mode == MODE_BELOW {
@@ -114,75 +100,62 @@ fn main(
         expect = pp.count;
     }
     let inv_r2 = select(0.0, 1.0 / q.r2, q.r2 > 0.0);
-    for (var i = 0u; i < n; i++) {
-        let t = classify(g, point_in_frame(first + i, xr), sides);
-        if t.kind == OUT {
-            continue;
-        }
-        if t.kind == NEAR {
-            // The stats pass before a member pass has flagged them already.
-            if mode != MODE_BELOW && mode != MODE_MEMBERS {
-                to_flag += 1u;
+    var i = 0u;
+    // At most CHUNK / 32 + 1 words, n points in all.
+    for (var w = it.start >> 5u; i < n; w++) {
+        let word_end = min(n, (w + 1u) * 32u - it.start);
+        var bits = 0u;
+        for (; i < word_end; i++) {
+            let t = classify(g, point_in_frame(first + i, xr), sides);
+            if t.kind == OUT {
+                continue;
             }
-            continue;
-        }
-        if cover {
-            let j = it.start + i;
-            let w = (j >> 5u) - w0;
-            let bit = 1u << (j & 31u);
-            c0 |= select(0u, bit, w == 0u);
-            c1 |= select(0u, bit, w == 1u);
-            c2 |= select(0u, bit, w == 2u);
-            c3 |= select(0u, bit, w == 3u);
-            c4 |= select(0u, bit, w == 4u);
-            c5 |= select(0u, bit, w == 5u);
-            c6 |= select(0u, bit, w == 6u);
-            c7 |= select(0u, bit, w == 7u);
-            c8 |= select(0u, bit, w == 8u);
-        }
-        if mode == MODE_HIST {
-            atomicAdd(&aux[qi * NBINS + bin_of(t.d2 * inv_r2)], 1u);
-        } else if mode == MODE_MEMBERS {
-            let at = slot0 + count;
-            if count < expect && at < params.member_cap {
-                atomicStore(&aux[at], it.start + i);
+            if t.kind == NEAR {
+                // The stats pass before a member pass has flagged them already.
+                if mode != MODE_BELOW && mode != MODE_MEMBERS {
+                    to_flag += 1u;
+                }
+                continue;
             }
-            count += 1u;
-        } else {
-            var take = true;
-            if band {
-                take = t.d2 < plan.lo;
-                to_flag += select(0u, 1u, !take && t.d2 <= plan.hi);
+            if cover {
+                bits |= 1u << ((it.start + i) & 31u);
             }
-            if take {
+            if mode == MODE_HIST {
+                atomicAdd(&aux[qi * NBINS + bin_of(t.d2 * inv_r2)], 1u);
+            } else if mode == MODE_MEMBERS {
+                let at = slot0 + count;
+                if count < expect && at < params.member_cap {
+                    atomicStore(&aux[at], it.start + i);
+                }
                 count += 1u;
-                side += select(0u, 1u, t.u > g.mid);
-                d2 += t.d2;
-                off += t.v;
+            } else {
+                var take = true;
+                if band {
+                    take = t.d2 < plan.lo;
+                    to_flag += select(0u, 1u, !take && t.d2 <= plan.hi);
+                }
+                if take {
+                    count += 1u;
+                    side += select(0u, 1u, t.u > g.mid);
+                    d2 += t.d2;
+                    off += t.v;
+                }
             }
         }
-    }
-    if cover {
-        cover_word(w0, c0);
-        cover_word(w0 + 1u, c1);
-        cover_word(w0 + 2u, c2);
-        cover_word(w0 + 3u, c3);
-        cover_word(w0 + 4u, c4);
-        cover_word(w0 + 5u, c5);
-        cover_word(w0 + 6u, c6);
-        cover_word(w0 + 7u, c7);
-        cover_word(w0 + 8u, c8);
+        if cover && bits != 0u {
+            atomicOr(&aux[w], bits);
+        }
     }
     // The second loop: the same classification, for the items with points to flag.
     let again = select(0u, n, to_flag > 0u);
-    for (var i = 0u; i < again; i++) {
-        let t = classify(g, point_in_frame(first + i, xr), sides);
+    for (var k = 0u; k < again; k++) {
+        let t = classify(g, point_in_frame(first + k, xr), sides);
         if t.kind == NEAR {
             if mode != MODE_BELOW && mode != MODE_MEMBERS {
-                flag(qi | FLAG_BOUNDARY, it.start + i);
+                flag(qi | FLAG_BOUNDARY, it.start + k);
             }
         } else if band && t.kind == IN && !(t.d2 < plan.lo) && t.d2 <= plan.hi {
-            flag(qi | FLAG_CANDIDATE, it.start + i);
+            flag(qi | FLAG_CANDIDATE, it.start + k);
         }
     }
     if mode == MODE_MEMBERS {

@@ -9,8 +9,6 @@ use bytemuck::{Pod, Zeroable};
 
 /// Most points per work item: the bound of the evaluation kernel's loop.
 pub const CHUNK: u32 = 256;
-// eval.wgsl keeps a chunk's coverage bits in nine registers: at most 9 words of 32 bits.
-const _: () = assert!(CHUNK <= 8 * 32);
 /// Most cells of a row in one work item (a run of contiguous points). The evaluation moves
 /// each point into the frame of the run's middle cell, so this bounds that distance
 /// (`ROW_CELLS / 2` cells) and with it the rounding that the f32 error bound must cover.
