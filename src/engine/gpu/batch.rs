@@ -201,9 +201,7 @@ impl Kernels {
         })?;
         Ok((gather, scatter))
     }
-}
 
-impl Kernels {
     /// The kernels compiled on first use that have been so far: `eval sides`, `eval sides
     /// cover`, `eval histogram`, `eval below`, `eval members`, `cut`, `members`.
     pub fn compiled_on_use(&self) -> Vec<String> {
