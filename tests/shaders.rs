@@ -158,6 +158,19 @@ fn the_layout_check_catches_a_drifted_struct() {
     assert!(bad[0].starts_with("GQuery"), "{bad:?}");
 }
 
+/// A kernel variant's full source (as the engine builds it) parses and validates with
+/// core WebGPU capabilities.
+fn validate_variant(src: &str, name: &str) -> Result<(), String> {
+    let module = parse(src, Path::new(name))?;
+    naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::empty(),
+    )
+    .validate(&module)
+    .map(|_| ())
+    .map_err(|e| format!("{e:?}"))
+}
+
 /// The grid walk as the engine compiles it, once per pass with the pass a constant.
 #[test]
 fn both_walk_passes_validate() {
@@ -165,13 +178,7 @@ fn both_walk_passes_validate() {
         let src = linegs_gpu::engine::gpu::walk_source(emit);
         assert!(src.contains(&format!("let emit = {emit};")));
         assert!(!src.contains("= params.mode"));
-        let module = parse(&src, Path::new("walk.wgsl")).unwrap();
-        naga::valid::Validator::new(
-            naga::valid::ValidationFlags::all(),
-            naga::valid::Capabilities::empty(),
-        )
-        .validate(&module)
-        .unwrap_or_else(|e| panic!("emit {emit}: {e:?}"));
+        validate_variant(&src, "walk.wgsl").unwrap_or_else(|e| panic!("emit {emit}: {e}"));
     }
 }
 
@@ -191,13 +198,7 @@ fn every_evaluation_mode_variant_validates() {
         assert!(src.contains(&format!("let mode = {mode}u;")));
         assert!(src.contains(&format!("let cover_on = {cover};")));
         assert!(!src.contains("= params.mode;") && !src.contains("= params.cover"));
-        let module = parse(&src, Path::new("eval.wgsl")).unwrap();
-        naga::valid::Validator::new(
-            naga::valid::ValidationFlags::all(),
-            naga::valid::Capabilities::empty(),
-        )
-        .validate(&module)
-        .unwrap_or_else(|e| panic!("mode {mode}: {e:?}"));
+        validate_variant(&src, "eval.wgsl").unwrap_or_else(|e| panic!("mode {mode}: {e}"));
     }
 }
 
