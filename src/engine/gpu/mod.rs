@@ -213,6 +213,80 @@ pub fn walk_source(emit: bool) -> String {
     kernel_source(&src.replace(WALK_EMIT_LINE, &format!("let emit = {emit};")))
 }
 
+/// The order a batch's queries go to the device in: along a Morton (Z-order) curve through
+/// the cells holding their segments' midpoints, so that queries next to each other in the
+/// batch (the lanes of one SIMD group or warp, the invocations in flight together) walk
+/// neighbouring rows of the cell table and read neighbouring points, and their items share
+/// cache lines. In the caller's order (a file's, a step's) each lane reads its own stretch
+/// of memory; on lavapipe the kernels of the bench scene's evaluation batch take a fifth
+/// less time in this order. Answers are per query, so restoring the caller's order gives them
+/// bit for bit (the coverage mask is a union, the same in any order).
+struct SpatialOrder {
+    /// `perm[j]`: the caller's index of the `j`-th query sent.
+    perm: Vec<u32>,
+}
+
+impl SpatialOrder {
+    fn new(grid: &Grid, queries: &[Query]) -> SpatialOrder {
+        let (dx, dy) = (grid.dims[0], grid.dims[1]);
+        let mut keys: Vec<(u64, u32)> = queries
+            .par_iter()
+            .with_min_len(4096)
+            .enumerate()
+            .map(|(i, q)| {
+                // `cell_of` clamps into the grid (an invalid segment's NaN midpoint: cell 0).
+                let c = grid.cell_of(q.seg.midpoint());
+                let (x, y, z) = (c % dx, (c / dx) % dy, c / (dx * dy));
+                (morton3(x, y, z), i as u32)
+            })
+            .collect();
+        // Ties keep the caller's order (the index is the second key): one order per batch.
+        keys.par_sort_unstable();
+        SpatialOrder {
+            perm: keys.into_iter().map(|(_, i)| i).collect(),
+        }
+    }
+
+    /// The caller's index of the `j`-th query sent.
+    fn index(&self, j: usize) -> usize {
+        self.perm[j] as usize
+    }
+
+    /// `xs` (one per query, in the caller's order) in the order sent.
+    fn apply<T: Clone>(&self, xs: &[T]) -> Vec<T> {
+        self.perm.iter().map(|&i| xs[i as usize].clone()).collect()
+    }
+
+    /// Answers in the order sent, back in the caller's order (empty stays empty).
+    fn restore<T>(&self, ys: Vec<T>) -> Vec<T> {
+        if ys.is_empty() {
+            return ys;
+        }
+        debug_assert_eq!(ys.len(), self.perm.len());
+        let mut out: Vec<Option<T>> = (0..ys.len()).map(|_| None).collect();
+        for (&i, y) in self.perm.iter().zip(ys) {
+            out[i as usize] = Some(y);
+        }
+        out.into_iter()
+            .map(|y| y.expect("a permutation fills every slot"))
+            .collect()
+    }
+}
+
+/// Interleaves the low 21 bits of `x`, `y` and `z` (x lowest): the cell's Morton code.
+fn morton3(x: u32, y: u32, z: u32) -> u64 {
+    fn spread(v: u32) -> u64 {
+        let mut v = (v & 0x1F_FFFF) as u64;
+        v = (v | v << 32) & 0x001F_0000_0000_FFFF;
+        v = (v | v << 16) & 0x001F_0000_FF00_00FF;
+        v = (v | v << 8) & 0x100F_00F0_0F00_F00F;
+        v = (v | v << 4) & 0x10C3_0C30_C30C_30C3;
+        v = (v | v << 2) & 0x1249_2492_4924_9249;
+        v
+    }
+    spread(x) | spread(y) << 1 | spread(z) << 2
+}
+
 /// Seconds of host work and of waiting for the device, accumulated over the engine's life.
 #[derive(Default)]
 struct Clock {
@@ -817,7 +891,7 @@ impl Engine for GpuEngine {
     /// One device batch for the stats and the coverage together (one walk, each point
     /// evaluated once), then, for nearest sums, the k-nearest batch (whose `k` may come
     /// from the first batch's counts); a nearest-only ask gets its counts from the
-    /// k-nearest batch itself.
+    /// k-nearest batch itself. The device gets the queries in [`SpatialOrder`].
     fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
         ask.nearest.check(queries.len())?;
         self.count_batch(queries.len());
@@ -830,6 +904,105 @@ impl Engine for GpuEngine {
             self.clock.add(t.elapsed().as_secs_f64(), 0.0);
             return out;
         }
+        let order = SpatialOrder::new(&self.grid, queries);
+        let ks: Vec<u64>;
+        let nearest = match ask.nearest {
+            Nearest::K(k) => {
+                ks = order.apply(k);
+                Nearest::K(&ks)
+            }
+            other => other,
+        };
+        let ask = Ask { nearest, ..*ask };
+        let out = self.query_in_order(&order.apply(queries), &ask)?;
+        Ok(Answers {
+            stats: order.restore(out.stats),
+            nearest: order.restore(out.nearest),
+            coverage: out.coverage,
+        })
+    }
+
+    /// One device batch: the walk and the stats pass, a scan of the items' member counts
+    /// and a member pass that writes each query's sure members contiguously; the host
+    /// measures them (and decides the flagged points) in f64, as the CPU engine does.
+    /// Batches of at most `small_batch` queries (the fit's last iterations) are answered
+    /// on the host, like small [`Engine::query`] batches, and so is every batch where
+    /// [`GpuOptions::members`] resolved to the host (a software adapter, for the commands).
+    fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
+        self.count_batch(queries.len());
+        if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
+            let t = std::time::Instant::now();
+            let out = self.cpu.members(queries);
+            self.cpu_batches.fetch_add(1, Ordering::Relaxed);
+            self.cpu_queries
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
+            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+            return out;
+        }
+        let order = SpatialOrder::new(&self.grid, queries);
+        let mut b = self.lock();
+        let lists = self.members_batch(&mut b, &order.apply(queries))?;
+        Ok(order.restore(lists))
+    }
+
+    /// With [`GpuOptions::fit`] on the device, the ridge there where the fit is the plain
+    /// ridge: no normals (the two-face fit stays on the host), no opacity weights, more
+    /// than `small_batch` queries; otherwise [`Engine::members`] and the host's step.
+    fn fit_lines(
+        &self,
+        queries: &[Query],
+        ask: &FitAsk<'_>,
+    ) -> Result<Vec<FitAnswer>, EngineError> {
+        let device = self.device_fit
+            && queries.len() > self.small_batch
+            && ask.attrs.normals.is_none()
+            && !ask.params.fit_opacity_weight
+            && !self.grid.is_empty();
+        if !device {
+            let members = self.members(queries)?;
+            let t = std::time::Instant::now();
+            let out = crate::refine::fit::steps(queries, &members, ask);
+            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+            return Ok(out);
+        }
+        self.count_batch(queries.len());
+        let order = SpatialOrder::new(&self.grid, queries);
+        let sent = &order;
+        let sensitive = ask
+            .sensitive
+            .map(|s| move |j: usize, line: &crate::refine::fit::LineFit| s(sent.index(j), line));
+        let ask = FitAsk {
+            sensitive: sensitive.as_ref().map(|s| s as &super::Sensitive<'_>),
+            ..*ask
+        };
+        let mut b = self.lock();
+        let answers = self.fit_batch(&mut b, &order.apply(queries), &ask)?;
+        Ok(order.restore(answers))
+    }
+
+    fn counters(&self) -> Counters {
+        Counters {
+            uploads: self.uploads.load(Ordering::Relaxed),
+            batches: self.batches.load(Ordering::Relaxed),
+            queries: self.queries.load(Ordering::Relaxed),
+            cpu_batches: self.cpu_batches.load(Ordering::Relaxed),
+            cpu_queries: self.cpu_queries.load(Ordering::Relaxed),
+            device_fits: self.device_fits.load(Ordering::Relaxed),
+            device_fits_refitted: self.device_fits_refitted.load(Ordering::Relaxed),
+        }
+    }
+
+    fn seconds(&self) -> Option<(f64, f64)> {
+        Some(GpuEngine::seconds(self))
+    }
+}
+
+impl GpuEngine {
+    /// One device batch for the stats and the coverage together (one walk, each point
+    /// evaluated once), then, for nearest sums, the k-nearest batch (whose `k` may come
+    /// from the first batch's counts); a nearest-only ask gets its counts from the
+    /// k-nearest batch itself. `queries` in the order the device gets them.
+    fn query_in_order(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
         let mut b = self.lock();
         let stats_batch = ask.nearest == Nearest::No
             || ask.coverage
@@ -862,66 +1035,78 @@ impl Engine for GpuEngine {
         }
         Ok(out)
     }
+}
 
-    /// One device batch: the walk and the stats pass, a scan of the items' member counts
-    /// and a member pass that writes each query's sure members contiguously; the host
-    /// measures them (and decides the flagged points) in f64, as the CPU engine does.
-    /// Batches of at most `small_batch` queries (the fit's last iterations) are answered
-    /// on the host, like small [`Engine::query`] batches, and so is every batch where
-    /// [`GpuOptions::members`] resolved to the host (a software adapter, for the commands).
-    fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
-        self.count_batch(queries.len());
-        if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
-            let t = std::time::Instant::now();
-            let out = self.cpu.members(queries);
-            self.cpu_batches.fetch_add(1, Ordering::Relaxed);
-            self.cpu_queries
-                .fetch_add(queries.len() as u64, Ordering::Relaxed);
-            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-            return out;
-        }
-        let mut b = self.lock();
-        self.members_batch(&mut b, queries)
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geom::{Aabb, Segment};
+
+    #[test]
+    fn morton_codes_interleave_x_lowest() {
+        assert_eq!(morton3(0, 0, 0), 0);
+        assert_eq!(morton3(1, 0, 0), 0b001);
+        assert_eq!(morton3(0, 1, 0), 0b010);
+        assert_eq!(morton3(0, 0, 1), 0b100);
+        assert_eq!(morton3(3, 0, 0), 0b001_001);
+        assert_eq!(morton3(2, 3, 1), 0b011_110);
+        // All 21 bits of each coordinate survive.
+        let top = 1u32 << 20;
+        assert_eq!(morton3(top, 0, 0), 1u64 << 60);
+        assert_eq!(morton3(0, 0, top), 1u64 << 62);
     }
 
-    /// With [`GpuOptions::fit`] on the device, the ridge there where the fit is the plain
-    /// ridge: no normals (the two-face fit stays on the host), no opacity weights, more
-    /// than `small_batch` queries; otherwise [`Engine::members`] and the host's step.
-    fn fit_lines(
-        &self,
-        queries: &[Query],
-        ask: &FitAsk<'_>,
-    ) -> Result<Vec<FitAnswer>, EngineError> {
-        let device = self.device_fit
-            && queries.len() > self.small_batch
-            && ask.attrs.normals.is_none()
-            && !ask.params.fit_opacity_weight
-            && !self.grid.is_empty();
-        if !device {
-            let members = self.members(queries)?;
-            let t = std::time::Instant::now();
-            let out = crate::refine::fit::steps(queries, &members, ask);
-            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-            return Ok(out);
-        }
-        self.count_batch(queries.len());
-        let mut b = self.lock();
-        self.fit_batch(&mut b, queries, ask)
+    fn grid_4x4x4() -> Grid {
+        let pts: Vec<[f32; 3]> = (0..64)
+            .map(|i| {
+                [
+                    (i % 4) as f32 + 0.5,
+                    ((i / 4) % 4) as f32 + 0.5,
+                    (i / 16) as f32 + 0.5,
+                ]
+            })
+            .collect();
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::splat(3.99),
+        };
+        Grid::build(&pts, b, 1.0)
     }
 
-    fn counters(&self) -> Counters {
-        Counters {
-            uploads: self.uploads.load(Ordering::Relaxed),
-            batches: self.batches.load(Ordering::Relaxed),
-            queries: self.queries.load(Ordering::Relaxed),
-            cpu_batches: self.cpu_batches.load(Ordering::Relaxed),
-            cpu_queries: self.cpu_queries.load(Ordering::Relaxed),
-            device_fits: self.device_fits.load(Ordering::Relaxed),
-            device_fits_refitted: self.device_fits_refitted.load(Ordering::Relaxed),
-        }
+    fn at(x: f64, y: f64, z: f64) -> Query {
+        let p = DVec3::new(x, y, z);
+        Query::new(Segment::new(p - DVec3::X * 0.1, p + DVec3::X * 0.1), 0.2)
     }
 
-    fn seconds(&self) -> Option<(f64, f64)> {
-        Some(GpuEngine::seconds(self))
+    #[test]
+    fn queries_go_in_morton_order_and_answers_come_back_in_the_callers() {
+        let g = grid_4x4x4();
+        assert_eq!(g.dims, [4, 4, 4]);
+        // Cells (3,3,3), (0,0,0), (1,0,0), (0,1,0), (0,0,1), and (0,0,0) again.
+        let qs = [
+            at(3.5, 3.5, 3.5),
+            at(0.5, 0.5, 0.5),
+            at(1.5, 0.5, 0.5),
+            at(0.5, 1.5, 0.5),
+            at(0.5, 0.5, 1.5),
+            at(0.6, 0.4, 0.5),
+        ];
+        let order = SpatialOrder::new(&g, &qs);
+        // Ties (queries 1 and 5 share a cell) keep the caller's order.
+        assert_eq!(order.perm, vec![1, 5, 2, 3, 4, 0]);
+        assert_eq!(order.index(5), 0);
+        let sent = order.apply(&qs);
+        assert_eq!(sent[0], qs[1]);
+        assert_eq!(sent[5], qs[0]);
+        // An answer computed from each sent query comes back to its own slot.
+        let answers: Vec<f64> = sent
+            .iter()
+            .map(|q| q.seg.p1.x + 10.0 * q.seg.p1.z)
+            .collect();
+        let back = order.restore(answers);
+        for (q, a) in qs.iter().zip(&back) {
+            assert_eq!(*a, q.seg.p1.x + 10.0 * q.seg.p1.z);
+        }
+        assert!(order.restore(Vec::<f64>::new()).is_empty());
     }
 }
