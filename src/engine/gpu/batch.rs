@@ -266,31 +266,66 @@ pub struct PointStore {
 
 impl PointStore {
     pub fn of(grid: &std::sync::Arc<Grid>) -> PointStore {
-        let (dx, dy) = (grid.dims[0], grid.dims[1]);
-        let inv = 1.0 / grid.cell;
-        let rel: Vec<[f32; 4]> = grid
-            .points
-            .par_iter()
-            .map(|p| {
-                let p = p64(*p);
-                // The same function the grid sorted with, so this is the point's own cell.
-                let c = grid.cell_of(p);
-                let o = grid.cell_origin(c % dx, (c / dx) % dy, c / (dx * dy));
-                let r = (p - o) * inv;
-                // w: the cell's x index mod 2^16 (exact in f32), for the kernels to move
-                // the point into a neighbouring cell's frame.
-                [
-                    r.x as f32,
-                    r.y as f32,
-                    r.z as f32,
-                    ((c % dx) & 0xFFFF) as f32,
-                ]
-            })
-            .collect();
+        let mut rel = vec![[0f32; 4]; grid.points.len()];
+        rel.par_chunks_mut(STORE_RUN)
+            .enumerate()
+            .for_each(|(k, run)| store_run(grid, k * STORE_RUN, run));
         PointStore {
             grid: std::sync::Arc::downgrade(grid),
             rel,
         }
+    }
+}
+
+/// Points per piece of the point store computed at once (64 KiB: a piece is written to
+/// the staging memory from a reused buffer that stays in cache).
+const STORE_RUN: usize = 4096;
+
+/// The point store's entries of the sorted points `start..start + out.len()`. Each point's
+/// cell is the one whose range of the cell table holds it (the cell the grid sorted it
+/// into), found once per piece and then stepped, so the cost is the offsets' arithmetic.
+fn store_run(grid: &Grid, start: usize, out: &mut [[f32; 4]]) {
+    let (dx, dy) = (grid.dims[0], grid.dims[1]);
+    let inv = 1.0 / grid.cell;
+    let starts = &grid.cell_start;
+    // The last cell whose range begins at or before `start`: the cell holding it.
+    let mut c = starts.partition_point(|&s| s as usize <= start) - 1;
+    let mut cell = None;
+    for (j, slot) in out.iter_mut().enumerate() {
+        let i = start + j;
+        while starts[c + 1] as usize <= i {
+            c += 1;
+            cell = None;
+        }
+        let (x, o) = *cell.get_or_insert_with(|| {
+            let (x, t) = (c as u32 % dx, c as u32 / dx);
+            (x, grid.cell_origin(x, t % dy, t / dy))
+        });
+        let r = (p64(grid.points[i]) - o) * inv;
+        // w: the cell's x index mod 2^16 (exact in f32), for the kernels to move the point
+        // into a neighbouring cell's frame.
+        *slot = [r.x as f32, r.y as f32, r.z as f32, (x & 0xFFFF) as f32];
+    }
+}
+
+/// The point store's entries of the sorted points `first..` written straight into `dst`
+/// (the upload's staging memory), piece by piece in parallel: no store of its own.
+fn write_store(grid: &Grid, dst: wgpu::WriteOnly<'_, [u8]>, first: usize) {
+    const PIECE: usize = STORE_RUN * 16;
+    let (whole, tail) = dst.into_chunks::<PIECE>();
+    let pieces: Vec<wgpu::WriteOnly<'_, [u8; PIECE]>> = whole.into_iter().collect();
+    let n_whole = pieces.len();
+    let write = |buf: &mut Vec<[f32; 4]>, k: usize, mut piece: wgpu::WriteOnly<'_, [u8]>| {
+        let run = &mut buf[..piece.len() / 16];
+        store_run(grid, first + k * STORE_RUN, run);
+        piece.copy_from_slice(bytemuck::cast_slice(run));
+    };
+    pieces.into_par_iter().enumerate().for_each_init(
+        || vec![[0f32; 4]; STORE_RUN],
+        |buf, (k, piece)| write(buf, k, piece.into()),
+    );
+    if !tail.is_empty() {
+        write(&mut vec![[0f32; 4]; STORE_RUN], n_whole, tail);
     }
 }
 
@@ -311,9 +346,10 @@ impl Statics {
                 "the grid's cell table ({cell_bytes} bytes) is above the device's binding limit"
             )));
         }
-        let rel = match store {
-            Some(s) if std::ptr::eq(s.grid.as_ptr(), std::sync::Arc::as_ptr(grid)) => s.rel,
-            _ => PointStore::of(grid).rel,
+        // A store computed for another grid is not used (computed here instead).
+        let given = match store {
+            Some(s) if std::ptr::eq(s.grid.as_ptr(), std::sync::Arc::as_ptr(grid)) => Some(s.rel),
+            _ => None,
         };
         ctx.scoped("uploading the Gaussians", || {
             let storage = wgpu::BufferUsages::STORAGE;
@@ -321,10 +357,27 @@ impl Statics {
             ctx.queue
                 .write_buffer(&cell_start, 0, bytemuck::cast_slice(&grid.cell_start));
             let mut parts = Vec::new();
-            for chunk in rel.chunks(lim.part_len as usize) {
-                let bytes = (chunk.len() * 16) as u64;
+            let n = grid.points.len();
+            let part_len = lim.part_len as usize;
+            for first in (0..n).step_by(part_len) {
+                let len = part_len.min(n - first);
+                let bytes = (len * 16) as u64;
                 let buf = ctx.buffer("points", bytes, storage);
-                ctx.queue.write_buffer(&buf, 0, bytemuck::cast_slice(chunk));
+                match &given {
+                    Some(rel) => ctx.queue.write_buffer(
+                        &buf,
+                        0,
+                        bytemuck::cast_slice(&rel[first..first + len]),
+                    ),
+                    // Computed straight into the staging memory: no copy of its own.
+                    None => {
+                        let size = std::num::NonZeroU64::new(bytes).expect("never empty");
+                        // `None`: a validation error, which the scope reports.
+                        if let Some(mut view) = ctx.queue.write_buffer_with(&buf, 0, size) {
+                            write_store(grid, view.slice(..), first);
+                        }
+                    }
+                }
                 parts.push((buf, bytes));
             }
             if parts.is_empty() {
@@ -1100,4 +1153,85 @@ pub fn read_mask(ctx: &Context, b: &mut Buffers, n: usize) -> Result<(Vec<u32>, 
     let mut enc = ctx.encoder();
     enc.copy_buffer_to_buffer(&aux, 0, &staging, 0, bytes);
     ctx.submit_and_map(enc, &staging, bytes, bytemuck::pod_collect_to_vec)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geom::Aabb;
+    use std::sync::Arc;
+
+    /// A grid with empty cells, crowded cells and more points than a few pieces.
+    fn grid() -> Arc<Grid> {
+        let mut s = 5u64;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let pts: Vec<[f32; 3]> = (0..3 * STORE_RUN + 123)
+            .map(|i| {
+                let t = next();
+                if i % 3 == 0 {
+                    // A dense line: crowded cells among empty ones.
+                    [t as f32, 0.5, 0.5]
+                } else {
+                    [t as f32, next() as f32, next() as f32]
+                }
+            })
+            .collect();
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::ONE,
+        };
+        Arc::new(Grid::build(&pts, b, 0.05))
+    }
+
+    /// Each point's entry from its own cell (`cell_of`, the function the grid sorted with).
+    fn by_cell_of(g: &Grid) -> Vec<[f32; 4]> {
+        let (dx, dy) = (g.dims[0], g.dims[1]);
+        g.points
+            .iter()
+            .map(|p| {
+                let p = p64(*p);
+                let c = g.cell_of(p);
+                let r = (p - g.cell_origin(c % dx, (c / dx) % dy, c / (dx * dy))) / g.cell;
+                [
+                    r.x as f32,
+                    r.y as f32,
+                    r.z as f32,
+                    ((c % dx) & 0xFFFF) as f32,
+                ]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_point_store_finds_each_points_own_cell() {
+        let g = grid();
+        assert!(g.cell_start.windows(2).any(|w| w[0] == w[1]), "empty cells");
+        let want = by_cell_of(&g);
+        let rel = PointStore::of(&g).rel;
+        assert_eq!(rel.len(), want.len());
+        for (i, (a, b)) in rel.iter().zip(&want).enumerate() {
+            // The same arithmetic up to the multiplication by 1 / cell: within an ulp.
+            for k in 0..3 {
+                assert!((a[k] - b[k]).abs() <= 1e-6, "point {i}: {a:?} vs {b:?}");
+            }
+            assert_eq!(a[3], b[3], "point {i}: cell x index");
+        }
+    }
+
+    #[test]
+    fn the_store_written_into_staging_memory_is_the_computed_one() {
+        let g = grid();
+        let rel = PointStore::of(&g).rel;
+        // From point 100 on, as a part that starts mid-grid, with a piece left over.
+        let first = 100;
+        let mut got = vec![[0f32; 4]; rel.len() - first];
+        let bytes: &mut [u8] = bytemuck::cast_slice_mut(got.as_mut_slice());
+        write_store(&g, wgpu::WriteOnly::from_mut(bytes), first);
+        assert_eq!(got, &rel[first..]);
+    }
 }
