@@ -801,3 +801,21 @@ fn a_point_store_computed_for_another_grid_is_not_uploaded() {
         .unwrap();
     check_parity(&CpuEngine::new(ga), &gpu, &qs);
 }
+
+#[test]
+fn a_warmed_up_device_answers_like_the_cpu_and_counts_none_of_its_warm_up() {
+    let pts = random_scene(20_000, 81);
+    let qs = random_queries(300, 82, 0.04);
+    let opts = GpuOptions {
+        warm_up: true,
+        ..Default::default()
+    };
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, opts) else {
+        return;
+    };
+    // The warm-up's engine, batches and buffers are gone; only eager kernels ran.
+    let c = gpu.counters();
+    assert_eq!((c.batches, c.queries), (0, 0), "{c:?}");
+    assert!(gpu.kernels_compiled_on_use().is_empty());
+    check_parity(&cpu, &gpu, &qs);
+}

@@ -71,6 +71,12 @@ pub struct GpuOptions {
     pub small_batch: usize,
     /// Where [`Engine::members`] lists are built (the edge fit, `--split-gaps`).
     pub members: MembersOn,
+    /// Whether [`GpuDevice::open`] runs two small evaluation batches over a tiny grid of
+    /// its own before it returns: drivers that generate a kernel's machine code at its
+    /// first dispatch (lavapipe: about 40 ms for the first evaluation's kernels) then do
+    /// that on the opening thread, which runs while the caller builds the grid, instead of
+    /// in the first batch. The commands' choice; off here (tests open many engines).
+    pub warm_up: bool,
 }
 
 /// Where the GPU engine builds per-point member lists.
@@ -136,6 +142,7 @@ impl GpuOptions {
             small_batch,
             fit,
             members,
+            warm_up: true,
             ..Default::default()
         }
     }
@@ -151,6 +158,7 @@ impl Default for GpuOptions {
             fit: FitOn::Device,
             small_batch: 0,
             members: MembersOn::Device,
+            warm_up: false,
         }
     }
 }
@@ -362,6 +370,53 @@ impl GpuDevice {
         let kernels = ctx.scoped("compiling the kernels", || {
             batch::Kernels::new(&ctx, fit_wanted)
         })?;
+        let device = GpuDevice {
+            ctx,
+            kernels,
+            opts,
+            fit_wanted,
+            software,
+        };
+        if opts.warm_up {
+            device.warmed_up()
+        } else {
+            Ok(device)
+        }
+    }
+
+    /// The device after one batch of each kind the first steps of a refinement send (an
+    /// evaluation with coverage, a count batch) over a two-point grid of its own: the
+    /// first dispatch of every pipeline they use happens here. The warm-up engine and its
+    /// buffers and counters are dropped; the device and the kernels stay.
+    fn warmed_up(self) -> Result<GpuDevice, EngineError> {
+        use crate::geom::{Aabb, Segment};
+        let (opts, fit_wanted, software) = (self.opts, self.fit_wanted, self.software);
+        let pts = [[0.25f32, 0.5, 0.5], [0.75, 0.5, 0.5]];
+        let unit = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::ONE,
+        };
+        let grid = Arc::new(Grid::build(&pts, unit, 0.25));
+        let engine = GpuDevice {
+            opts: GpuOptions {
+                small_batch: 0,
+                ..opts
+            },
+            ..self
+        }
+        .engine(grid)?;
+        let axis = Segment::new(DVec3::new(0.0, 0.5, 0.5), DVec3::new(1.0, 0.5, 0.5));
+        let queries = [Query::new(axis, 0.1)];
+        for (want, coverage) in [(Want::SUMS, true), (Want::COUNT, false)] {
+            let ask = Ask {
+                want,
+                coverage,
+                ..Default::default()
+            };
+            let got = engine.query(&queries, &ask)?;
+            debug_assert_eq!(got.stats[0].count, 2);
+        }
+        let GpuEngine { ctx, kernels, .. } = engine;
         Ok(GpuDevice {
             ctx,
             kernels,
