@@ -819,3 +819,27 @@ fn a_warmed_up_device_answers_like_the_cpu_and_counts_none_of_its_warm_up() {
     assert!(gpu.kernels_compiled_on_use().is_empty());
     check_parity(&cpu, &gpu, &qs);
 }
+
+#[test]
+fn a_batch_needing_more_items_than_the_first_guess_is_rerun_with_room_for_them() {
+    // Fine cells and long segments: hundreds of work items a query, far above the guess
+    // of 24 a query that a fresh engine's buffers start from.
+    let pts = random_scene(20_000, 91);
+    let qs: Vec<Query> = (0..3000)
+        .map(|i| {
+            let t = i as f64 / 3000.0;
+            let a = DVec3::new(0.02, t, 1.0 - t);
+            Query::new(Segment::new(a, DVec3::new(0.98, 1.0 - t, t)), 0.04)
+        })
+        .collect();
+    let Some((_, cpu, gpu)) = engines(&pts, 0.01, GpuOptions::default()) else {
+        return;
+    };
+    check_parity(&cpu, &gpu, &qs);
+    assert!(
+        gpu.item_capacity() > 65_536.max(24 * 3000),
+        "{}",
+        gpu.item_capacity()
+    );
+    assert_eq!(gpu.host_fallbacks(), 0);
+}

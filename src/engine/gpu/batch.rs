@@ -430,6 +430,11 @@ pub struct Buffers {
 }
 
 impl Buffers {
+    /// See [`super::GpuEngine::item_capacity`].
+    pub fn item_cap(&self) -> u32 {
+        self.item_cap
+    }
+
     pub fn new(_ctx: &Context, lim: &Limits) -> Buffers {
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
         Buffers {
@@ -614,6 +619,10 @@ fn scan_levels(n: u32) -> (Vec<(u32, u32, u32)>, u32, u32) {
     }
 }
 
+/// Work items per query that [`submit`] makes room for before it has seen a batch (the
+/// bench scene's evaluation needs 17 a query, its crop windows 6).
+const ITEMS_PER_QUERY_GUESS: u64 = 24;
+
 fn grow(need: u32, max: u32) -> u32 {
     (need as u64 + need as u64 / 4 + 64).min(max as u64) as u32
 }
@@ -645,6 +654,11 @@ pub fn submit(
         .collect();
     let mut waited = 0.0;
     let mut rerun = false;
+    // At least a guess from the batch's size, so that a fresh engine's first batches do
+    // not learn the capacity by a rerun (a count walk, its scan and reduction, and a
+    // round trip for nothing). Memory the items do not use is never touched.
+    let guess = (n as u64 * ITEMS_PER_QUERY_GUESS).min(lim.item_max as u64) as u32;
+    b.item_cap = b.item_cap.max(guess);
     let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
     loop {

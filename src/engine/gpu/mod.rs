@@ -531,6 +531,12 @@ impl GpuEngine {
         self.host_fallbacks()
     }
 
+    /// Work items a batch's buffers hold now (a guess from the batch size at first, then
+    /// what the batches needed).
+    pub fn item_capacity(&self) -> u32 {
+        self.lock().item_cap()
+    }
+
     /// How the point buffer is split: (parts, points per part).
     pub fn parts(&self) -> (usize, usize) {
         (self.statics.parts.len(), self.opts.part_len as usize)
