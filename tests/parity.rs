@@ -836,10 +836,21 @@ fn a_batch_needing_more_items_than_the_first_guess_is_rerun_with_room_for_them()
         return;
     };
     check_parity(&cpu, &gpu, &qs);
-    assert!(
-        gpu.item_capacity() > 24 * 3000,
-        "{}",
-        gpu.item_capacity()
-    );
+    assert!(gpu.item_capacity() > 24 * 3000, "{}", gpu.item_capacity());
     assert_eq!(gpu.host_fallbacks(), 0);
+}
+
+#[test]
+fn uploads_through_staging_memory_give_the_same_answers() {
+    // A hardware adapter's path (lavapipe writes its buffers in place by default).
+    let pts = random_scene(20_000, 101);
+    let qs = random_queries(300, 102, 0.04);
+    let opts = GpuOptions {
+        mapped_uploads: false,
+        ..Default::default()
+    };
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, opts) else {
+        return;
+    };
+    check_parity(&cpu, &gpu, &qs);
 }

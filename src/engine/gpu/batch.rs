@@ -351,33 +351,26 @@ impl Statics {
             Some(s) if std::ptr::eq(s.grid.as_ptr(), std::sync::Arc::as_ptr(grid)) => Some(s.rel),
             _ => None,
         };
+        // The bytes of `src` at the start of `dst`.
+        let copy = |mut dst: wgpu::WriteOnly<'_, [u8]>, src: &[u8]| {
+            dst.slice(..src.len()).copy_from_slice(src)
+        };
         ctx.scoped("uploading the Gaussians", || {
             let storage = wgpu::BufferUsages::STORAGE;
-            let cell_start = ctx.buffer("cell_start", cell_bytes, storage);
-            ctx.queue
-                .write_buffer(&cell_start, 0, bytemuck::cast_slice(&grid.cell_start));
+            let cell_start = ctx.filled_buffer("cell_start", cell_bytes, |dst| {
+                copy(dst, bytemuck::cast_slice(&grid.cell_start))
+            });
             let mut parts = Vec::new();
             let n = grid.points.len();
             let part_len = lim.part_len as usize;
             for first in (0..n).step_by(part_len) {
                 let len = part_len.min(n - first);
                 let bytes = (len * 16) as u64;
-                let buf = ctx.buffer("points", bytes, storage);
-                match &given {
-                    Some(rel) => ctx.queue.write_buffer(
-                        &buf,
-                        0,
-                        bytemuck::cast_slice(&rel[first..first + len]),
-                    ),
-                    // Computed straight into the staging memory: no copy of its own.
-                    None => {
-                        let size = std::num::NonZeroU64::new(bytes).expect("never empty");
-                        // `None`: a validation error, which the scope reports.
-                        if let Some(mut view) = ctx.queue.write_buffer_with(&buf, 0, size) {
-                            write_store(grid, view.slice(..), first);
-                        }
-                    }
-                }
+                // Computed straight into the buffer or the staging memory unless given.
+                let buf = ctx.filled_buffer("points", bytes, |dst| match &given {
+                    Some(rel) => copy(dst, bytemuck::cast_slice(&rel[first..first + len])),
+                    None => write_store(grid, dst, first),
+                });
                 parts.push((buf, bytes));
             }
             if parts.is_empty() {
@@ -385,9 +378,9 @@ impl Statics {
             }
             let world_bytes = (grid.points.len() * 12).max(12) as u64;
             let world = (world && world_bytes <= lim.device_binding).then(|| {
-                let buf = ctx.buffer("world", world_bytes, storage);
-                ctx.queue
-                    .write_buffer(&buf, 0, bytemuck::cast_slice(&grid.points));
+                let buf = ctx.filled_buffer("world", world_bytes, |dst| {
+                    copy(dst, bytemuck::cast_slice(&grid.points))
+                });
                 (buf, world_bytes)
             });
             ctx.queue.submit([]);

@@ -14,6 +14,10 @@ pub struct Context {
     /// Whether the device runs f64 in shaders (`SHADER_F64`, requested where the adapter
     /// has it): the edge fit's kernel needs it.
     pub f64: bool,
+    /// Whether storage buffers can be created mapped for writing (`MAPPABLE_PRIMARY_BUFFERS`,
+    /// requested on software adapters, whose device memory is the host's): the data
+    /// uploaded once is then written in place, without a staging copy.
+    pub map_primary: bool,
     /// Errors that escaped every error scope, and device loss; checked after each batch
     /// so that they come back as `EngineError::Gpu` instead of the default handler's panic.
     stray: Arc<Mutex<Option<String>>>,
@@ -68,8 +72,10 @@ pub fn enumerate_adapters() -> Vec<wgpu::Adapter> {
 impl Context {
     /// Opens a device on `adapter` with the limits the engine needs raised to what the
     /// adapter offers: large storage bindings, buffers and textures, up to 8 storage buffers
-    /// per stage.
-    pub fn new(adapter: &wgpu::Adapter) -> Result<Context, EngineError> {
+    /// per stage; on a software adapter also [`Context::map_primary`], unless
+    /// `mapped_uploads` is false (every upload then goes through the queue's staging
+    /// memory, as on a hardware adapter).
+    pub fn new(adapter: &wgpu::Adapter, mapped_uploads: bool) -> Result<Context, EngineError> {
         let offered = adapter.limits();
         let mut limits = wgpu::Limits::downlevel_defaults();
         limits.max_storage_buffer_binding_size = offered.max_storage_buffer_binding_size;
@@ -95,13 +101,21 @@ impl Context {
             )));
         }
         let f64 = adapter.features().contains(wgpu::Features::SHADER_F64);
+        let map_primary = mapped_uploads
+            && adapter.get_info().device_type == wgpu::DeviceType::Cpu
+            && adapter
+                .features()
+                .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
+        let mut features = wgpu::Features::empty();
+        if f64 {
+            features |= wgpu::Features::SHADER_F64;
+        }
+        if map_primary {
+            features |= wgpu::Features::MAPPABLE_PRIMARY_BUFFERS;
+        }
         let desc = wgpu::DeviceDescriptor {
             label: Some("linegs"),
-            required_features: if f64 {
-                wgpu::Features::SHADER_F64
-            } else {
-                wgpu::Features::empty()
-            },
+            required_features: features,
             required_limits: limits.clone(),
             ..Default::default()
         };
@@ -124,6 +138,7 @@ impl Context {
             info: adapter.get_info(),
             limits,
             f64,
+            map_primary,
             stray,
         })
     }
@@ -173,6 +188,39 @@ impl Context {
 
     /// A storage buffer of `size` bytes. In debug builds (tests) it is filled with 0xFF
     /// bytes, so a kernel that reads memory it never wrote sees NaNs and huge counts.
+    /// A storage buffer of `size` bytes (a multiple of 4, not 0) whose contents `fill`
+    /// writes once: in place where the device allows it ([`Self::map_primary`]), else into
+    /// the queue's staging memory, copied over at the next submit.
+    pub fn filled_buffer(
+        &self,
+        label: &str,
+        size: u64,
+        fill: impl FnOnce(wgpu::WriteOnly<'_, [u8]>),
+    ) -> wgpu::Buffer {
+        let usage = wgpu::BufferUsages::STORAGE;
+        if self.map_primary {
+            let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: usage | wgpu::BufferUsages::MAP_WRITE,
+                mapped_at_creation: true,
+            });
+            if let Ok(mut view) = buf.slice(..).get_mapped_range_mut() {
+                fill(view.slice(..));
+            }
+            buf.unmap();
+            return buf;
+        }
+        let buf = self.buffer(label, size, usage);
+        // `None`: a validation error, which the caller's scope reports.
+        if let Some(mut view) =
+            std::num::NonZeroU64::new(size).and_then(|s| self.queue.write_buffer_with(&buf, 0, s))
+        {
+            fill(view.slice(..));
+        }
+        buf
+    }
+
     pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         let size = size.max(4).next_multiple_of(4);
         let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -368,7 +416,7 @@ mod tests {
     /// `None`, with a notice).
     fn context() -> Option<Context> {
         match pick_adapter() {
-            Ok(a) => Some(Context::new(&a).expect("device")),
+            Ok(a) => Some(Context::new(&a, true).expect("device")),
             Err(e) if skip_gpu_tests() => {
                 eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): {e}");
                 None
