@@ -418,6 +418,8 @@ pub struct Buffers {
     /// Bytes of the coverage mask in `aux` (set by `clear_mask`).
     aux_len: u64,
     item_cap: u32,
+    /// Whether `item_cap` was sized for a first batch ([`submit`]).
+    sized: bool,
     flag_cap: u32,
     member_cap: u32,
 }
@@ -451,6 +453,7 @@ impl Buffers {
             staging: Reusable::new("staging", wgpu::BufferUsages::MAP_READ),
             aux_len: 4,
             item_cap: lim.item_max.min(1 << 16),
+            sized: false,
             flag_cap: lim.flag_max.min(1 << 14),
             member_cap: lim.member_max.min(1 << 16),
         }
@@ -612,8 +615,8 @@ fn scan_levels(n: u32) -> (Vec<(u32, u32, u32)>, u32, u32) {
     }
 }
 
-/// Work items per query that [`submit`] makes room for before it has seen a batch (the
-/// bench scene's evaluation needs 17 a query, its crop windows 6).
+/// Work items per query that [`submit`] makes room for in the engine's first batch (the
+/// bench scene's evaluation, a refinement's first batch, needs 17 a query).
 const ITEMS_PER_QUERY_GUESS: u64 = 24;
 
 fn grow(need: u32, max: u32) -> u32 {
@@ -647,11 +650,16 @@ pub fn submit(
         .collect();
     let mut waited = 0.0;
     let mut rerun = false;
-    // At least a guess from the batch's size, so that a fresh engine's first batches do
-    // not learn the capacity by a rerun (a count walk, its scan and reduction, and a
-    // round trip for nothing). Memory the items do not use is never touched.
-    let guess = (n as u64 * ITEMS_PER_QUERY_GUESS).min(lim.item_max as u64) as u32;
-    b.item_cap = b.item_cap.max(guess);
+    // The engine's first batch starts from a guess from its size, so that it does not
+    // learn the capacity by a rerun (a count walk, its scan and reduction, and a round
+    // trip for nothing). Later batches start from what the earlier ones needed: a
+    // guess above that would grow the buffers, and wgpu clears a new buffer before its
+    // first use.
+    if !b.sized {
+        let guess = (n as u64 * ITEMS_PER_QUERY_GUESS).min(lim.item_max as u64) as u32;
+        b.item_cap = b.item_cap.max(guess);
+        b.sized = true;
+    }
     let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
     loop {
