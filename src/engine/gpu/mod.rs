@@ -244,21 +244,39 @@ struct SpatialOrder {
 impl SpatialOrder {
     fn new(grid: &Grid, queries: &[Query]) -> SpatialOrder {
         let (dx, dy) = (grid.dims[0], grid.dims[1]);
-        let mut keys: Vec<(u64, u32)> = queries
+        // One u64 per query: the Morton code (its top 40 bits where the grid needs more)
+        // above the query's index (24 bits), sorted as plain integers; ties keep the
+        // caller's order.
+        const INDEX_BITS: u32 = 24;
+        let axis_bits =
+            32 - (grid.dims.iter().max().copied().unwrap_or(1).max(1) - 1).leading_zeros();
+        let shift = (3 * axis_bits).saturating_sub(64 - INDEX_BITS);
+        let code = |q: &Query| {
+            // `cell_of` clamps into the grid (an invalid segment's NaN midpoint: cell 0).
+            let c = grid.cell_of(q.seg.midpoint());
+            morton3(c % dx, (c / dx) % dy, c / (dx * dy))
+        };
+        if queries.len() >= 1 << INDEX_BITS {
+            let mut keys: Vec<(u64, u32)> = queries
+                .par_iter()
+                .enumerate()
+                .map(|(i, q)| (code(q), i as u32))
+                .collect();
+            keys.par_sort_unstable();
+            return SpatialOrder {
+                perm: keys.into_iter().map(|(_, i)| i).collect(),
+            };
+        }
+        let mut keys: Vec<u64> = queries
             .par_iter()
             .with_min_len(4096)
             .enumerate()
-            .map(|(i, q)| {
-                // `cell_of` clamps into the grid (an invalid segment's NaN midpoint: cell 0).
-                let c = grid.cell_of(q.seg.midpoint());
-                let (x, y, z) = (c % dx, (c / dx) % dy, c / (dx * dy));
-                (morton3(x, y, z), i as u32)
-            })
+            .map(|(i, q)| (code(q) >> shift) << INDEX_BITS | i as u64)
             .collect();
-        // Ties keep the caller's order (the index is the second key): one order per batch.
         keys.par_sort_unstable();
+        let mask = (1u64 << INDEX_BITS) - 1;
         SpatialOrder {
-            perm: keys.into_iter().map(|(_, i)| i).collect(),
+            perm: keys.into_iter().map(|k| (k & mask) as u32).collect(),
         }
     }
 
