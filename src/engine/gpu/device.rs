@@ -186,8 +186,6 @@ impl Context {
         }
     }
 
-    /// A storage buffer of `size` bytes. In debug builds (tests) it is filled with 0xFF
-    /// bytes, so a kernel that reads memory it never wrote sees NaNs and huge counts.
     /// A storage buffer of `size` bytes (a multiple of 4, not 0) whose contents `fill`
     /// writes once: in place where the device allows it ([`Self::map_primary`]), else into
     /// the queue's staging memory, copied over at the next submit.
@@ -221,6 +219,8 @@ impl Context {
         buf
     }
 
+    /// A storage buffer of `size` bytes. In debug builds (tests) it is filled with 0xFF
+    /// bytes, so a kernel that reads memory it never wrote sees NaNs and huge counts.
     pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         let size = size.max(4).next_multiple_of(4);
         let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
