@@ -4,8 +4,9 @@
 //!
 //! On the device, uploaded once: the grid's cell table (`cell_start`) and the sorted
 //! centers, as f32 offsets from their own cell's corner in cell units (split into parts at
-//! the binding limit). Per batch the host uploads only the queries (64 bytes each) and one
-//! submit runs (`batch.rs`):
+//! the binding limit). Per batch the host uploads only the queries (96 bytes each, in the
+//! Morton order of their midpoints' cells: `SpatialOrder`) and one submit runs
+//! (`batch.rs`):
 //! 1. `walk.wgsl` (count): per query, the work items its capped cylinder needs (cells it
 //!    can touch, each cell cut into chunks of at most [`CHUNK`] points);
 //! 2. `scan.wgsl`: exclusive prefix sum of those counts (multi-level workgroup scan);
@@ -977,7 +978,7 @@ impl Engine for GpuEngine {
     /// One device batch for the stats and the coverage together (one walk, each point
     /// evaluated once), then, for nearest sums, the k-nearest batch (whose `k` may come
     /// from the first batch's counts); a nearest-only ask gets its counts from the
-    /// k-nearest batch itself. The device gets the queries in [`SpatialOrder`].
+    /// k-nearest batch itself. The device gets the queries in `SpatialOrder`.
     fn query(&self, queries: &[Query], ask: &Ask<'_>) -> Result<Answers, EngineError> {
         ask.nearest.check(queries.len())?;
         self.count_batch(queries.len());
