@@ -992,28 +992,25 @@ impl Engine for GpuEngine {
             return out;
         }
         // The ordering is host work of the batch (`host_seconds`).
-        let t = std::time::Instant::now();
-        let order = SpatialOrder::new(&self.grid, queries);
-        let sent = order.apply(queries);
-        let ks: Vec<u64>;
+        let (order, sent, ks) = self.on_host(|| {
+            let order = SpatialOrder::new(&self.grid, queries);
+            let sent = order.apply(queries);
+            let ks = match ask.nearest {
+                Nearest::K(k) => order.apply(k),
+                _ => Vec::new(),
+            };
+            (order, sent, ks)
+        });
         let nearest = match ask.nearest {
-            Nearest::K(k) => {
-                ks = order.apply(k);
-                Nearest::K(&ks)
-            }
+            Nearest::K(_) => Nearest::K(&ks),
             other => other,
         };
-        let ask = Ask { nearest, ..*ask };
-        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-        let out = self.query_in_order(&sent, &ask)?;
-        let t = std::time::Instant::now();
-        let out = Answers {
+        let out = self.query_in_order(&sent, &Ask { nearest, ..*ask })?;
+        Ok(self.on_host(|| Answers {
             stats: order.restore(out.stats),
             nearest: order.restore(out.nearest),
             coverage: out.coverage,
-        };
-        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-        Ok(out)
+        }))
     }
 
     /// One device batch: the walk and the stats pass, a scan of the items' member counts
@@ -1033,16 +1030,13 @@ impl Engine for GpuEngine {
             self.clock.add(t.elapsed().as_secs_f64(), 0.0);
             return out;
         }
-        let t = std::time::Instant::now();
-        let order = SpatialOrder::new(&self.grid, queries);
-        let sent = order.apply(queries);
-        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-        let mut b = self.lock();
-        let lists = self.members_batch(&mut b, &sent)?;
-        let t = std::time::Instant::now();
-        let lists = order.restore(lists);
-        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-        Ok(lists)
+        let (order, sent) = self.on_host(|| {
+            let order = SpatialOrder::new(&self.grid, queries);
+            let sent = order.apply(queries);
+            (order, sent)
+        });
+        let lists = self.members_batch(&mut self.lock(), &sent)?;
+        Ok(self.on_host(|| order.restore(lists)))
     }
 
     /// With [`GpuOptions::fit`] on the device, the ridge there where the fit is the plain
@@ -1066,24 +1060,21 @@ impl Engine for GpuEngine {
             return Ok(out);
         }
         self.count_batch(queries.len());
-        let t = std::time::Instant::now();
-        let order = SpatialOrder::new(&self.grid, queries);
-        let in_order = order.apply(queries);
-        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-        let sent = &order;
-        let sensitive = ask
-            .sensitive
-            .map(|s| move |j: usize, line: &crate::refine::fit::LineFit| s(sent.index(j), line));
+        let (order, sent) = self.on_host(|| {
+            let order = SpatialOrder::new(&self.grid, queries);
+            let sent = order.apply(queries);
+            (order, sent)
+        });
+        let by_caller = &order;
+        let sensitive = ask.sensitive.map(|s| {
+            move |j: usize, line: &crate::refine::fit::LineFit| s(by_caller.index(j), line)
+        });
         let ask = FitAsk {
             sensitive: sensitive.as_ref().map(|s| s as &super::Sensitive<'_>),
             ..*ask
         };
-        let mut b = self.lock();
-        let answers = self.fit_batch(&mut b, &in_order, &ask)?;
-        let t = std::time::Instant::now();
-        let answers = order.restore(answers);
-        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-        Ok(answers)
+        let answers = self.fit_batch(&mut self.lock(), &sent, &ask)?;
+        Ok(self.on_host(|| order.restore(answers)))
     }
 
     fn counters(&self) -> Counters {
@@ -1104,6 +1095,14 @@ impl Engine for GpuEngine {
 }
 
 impl GpuEngine {
+    /// `f()`, its time counted as the engine's host work (`host_seconds`).
+    fn on_host<R>(&self, f: impl FnOnce() -> R) -> R {
+        let t = std::time::Instant::now();
+        let out = f();
+        self.clock.add(t.elapsed().as_secs_f64(), 0.0);
+        out
+    }
+
     /// One device batch for the stats and the coverage together (one walk, each point
     /// evaluated once), then, for nearest sums, the k-nearest batch (whose `k` may come
     /// from the first batch's counts); a nearest-only ask gets its counts from the
