@@ -1,8 +1,8 @@
-//! Segments, cylinders and boxes (SPEC 2). All host-side math is f64.
+//! Segments, cylinders and boxes (docs/method.md#geometry). All host-side math is f64.
 
 use glam::DVec3;
 
-/// Segments shorter than this are invalid (SPEC 2) and dropped at load.
+/// Segments shorter than this are invalid (docs/method.md#geometry) and dropped at load.
 pub const MIN_LENGTH: f64 = 1e-12;
 
 /// A 3D line segment `s = (P1, P2)`.
@@ -41,7 +41,7 @@ impl Segment {
         (self.p1 + self.p2) * 0.5
     }
 
-    /// Finite endpoints and `L > 1e-12` (SPEC 2).
+    /// Finite endpoints and `L > 1e-12` (docs/method.md#geometry).
     pub fn is_valid(&self) -> bool {
         self.p1.is_finite() && self.p2.is_finite() && self.length() > MIN_LENGTH
     }
@@ -73,7 +73,7 @@ impl Segment {
         p - self.perp_offset(p)
     }
 
-    /// Inclusive flat-capped cylinder test of SPEC 2.
+    /// Inclusive flat-capped cylinder test of docs/method.md#geometry.
     pub fn cylinder_contains(&self, p: DVec3, r: f64) -> bool {
         Cylinder::new(self, r).test(p).is_some()
     }
@@ -100,7 +100,8 @@ impl Segment {
 }
 
 /// A set of segments, optionally grouped into input 3D lines (Line3D++ `.txt` groups the
-/// segments of one line; SPEC 3 step 6 and the "different input lines" rule of step 7).
+/// segments of one line; docs/method.md#step-6-collinear-merge and the "different input
+/// lines" rule of step 7).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct LineSet {
     pub segments: Vec<Segment>,
@@ -282,7 +283,8 @@ impl Aabb {
         e.x.max(e.y).max(e.z)
     }
 
-    /// The box grown by `frac x` its longest edge on every side (SPEC 2 working set).
+    /// The box grown by `frac x` its longest edge on every side (docs/method.md#geometry
+    /// working set).
     pub fn grown(&self, frac: f64) -> Self {
         let g = frac * self.longest_edge();
         Aabb {

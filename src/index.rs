@@ -1,4 +1,5 @@
-//! The working set and the uniform grid shared by both engines (SPEC 2, SPEC 4).
+//! The working set and the uniform grid shared by both engines (docs/method.md#geometry,
+//! docs/architecture.md#the-engine-contract).
 //!
 //! Centers are sorted by cell with a counting sort; cells are numbered x-fastest, so the
 //! cells `x0..=x1` of one `(y, z)` row hold one contiguous range of the sorted points. A
@@ -89,8 +90,9 @@ impl Grid {
     /// (the query radius), never more than 8 cells per point (and 2^24 in all).
     ///
     /// When `bounds` would stretch the cells past `4 x` the hint, the grid spans the points
-    /// instead: one segment endpoint flung far away grows the working box (SPEC 2) but not
-    /// the grid, so the cells stay near `r` and a far segment costs what a near one does.
+    /// instead: one segment endpoint flung far away grows the working box
+    /// (docs/method.md#geometry) but not the grid, so the cells stay near `r` and a far
+    /// segment costs what a near one does.
     ///
     /// When a few far points (floaters) would still blow the cells up past `4 x` the hint,
     /// the grid spans the 0.1% to 99.9% quantile box instead and its border cells are

@@ -1,5 +1,5 @@
 //! Process memory as Linux reports it, for benchmarks that check the memory bounds of
-//! SPEC 6. Elsewhere every function answers `None`/`false`.
+//! docs/formats.md. Elsewhere every function answers `None`/`false`.
 
 /// A `kB` field of `/proc/self/status`, in bytes.
 fn status_field(name: &str) -> Option<u64> {

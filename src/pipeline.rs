@@ -1,5 +1,6 @@
-//! The whole job of SPEC 3, behind one entry point that every caller uses (the CLI's
-//! `refine`, `eval`, `demo`, `bench` and `batch`, the Python package, the tests):
+//! The whole job of docs/method.md#the-refinement-steps, behind one entry point that every
+//! caller uses (the CLI's `refine`, `eval`, `demo`, `bench` and `batch`, the Python
+//! package, the tests):
 //!
 //! 1. a [`Scene`]: the Gaussian centers and the lines, loaded from files
 //!    ([`Scene::load`]) or taken as arrays ([`Scene::from_arrays`]);
@@ -7,8 +8,8 @@
 //!    metrics (a radius sweep, ground truth);
 //! 3. [`Job::refine`] or [`Job::evaluate`]: builds the working set, resolves the
 //!    [`Settings`] once, builds the grid and the engine once (a [`Refiner`]), runs the
-//!    steps and the evaluations, and returns one [`Report`] (SPEC 7) — the same shape for
-//!    refine, eval and demo.
+//!    steps and the evaluations, and returns one [`Report`]
+//!    (docs/formats.md#the-report) — the same shape for refine, eval and demo.
 
 use crate::engine::dedup::Dedup;
 use crate::engine::select::{prepare, Backend};
@@ -137,7 +138,7 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// Reads the Gaussians (`point_cloud.ply` or any format of SPEC 6) and the lines.
+    /// Reads the Gaussians (`point_cloud.ply` or any format of docs/formats.md) and the lines.
     pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
         let t = Instant::now();
         let mut cloud = read_gaussians(gaussians, opts)?;
@@ -185,9 +186,9 @@ impl Scene {
     }
 
     /// A scene from arrays (the Python package, synthetic scenes): Gaussians with a NaN
-    /// or infinite center are skipped with a warning that counts them (SPEC 6); segments
+    /// or infinite center are skipped with a warning that counts them (docs/formats.md); segments
     /// with a NaN or infinite coordinate are an error; degenerate segments
-    /// (`L <= 1e-12`) are dropped with a warning (SPEC 2).
+    /// (`L <= 1e-12`) are dropped with a warning (docs/method.md#geometry).
     pub fn from_arrays(gaussians: Vec<[f32; 3]>, lines: LineSet) -> Result<Scene, RunError> {
         let mut warnings = Vec::new();
         let n_read = gaussians.len();
@@ -278,8 +279,8 @@ pub struct Refiner {
 }
 
 impl Refiner {
-    /// Working set of the box of `segments` (SPEC 2), settings resolved over it, grid,
-    /// and the engine of `backend`.
+    /// Working set of the box of `segments` (docs/method.md#geometry), settings resolved
+    /// over it, grid, and the engine of `backend`.
     pub fn new(
         gaussians: &[[f32; 3]],
         segments: &[Segment],
@@ -343,7 +344,7 @@ impl Refiner {
         self.engine.n_points()
     }
 
-    /// The paper's metrics of `segments` at the evaluation radius (SPEC 5).
+    /// The paper's metrics of `segments` at the evaluation radius (docs/method.md#evaluation).
     pub fn evaluate(&self, segments: &[Segment]) -> Result<Metrics, EngineError> {
         let s = &self.settings;
         eval::evaluate(self.engine(), segments, s.eval(), s.r_l(), None)
@@ -396,8 +397,8 @@ impl Refiner {
         true
     }
 
-    /// Before-evaluation, the steps of SPEC 3 and after-evaluation, calling `on_stage`
-    /// after each stage.
+    /// Before-evaluation, the steps of docs/method.md#the-refinement-steps and
+    /// after-evaluation, calling `on_stage` after each stage.
     pub fn refine(
         &self,
         lines: &LineSet,
@@ -563,7 +564,8 @@ impl Job {
         Ok(Some((out, Ok(cut))))
     }
 
-    /// Refines `scene` (SPEC 3) and reports (SPEC 7).
+    /// Refines `scene` (docs/method.md#the-refinement-steps) and reports
+    /// (docs/formats.md#the-report).
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
         let t = Instant::now();
         let whole = scene;

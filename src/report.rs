@@ -1,5 +1,5 @@
-//! The JSON report of SPEC 7: one type for refine, eval and demo (and each scene of a
-//! batch), built by [`crate::pipeline`] and read back by the batch summary.
+//! The JSON report of docs/formats.md#the-report: one type for refine, eval and demo (and
+//! each scene of a batch), built by [`crate::pipeline`] and read back by the batch summary.
 
 use crate::eval::gt::GtMetrics;
 use crate::eval::Metrics;
@@ -29,7 +29,7 @@ pub struct InputReport {
     pub gaussians_transform: Option<String>,
 }
 
-/// The paper's radius sweep (SPEC 5): metrics at each radius.
+/// The paper's radius sweep (docs/method.md#evaluation): metrics at each radius.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Sweep {
     pub radii: Vec<f64>,

@@ -1,4 +1,4 @@
-//! Identical queries cost once (issue #9): [`Dedup`] wraps any [`Engine`] and, per batch,
+//! Identical queries cost once: [`Dedup`] wraps any [`Engine`] and, per batch,
 //! groups the queries whose bits are identical (`P1`, `P2`, `r`, `plane`, and for
 //! [`Engine::nearest`] the query's `k`), asks the inner engine only the distinct ones, in
 //! the order of their first occurrence, and copies each answer back to every copy.

@@ -1,6 +1,7 @@
-//! The cylinder-query interface (SPEC 4): every step asks its questions about the
-//! Gaussians as one batch of [`Query`]s, and one of two engines answers: [`cpu::CpuEngine`]
-//! (rayon, f64) or the GPU engine (wgpu + WGSL). Steps never know which.
+//! The cylinder-query interface (docs/architecture.md#the-engine-contract): every step asks
+//! its questions about the Gaussians as one batch of [`Query`]s, and one of two engines
+//! answers: [`cpu::CpuEngine`] (rayon, f64) or the GPU engine (wgpu + WGSL). Steps never
+//! know which.
 
 pub mod cpu;
 pub mod dedup;
@@ -120,7 +121,8 @@ pub enum Nearest<'a> {
     No,
     /// `k[i]` for query `i`.
     K(&'a [u64]),
-    /// `floor(keep x N(s))` of each query's own count (translate's rule, SPEC 3.4).
+    /// `floor(keep x N(s))` of each query's own count (translate's rule,
+    /// docs/method.md#step-4-translate).
     Keep(f64),
 }
 

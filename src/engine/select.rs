@@ -1,4 +1,5 @@
-//! `--backend auto|gpu|cpu` (SPEC 4): which engine answers the queries.
+//! `--backend auto|gpu|cpu` (docs/architecture.md#the-engine-contract): which engine
+//! answers the queries.
 
 use super::cpu::CpuEngine;
 use super::gpu::{GpuDevice, GpuEngine, GpuOptions, PointStore};

@@ -1,5 +1,5 @@
-//! The paper's metrics (SPEC 5): E_rms, R_covered, R_L and the score, at an evaluation
-//! radius, over the working set that refinement uses.
+//! The paper's metrics (docs/method.md#evaluation): E_rms, R_covered, R_L and the score, at
+//! an evaluation radius, over the working set that refinement uses.
 
 pub mod gt;
 

@@ -1,4 +1,4 @@
-//! One error type for everything that reads or writes files (SPEC 6): every variant names
+//! One error type for everything that reads or writes files (docs/formats.md): every variant names
 //! the file, parse errors also name the place, so the CLI can print one line and exit 2.
 
 use std::fmt;

@@ -1,4 +1,4 @@
-//! Gaussian models in every format the splatting tools write (SPEC 6): the 3DGS PLY (in
+//! Gaussian models in every format the splatting tools write (docs/formats.md): the 3DGS PLY (in
 //! `ply.rs`), SuperSplat's compressed PLY, Niantic SPZ v1–v4 and antimatter15 `.splat`,
 //! chosen by content (and, for `.splat`, which has no magic, by extension and size). Every
 //! reader feeds one [`Sink`], so NaN centers, `--min-opacity` and empty models are handled
@@ -83,7 +83,7 @@ pub fn is_gaussian_model(path: &Path) -> Result<bool, Error> {
     })
 }
 
-/// Reads the Gaussian centers of a model in any format of SPEC 6.
+/// Reads the Gaussian centers of a model in any format of docs/formats.md.
 ///
 /// NaN/Inf centers are skipped and counted with one warning (an error with `strict`);
 /// `min_opacity` keeps Gaussians whose opacity (after the format's activation) is at least

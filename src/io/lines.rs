@@ -1,4 +1,4 @@
-//! Line-segment readers for every format of SPEC 6, chosen by content (and, where content
+//! Line-segment readers for every format of docs/formats.md, chosen by content (and, where content
 //! alone cannot tell, by extension; never by folder names).
 
 use std::fmt;
@@ -64,7 +64,7 @@ pub struct LineFile {
     /// Valid segments only; `groups` is `Some` for Line3D++ `.txt` (row index per segment).
     pub lines: LineSet,
     pub format: LineFormat,
-    /// Degenerate segments (`L <= 1e-12`, SPEC 2) that were dropped.
+    /// Degenerate segments (`L <= 1e-12`, docs/method.md#geometry) that were dropped.
     pub dropped_invalid: usize,
     /// One line each, naming the file.
     pub warnings: Vec<String>,
@@ -105,7 +105,7 @@ impl Parsed {
     }
 }
 
-/// Reads line segments from any format of SPEC 6.
+/// Reads line segments from any format of docs/formats.md.
 ///
 /// Degenerate segments (`L <= 1e-12`) are dropped and counted with one warning; a NaN or
 /// infinite coordinate is an error naming its position; a file with no valid segment is an
@@ -377,7 +377,7 @@ fn number(path: &Path, tok: &str, line: usize, value: usize) -> Result<f64, Erro
     })
 }
 
-/// A coordinate: a number, and finite (SPEC 6: NaN/Inf line coordinates are errors).
+/// A coordinate: a number, and finite (docs/formats.md: NaN/Inf line coordinates are errors).
 fn coord(path: &Path, tok: &str, line: usize, value: usize) -> Result<f64, Error> {
     let x = number(path, tok, line, value)?;
     if !x.is_finite() {

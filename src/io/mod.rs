@@ -1,4 +1,4 @@
-//! Files in, files out (SPEC 6): Gaussian models and line segments in every format the
+//! Files in, files out (docs/formats.md): Gaussian models and line segments in every format the
 //! line-reconstruction tools write, detected by content; writers that never leave a partial
 //! file; and `info` for a quick look at either.
 

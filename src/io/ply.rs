@@ -1,5 +1,5 @@
 //! PLY: the header, a record walker shared by every element and encoding, and the
-//! Gaussian reader with its fast path for 3DGS `point_cloud.ply` files (SPEC 6).
+//! Gaussian reader with its fast path for 3DGS `point_cloud.ply` files (docs/formats.md).
 
 use std::io::{self, BufRead, BufReader, Read};
 use std::path::Path;
@@ -776,7 +776,7 @@ pub struct GaussianCloud {
     pub properties: Vec<String>,
     pub skipped_nonfinite: usize,
     pub dropped_low_opacity: usize,
-    /// One line each, naming the file (the NaN-center warning of SPEC 6, trailing data).
+    /// One line each, naming the file (the NaN-center warning of docs/formats.md, trailing data).
     pub warnings: Vec<String>,
 }
 

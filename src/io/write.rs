@@ -1,4 +1,4 @@
-//! Writers (SPEC 6). Every writer goes through [`write_atomic`]: the bytes land in a
+//! Writers (docs/formats.md). Every writer goes through [`write_atomic`]: the bytes land in a
 //! temporary file beside the target, which is renamed over it only once complete, so a
 //! failed or interrupted write never leaves a partial output file.
 
@@ -193,9 +193,10 @@ pub fn write_lines(path: &Path, lines: &[Segment]) -> Result<(), Error> {
 
 /// Writes a Line3D++ `saveTXT` file: one row per input line, `n` then its `n` segments
 /// (`P1 P2`), then `m = 0` (no 2D residuals), so that the reader gets the line groups back
-/// and the collinear merge (SPEC 3.6) runs on them. Rows follow the groups' first
-/// appearance, so a set whose groups are contiguous (as every reader and `synth` make
-/// them) reads back in the same segment order; without groups every segment is its own row.
+/// and the collinear merge (docs/method.md#step-6-collinear-merge) runs on them. Rows
+/// follow the groups' first appearance, so a set whose groups are contiguous (as every
+/// reader and `synth` make them) reads back in the same segment order; without groups every
+/// segment is its own row.
 pub fn write_lines_line3dpp(path: &Path, lines: &LineSet) -> Result<(), Error> {
     check_output_extension(path, "a Line3D++ file", &["txt"])?;
     check_finite(path, &lines.segments, 0)?;

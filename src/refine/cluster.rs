@@ -2,7 +2,7 @@
 //! similar (close and nearly parallel) are grouped by a thresholded union-find, so that
 //! step 8 merges and joins only inside a group.
 //!
-//! The similarity of SPEC 3 step 7 is `w = dist_w x len_w` with
+//! The similarity of docs/method.md#step-7-cluster is `w = dist_w x len_w` with
 //! `dist_w = 1 / (1 + 2 (dist / r_c)^2)` and `len_w < 1`, so an edge `w >= w_min` needs
 //! `dist_w >= w_min`, that is `dist <= B = r_c sqrt((1/w_min - 1) / 2)` (`r_c sqrt(0.75)`
 //! for the default 0.4). With the fixed distance the candidate pairs come from a spatial
@@ -22,8 +22,8 @@ pub struct Edge {
     pub w: f64,
 }
 
-/// Similarity `w` of SPEC 3 step 7. The longer segment is `a` when the lengths are equal,
-/// so callers pass pairs in a fixed order (`i < j`) to get a repeatable value.
+/// Similarity `w` of docs/method.md#step-7-cluster. The longer segment is `a` when the
+/// lengths are equal, so callers pass pairs in a fixed order (`i < j`) to get a repeatable value.
 pub fn similarity(a: &Segment, b: &Segment, r_c: f64, fix_distance: bool, min_cos: f64) -> f64 {
     let (la, lb) = (a.length(), b.length());
     let (long, short, l_long, l_short) = if la >= lb {

@@ -1,5 +1,5 @@
-//! The refinement pipeline of SPEC 3, one file per step. Steps talk to the Gaussians only
-//! through [`crate::engine::Engine`] batches.
+//! The refinement pipeline of docs/method.md#the-refinement-steps, one file per step. Steps
+//! talk to the Gaussians only through [`crate::engine::Engine`] batches.
 
 pub mod params;
 

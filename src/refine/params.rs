@@ -1,5 +1,5 @@
-//! Every threshold of SPEC 3 with its default, in one struct that the CLI derives from and
-//! the JSON report serializes.
+//! Every threshold of docs/method.md#the-refinement-steps with its default, in one struct
+//! that the CLI derives from and the JSON report serializes.
 
 use clap::{Args, ValueEnum};
 use serde::{Deserialize, Serialize};
@@ -7,7 +7,7 @@ use std::fmt;
 use std::str::FromStr;
 
 /// `reference` reproduces the authors' published code (quirks included); `default`
-/// follows the paper's intent with every **[fix]** of SPEC 3 on.
+/// follows the paper's intent with every **[fix]** of docs/method.md#profiles on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum Profile {
@@ -41,7 +41,7 @@ impl Fit {
     }
 }
 
-/// Denominator of `R_L` (SPEC 5).
+/// Denominator of `R_L` (docs/method.md#evaluation).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum RlMode {
@@ -133,7 +133,7 @@ fn fraction(s: &str) -> Result<f64, String> {
     }
 }
 
-/// Evaluation options (SPEC 5), shared by `eval` and `refine`.
+/// Evaluation options (docs/method.md#evaluation), shared by `eval` and `refine`.
 #[derive(Clone, Debug, PartialEq, Args, Serialize, Deserialize)]
 pub struct EvalParams {
     /// Evaluation radius r_e of the cylinders (scene units).
@@ -162,7 +162,8 @@ impl Default for EvalParams {
     }
 }
 
-/// The refinement thresholds of SPEC 3 (defaults from the paper / the authors' code).
+/// The refinement thresholds of docs/method.md#the-refinement-steps (defaults from the
+/// paper / the authors' code).
 #[derive(Clone, Debug, PartialEq, Args, Serialize, Deserialize)]
 pub struct Params {
     /// `default` (the paper's intent, all fixes on) or `reference` (the authors' code,
@@ -420,7 +421,7 @@ pub struct Settings {
 
 impl Settings {
     /// Resolves `params` over `working_set` (the centers refinement will see): `--radius
-    /// auto` is measured there (SPEC 3 step 2); a fixed radius is taken as given.
+    /// auto` is measured there (docs/method.md#step-2-radius); a fixed radius is taken as given.
     pub fn resolve(params: Params, working_set: &[[f32; 3]]) -> Result<Settings, String> {
         let radius = match params.radius {
             RadiusArg::Fixed(r) => r,
@@ -450,7 +451,7 @@ impl Settings {
         self.radius
     }
 
-    /// The evaluation options (SPEC 5).
+    /// The evaluation options (docs/method.md#evaluation).
     pub fn eval(&self) -> &EvalParams {
         &self.params.eval
     }
@@ -461,8 +462,8 @@ impl Settings {
     }
 }
 
-/// `--radius auto` (SPEC 3 step 2): `c` = centroid of the working set; keep the centers
-/// closer to `c` than the 95th percentile (linear interpolation, as numpy) of the
+/// `--radius auto` (docs/method.md#step-2-radius): `c` = centroid of the working set; keep
+/// the centers closer to `c` than the 95th percentile (linear interpolation, as numpy) of the
 /// distances; `r = 0.02 x` the largest kept distance.
 pub fn auto_radius(points: &[[f32; 3]]) -> Option<f64> {
     if points.is_empty() {

@@ -203,9 +203,9 @@ impl PointSampler {
 /// Gaussian centres for line segments that come without a Gaussian model (the real
 /// Line3D++ scenes): `n` points, a `1 - background_fraction` share spread uniformly along
 /// the segments by length with isotropic normal noise `sigma`, the rest uniform in the
-/// segments' bounding box. Invalid segments (SPEC 2) are ignored; without a valid segment
-/// the result is empty. Synthetic: use it for tests and demos, never as a stand-in for a
-/// trained model in reported numbers.
+/// segments' bounding box. Invalid segments (docs/method.md#geometry) are ignored; without
+/// a valid segment the result is empty. Synthetic: use it for tests and demos, never as a
+/// stand-in for a trained model in reported numbers.
 pub fn gaussians_around_segments(
     segs: &[Segment],
     n: usize,

@@ -107,7 +107,7 @@ pub struct ToyParams {
     pub face_sigma: f64,
     /// Standard deviation (per axis) of the noise on every segment endpoint.
     pub endpoint_sigma: f64,
-    /// The query radius the defect sizes are measured in (SPEC 3 step 2 default).
+    /// The query radius the defect sizes are measured in (docs/method.md#step-2-radius default).
     pub radius: f64,
     pub defects: DefectAmounts,
     pub sizes: DefectSizes,
@@ -411,7 +411,7 @@ mod tests {
         (p - s.point_at(t)).length()
     }
 
-    /// Gaussians inside the flat-capped cylinder of SPEC 2.
+    /// Gaussians inside the flat-capped cylinder of docs/method.md#geometry.
     fn count_in(s: &Segment, r: f64, pts: &[[f32; 3]]) -> usize {
         pts.iter()
             .filter(|p| s.cylinder_contains(p64(**p), r))

@@ -1,5 +1,6 @@
 //! The batched machinery that runs the restart loops of [`super::sequential`] for every
-//! group at once, one engine batch per round (SPEC 4), with exactly the same result.
+//! group at once, one engine batch per round (docs/architecture.md#the-engine-contract),
+//! with exactly the same result.
 //!
 //! A decision is a pure function of the two items (and the phase), so everything decided
 //! stays valid until one of its items changes. Every group is a small state machine that

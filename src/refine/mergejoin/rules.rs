@@ -1,5 +1,6 @@
-//! The paper's two rules of step 8 (SPEC 3 8a and 8b), as pure functions of two segments
-//! and the engine's answers about them: no engine, no batching, no state.
+//! The paper's two rules of step 8 (docs/method.md#step-8-merge-and-join), as pure
+//! functions of two segments and the engine's answers about them: no engine, no
+//! batching, no state.
 //!
 //! Each rule has a geometric part that runs on the CPU and says which cylinders the
 //! decision needs ([`merge_candidate`], [`join_candidate`]), and a decision that reads
@@ -24,7 +25,7 @@ fn longer_first(a: &Segment, b: &Segment) -> bool {
 }
 
 /// Merge or join? An endpoint of the shorter `S` projects strictly inside the longer `G`,
-/// or (beyond the letter of SPEC 3) `S`'s extent along `G` overlaps `G` over a positive
+/// or (beyond the letter of the paper) `S`'s extent along `G` overlaps `G` over a positive
 /// length, which adds only segments that cover exactly the same extent: without it two
 /// copies of one edge would go to the join, whose gap is then the whole length. This is
 /// the authors' test (`reference`); the fix `merge_overlap` also asks it the other way

@@ -1,8 +1,9 @@
-//! The executable definition of steps 6 and 8: the restart loops of SPEC 3 written as
-//! directly as the paper and the authors' code state them, asking the engine one query
-//! at a time and remembering nothing between pairs. Quadratic per restart and slow by
-//! design; [`super::merge_join`] and [`super::collinear_merge`] must give exactly its
-//! output (tests check it on many random groups).
+//! The executable definition of steps 6 and 8: the restart loops of
+//! docs/method.md#the-refinement-steps written as directly as the paper and the authors'
+//! code state them, asking the engine one query at a time and remembering nothing between
+//! pairs. Quadratic per restart and slow by design; [`super::merge_join`] and
+//! [`super::collinear_merge`] must give exactly its output (tests check it on many random
+//! groups).
 
 use super::rules;
 use super::{in_input_order, input_lines, items_of, line_set, Ctx, Item, Mode};
