@@ -45,7 +45,7 @@ fn point_in_frame(i: u32, xr: f32) -> vec3<f32> {
     return vec3<f32>(pt.x + dx, pt.y, pt.z);
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WG)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,

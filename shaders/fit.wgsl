@@ -111,7 +111,7 @@ fn weight(m: Pt, c: vec2<f64>, k2: f64) -> f64 {
     return exp64(-dot(dq, dq) / k2);
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(FIT_WG)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,

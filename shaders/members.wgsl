@@ -10,7 +10,7 @@
 @group(0) @binding(2) var<storage, read_write> partials: array<Partial>;
 @group(0) @binding(3) var<storage, read_write> mscan: array<u32>;
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WG)
 fn gather(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,
@@ -23,7 +23,7 @@ fn gather(
     mscan[id] = partials[id].count;
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WG)
 fn scatter(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,

@@ -19,7 +19,7 @@ fn kahan_add(k: Kahan, x: f32) -> Kahan {
     return Kahan(t, (t - k.s) - y);
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WG)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,

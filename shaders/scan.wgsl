@@ -7,7 +7,7 @@
 
 var<workgroup> tile: array<u32, SCAN_WG>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(SCAN_WG)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
     let i = wg.x * SCAN_WG + lane;
     var v = 0u;
@@ -34,7 +34,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     }
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(SCAN_WG)
 fn add(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
     let i = wg.x * SCAN_WG + lane;
     if i < params.n {

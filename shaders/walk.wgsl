@@ -49,7 +49,7 @@ fn t_interval(p: f32, d: f32, lo: f32, hi: f32, ts: vec2<f32>) -> vec2<f32> {
     return vec2<f32>(max(min(a, b), ts.x), min(max(a, b), ts.y));
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WG)
 fn main(
     @builtin(workgroup_id) wg: vec3<u32>,
     @builtin(num_workgroups) n_wg: vec3<u32>,

@@ -83,6 +83,54 @@ fn every_shader_is_valid_wgsl() {
     );
 }
 
+/// The workgroup size the host dispatches each entry point with: the constants of
+/// `layout.rs`, which the prelude declares for the kernels.
+fn host_workgroup(file: &str) -> u32 {
+    match file {
+        "args.wgsl" => 1,
+        "scan.wgsl" => layout::SCAN_WG,
+        "fit.wgsl" => layout::FIT_WG,
+        _ => layout::WG,
+    }
+}
+
+/// The `@workgroup_size` of every entry point of `src`, as naga reads it.
+fn workgroup_sizes(src: &str, path: &Path) -> Vec<(String, [u32; 3])> {
+    let module = parse(src, path).unwrap_or_else(|e| panic!("{e}"));
+    module
+        .entry_points
+        .iter()
+        .map(|e| (e.name.clone(), e.workgroup_size))
+        .collect()
+}
+
+#[test]
+fn every_kernel_runs_the_workgroup_size_the_host_dispatches() {
+    for path in kernels() {
+        let file = path.file_name().unwrap().to_string_lossy().into_owned();
+        let src = source(&path).unwrap();
+        let want = host_workgroup(&file);
+        for (entry, size) in workgroup_sizes(&src, &path) {
+            assert_eq!(size, [want, 1, 1], "{file}: {entry}");
+        }
+        // The size comes from the prelude's constant, not a literal: changing the
+        // constant changes the kernel.
+        if want > 1 {
+            let name = match file.as_str() {
+                "scan.wgsl" => "SCAN_WG",
+                "fit.wgsl" => "FIT_WG",
+                _ => "WG",
+            };
+            let decl = format!("const {name}: u32 = {want}u;");
+            assert!(src.contains(&decl), "{file}: {decl}");
+            let halved = src.replace(&decl, &format!("const {name}: u32 = {}u;", want / 2));
+            for (entry, size) in workgroup_sizes(&halved, &path) {
+                assert_eq!(size, [want / 2, 1, 1], "{file}: {entry} names {name}");
+            }
+        }
+    }
+}
+
 #[test]
 fn the_validator_rejects_a_broken_kernel() {
     let dir = tempfile::tempdir().unwrap();
