@@ -125,7 +125,7 @@ pub fn nearest(
     if k == 0 {
         return Some((out, total));
     }
-    let dev = super::batch::stats_of(r, grid.cell);
+    let dev = super::query::stats_of(r, grid.cell);
     out.sum_d2 = dev.sum_d2;
     out.sum_offset = dev.sum_offset;
     let add_all = |m: &[(f64, u32, DVec3)], out: &mut NearestSum| {
@@ -143,7 +143,7 @@ pub fn nearest(
         return None;
     }
     let c2 = grid.cell * grid.cell;
-    let e2 = super::batch::e2_of(grid, q);
+    let e2 = super::query::e2_of(grid, q);
     let t_lo = (plan.lo as f64 + e2) * c2;
     let t_hi = (plan.hi as f64 - e2) * c2;
     boundary.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));

@@ -5,321 +5,67 @@
 //! On the device, uploaded once: the grid's cell table (`cell_start`) and the sorted
 //! centers, as f32 offsets from their own cell's corner in cell units (split into parts at
 //! the binding limit). Per batch the host uploads only the queries (96 bytes each, in the
-//! Morton order of their midpoints' cells: `SpatialOrder`) and one submit runs
-//! (`batch.rs`):
+//! Morton order of their midpoints' cells: `order.rs`) and one submit runs the stages of
+//! `stages.rs`:
 //! 1. `walk.wgsl` (count): per query, the work items its capped cylinder needs (cells it
 //!    can touch, each cell cut into chunks of at most [`CHUNK`] points);
 //! 2. `scan.wgsl`: exclusive prefix sum of those counts (multi-level workgroup scan);
 //! 3. `args.wgsl`: the total, and the indirect dispatch size of the per-item kernels;
 //! 4. `walk.wgsl` (emit): the items, contiguous per query;
 //! 5. `eval.wgsl`: per item, its members' sums into its own slot (or the coverage bits, or
-//!    the k-nearest histogram; `cut.wgsl` then plans the cut and `eval.wgsl` sums below it);
+//!    the k-nearest histogram; `cut.wgsl` then plans the cut and `eval.wgsl` sums below it;
+//!    or, for member lists, `members.wgsl` and a member pass);
 //!    points within the f32 error bound of a boundary are flagged instead;
-//! 6. `reduce.wgsl`: per query, its items' slots summed in grid order (Kahan, no atomics).
+//! 6. `reduce.wgsl`: per query, its items' slots summed in grid order (Kahan, no atomics);
+//! 7. `fit.wgsl` (the edge fit's batches): the ridge over each query's member list.
 //!
 //! The host then reads back the per-query results and the flag list (one readback) and
 //! decides the flagged points in f64 — the only per-point work left on the host, and
-//! what makes membership exact. When the items or flags outgrow their buffers the batch is
-//! rerun with larger ones (the sizes are kept for later batches).
+//! what makes membership exact (`answers.rs`). When the items or flags outgrow their
+//! buffers the batch is rerun with larger ones (the sizes are kept for later batches).
+//!
+//! The files: `options.rs` (what callers choose), `kernels.rs` (shader assembly and
+//! pipelines), `resources.rs` (limits, what is uploaded once, per-batch buffers),
+//! `query.rs` (a query as the kernels read it), `order.rs` (the queries' order),
+//! `batch.rs` (one sub-batch: sizes, buffers, submit, readback), `stages.rs` (one
+//! function per stage), `answers.rs` (outputs into answers), `host.rs` (the host's f64
+//! decisions), `device.rs` (wgpu), `layout.rs` (the structs shared with WGSL).
 //!
 //! What keeps the device within its limits: every kernel loop is bounded (see each
 //! shader); the point store is split at the binding limit and no chunk crosses a part;
 //! dispatches are tiled in 2D beyond `max_workgroups_x` workgroups; every wgpu call runs
 //! inside error scopes, so errors come back as `EngineError::Gpu`.
 
+mod answers;
 mod batch;
 mod device;
 mod host;
+mod kernels;
 pub mod layout;
+mod options;
+mod order;
+mod query;
+mod resources;
+mod stages;
 
-pub use batch::PointStore;
 pub use device::{enumerate_adapters, skip_gpu_tests};
+pub use kernels::{common_wgsl, eval_source, fit_source, kernel_source, walk_source};
 pub use layout::CHUNK;
+pub use options::{FitOn, GpuOptions, MembersOn, SMALL_BATCH};
+pub use resources::PointStore;
 
 use super::{
-    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, FitAnswer, FitAsk, Nearest,
-    NearestSum, Query, Want,
+    Answers, Ask, Counters, CylStats, Engine, EngineError, FitAnswer, FitAsk, Nearest, Query, Want,
 };
 use crate::index::Grid;
-use batch::{Buffers, Kind};
+use batch::Kind;
 use device::Context;
 use glam::DVec3;
+use order::SpatialOrder;
 use rayon::prelude::*;
+use resources::Buffers;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-
-/// Size limits of the engine. The defaults suit every adapter; tests lower them to cover
-/// the splitting paths with small data.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct GpuOptions {
-    /// Largest point-store part and per-batch buffer binding in bytes (16 per point);
-    /// `None`: the device's `max_storage_buffer_binding_size`. Never above the device's
-    /// limit. (The cell table is bound whole and only checked against the device.)
-    pub max_binding_bytes: Option<u64>,
-    /// Most work items per submit; a sub-batch needing more is split.
-    pub max_items: usize,
-    /// Most workgroups along x before a dispatch is tiled in 2D (65,535 in WebGPU).
-    pub max_workgroups_x: u32,
-    /// Most queries per sub-batch (bounds the per-query buffers).
-    pub max_queries: usize,
-    /// Where `--fit edge`'s ridge runs: on the device (`fit.wgsl`, in f64, over the
-    /// member lists the batch leaves there) or as the host's step over member lists.
-    pub fit: FitOn,
-    /// Batches of at most this many queries are answered by the CPU engine's code over
-    /// the same grid, on the host: a device round trip (submit, wait, read back) costs more
-    /// than such a batch. 0 (the default here, so that tests exercise the kernels with
-    /// any batch): never. The commands use [`SMALL_BATCH`].
-    pub small_batch: usize,
-    /// Where [`Engine::members`] lists are built (the edge fit, `--split-gaps`).
-    pub members: MembersOn,
-    /// Whether [`GpuDevice::open`] runs two small evaluation batches over a tiny grid of
-    /// its own before it returns: drivers that generate a kernel's machine code at its
-    /// first dispatch (lavapipe: about 40 ms for the first evaluation's kernels) then do
-    /// that on the opening thread, which runs while the caller builds the grid, instead of
-    /// in the first batch. The commands' choice; off here (tests open many engines).
-    pub warm_up: bool,
-    /// Whether, on a software adapter (whose device memory is the host's), the buffers
-    /// uploaded once (cell table, point store) are created mapped and written in place
-    /// instead of through the queue's staging memory and a copy (lavapipe: the first
-    /// batch 20 ms shorter at 10^6 Gaussians). On by default; tests turn it off to run
-    /// the staging path that hardware adapters take.
-    pub mapped_uploads: bool,
-}
-
-/// Where the GPU engine builds per-point member lists.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum MembersOn {
-    /// On the device (walk, exact test, compaction; the host measures each member in f64
-    /// and sorts): the default here, so that tests exercise the kernels.
-    #[default]
-    Device,
-    /// On the host, by the CPU engine's code over the same grid.
-    Host,
-    /// The device on a hardware adapter; the host on a software one (lavapipe, WARP,
-    /// SwiftShader), whose "device" is the host's own cores: there the member passes and
-    /// their readback cost about four times the host's walk (1.1 s against 0.3 s at 10^6
-    /// Gaussians x 10^4 segments, README). The commands' choice.
-    Auto,
-}
-
-/// Where the GPU engine runs the edge fit's ridge.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum FitOn {
-    /// On the device where it can: an adapter with f64 in shaders (`SHADER_F64`: Vulkan
-    /// on NVIDIA, AMD, lavapipe; not Metal), the plain ridge (no normals, no opacity
-    /// weights) and the Gaussians' coordinates within one storage binding; the host's step
-    /// otherwise. The default here, so that tests exercise the kernel.
-    #[default]
-    Device,
-    /// The host's step over the member lists ([`GpuOptions::members`]).
-    Host,
-    /// The device on a hardware adapter, the host on a software one (on lavapipe the f64
-    /// kernel runs on the host's own cores, slower than the host's step). The commands'
-    /// choice.
-    Auto,
-}
-
-/// The commands' [`GpuOptions::small_batch`]: the tail rounds of merge/join and crop ask
-/// a few queries at a time, which the host answers in microseconds; a device round trip
-/// costs a fraction of a millisecond on a real GPU (about one on lavapipe).
-pub const SMALL_BATCH: usize = 16;
-
-impl GpuOptions {
-    /// The options the commands use: the defaults, with batches of at most
-    /// [`SMALL_BATCH`] queries on the host (`LINEGS_GPU_SMALL_BATCH=N` sets another bound;
-    /// 0 sends every batch to the device), member lists and the edge fit by adapter
-    /// ([`MembersOn::Auto`], [`FitOn::Auto`]; `LINEGS_GPU_MEMBERS=device|host` and
-    /// `LINEGS_GPU_FIT=device|host` choose).
-    pub fn for_commands() -> Self {
-        let small_batch = std::env::var("LINEGS_GPU_SMALL_BATCH")
-            .ok()
-            .and_then(|v| v.trim().parse().ok())
-            .unwrap_or(SMALL_BATCH);
-        let fit = match std::env::var("LINEGS_GPU_FIT").as_deref() {
-            Ok("device") => FitOn::Device,
-            Ok("host") => FitOn::Host,
-            _ => FitOn::Auto,
-        };
-        let members = match std::env::var("LINEGS_GPU_MEMBERS").as_deref() {
-            Ok("device") => MembersOn::Device,
-            Ok("host") => MembersOn::Host,
-            _ => MembersOn::Auto,
-        };
-        GpuOptions {
-            small_batch,
-            fit,
-            members,
-            warm_up: true,
-            ..Default::default()
-        }
-    }
-}
-
-impl Default for GpuOptions {
-    fn default() -> Self {
-        GpuOptions {
-            max_binding_bytes: None,
-            max_items: 1 << 24,
-            max_workgroups_x: 65_535,
-            max_queries: 1 << 16,
-            fit: FitOn::Device,
-            small_batch: 0,
-            members: MembersOn::Device,
-            warm_up: false,
-            mapped_uploads: true,
-        }
-    }
-}
-
-/// The layouts and helpers every kernel shares: the prelude generated from `layout.rs`,
-/// then `shaders/common.wgsl`.
-pub fn common_wgsl() -> String {
-    format!(
-        "{}\n{}",
-        layout::prelude(),
-        include_str!("../../../shaders/common.wgsl")
-    )
-}
-
-/// A kernel's full source: the shared prelude, then the kernel (WGSL has no include).
-pub fn kernel_source(kernel: &str) -> String {
-    format!("{}\n{kernel}", common_wgsl())
-}
-
-/// The fit kernel's full source: the shared prelude, its own f64 prelude, then
-/// `fit.wgsl` (compiled only on a device with `SHADER_F64`).
-pub fn fit_source() -> String {
-    kernel_source(&format!(
-        "{}\n{}",
-        layout::fit_prelude(),
-        include_str!("../../../shaders/fit.wgsl")
-    ))
-}
-
-/// The lines of `eval.wgsl` that read the evaluation mode and the coverage switch from
-/// the uniform.
-const EVAL_MODE_LINE: &str = "let mode = params.mode;";
-const EVAL_COVER_LINE: &str = "let cover_on = params.cover != 0u;";
-
-/// The evaluation kernel compiled for one mode (and, for the stats modes, with or without
-/// the coverage bits): both are constants instead of the uniform's, so each pipeline
-/// carries only its own branches (on lavapipe the stats pass then costs about 40 % less
-/// CPU time; on GPUs fewer registers).
-pub fn eval_source(mode: u32, cover: bool) -> String {
-    let src = include_str!("../../../shaders/eval.wgsl");
-    assert!(
-        src.contains(EVAL_MODE_LINE) && src.contains(EVAL_COVER_LINE),
-        "eval.wgsl reads its mode and coverage switch"
-    );
-    kernel_source(
-        &src.replace(EVAL_MODE_LINE, &format!("let mode = {mode}u;"))
-            .replace(EVAL_COVER_LINE, &format!("let cover_on = {cover};")),
-    )
-}
-
-/// The line of `walk.wgsl` that reads its pass (count or emit) from the uniform.
-const WALK_EMIT_LINE: &str = "let emit = params.mode == MODE_EMIT;";
-
-/// The grid walk compiled for one pass, the pass a constant: the count pass then carries
-/// no item stores (a SIMD implementation such as lavapipe runs a branch's stores under a
-/// mask even where no lane takes it) and the emit pass no count bookkeeping.
-pub fn walk_source(emit: bool) -> String {
-    let src = include_str!("../../../shaders/walk.wgsl");
-    assert!(src.contains(WALK_EMIT_LINE), "walk.wgsl reads its pass");
-    kernel_source(&src.replace(WALK_EMIT_LINE, &format!("let emit = {emit};")))
-}
-
-/// The order a batch's queries go to the device in: along a Morton (Z-order) curve through
-/// the cells holding their segments' midpoints, so that queries next to each other in the
-/// batch (the lanes of one SIMD group or warp, the invocations in flight together) walk
-/// neighbouring rows of the cell table and read neighbouring points, and their items share
-/// cache lines. In the caller's order (a file's, a step's) each lane reads its own stretch
-/// of memory; on lavapipe the kernels of the bench scene's evaluation batch take a fifth
-/// less time in this order. Answers are per query, so restoring the caller's order gives them
-/// bit for bit (the coverage mask is a union, the same in any order).
-struct SpatialOrder {
-    /// `perm[j]`: the caller's index of the `j`-th query sent.
-    perm: Vec<u32>,
-}
-
-impl SpatialOrder {
-    fn new(grid: &Grid, queries: &[Query]) -> SpatialOrder {
-        let (dx, dy) = (grid.dims[0], grid.dims[1]);
-        // One u64 per query: the Morton code (its top 40 bits where the grid needs more)
-        // above the query's index (24 bits), sorted as plain integers; ties keep the
-        // caller's order.
-        const INDEX_BITS: u32 = 24;
-        let axis_bits =
-            32 - (grid.dims.iter().max().copied().unwrap_or(1).max(1) - 1).leading_zeros();
-        let shift = (3 * axis_bits).saturating_sub(64 - INDEX_BITS);
-        let code = |q: &Query| {
-            // `cell_of` clamps into the grid (an invalid segment's NaN midpoint: cell 0).
-            let c = grid.cell_of(q.seg.midpoint());
-            morton3(c % dx, (c / dx) % dy, c / (dx * dy))
-        };
-        if queries.len() >= 1 << INDEX_BITS {
-            let mut keys: Vec<(u64, u32)> = queries
-                .par_iter()
-                .enumerate()
-                .map(|(i, q)| (code(q), i as u32))
-                .collect();
-            keys.par_sort_unstable();
-            return SpatialOrder {
-                perm: keys.into_iter().map(|(_, i)| i).collect(),
-            };
-        }
-        let mut keys: Vec<u64> = queries
-            .par_iter()
-            .with_min_len(4096)
-            .enumerate()
-            .map(|(i, q)| (code(q) >> shift) << INDEX_BITS | i as u64)
-            .collect();
-        keys.par_sort_unstable();
-        let mask = (1u64 << INDEX_BITS) - 1;
-        SpatialOrder {
-            perm: keys.into_iter().map(|k| (k & mask) as u32).collect(),
-        }
-    }
-
-    /// The caller's index of the `j`-th query sent.
-    fn index(&self, j: usize) -> usize {
-        self.perm[j] as usize
-    }
-
-    /// `xs` (one per query, in the caller's order) in the order sent.
-    fn apply<T: Clone>(&self, xs: &[T]) -> Vec<T> {
-        self.perm.iter().map(|&i| xs[i as usize].clone()).collect()
-    }
-
-    /// Answers in the order sent, back in the caller's order (empty stays empty).
-    fn restore<T>(&self, ys: Vec<T>) -> Vec<T> {
-        if ys.is_empty() {
-            return ys;
-        }
-        debug_assert_eq!(ys.len(), self.perm.len());
-        let mut out: Vec<Option<T>> = (0..ys.len()).map(|_| None).collect();
-        for (&i, y) in self.perm.iter().zip(ys) {
-            out[i as usize] = Some(y);
-        }
-        out.into_iter()
-            .map(|y| y.expect("a permutation fills every slot"))
-            .collect()
-    }
-}
-
-/// Interleaves the low 21 bits of `x`, `y` and `z` (x lowest): the cell's Morton code.
-fn morton3(x: u32, y: u32, z: u32) -> u64 {
-    fn spread(v: u32) -> u64 {
-        let mut v = (v & 0x1F_FFFF) as u64;
-        v = (v | v << 32) & 0x001F_0000_0000_FFFF;
-        v = (v | v << 16) & 0x001F_0000_FF00_00FF;
-        v = (v | v << 8) & 0x100F_00F0_0F00_F00F;
-        v = (v | v << 4) & 0x10C3_0C30_C30C_30C3;
-        v = (v | v << 2) & 0x1249_2492_4924_9249;
-        v
-    }
-    spread(x) | spread(y) << 1 | spread(z) << 2
-}
 
 /// Seconds of host work and of waiting for the device, accumulated over the engine's life.
 #[derive(Default)]
@@ -340,9 +86,9 @@ impl Clock {
 pub struct GpuEngine {
     grid: Arc<Grid>,
     ctx: Context,
-    kernels: batch::Kernels,
-    statics: batch::Statics,
-    opts: batch::Limits,
+    kernels: kernels::Kernels,
+    statics: resources::Statics,
+    opts: resources::Limits,
     /// One batch at a time: the buffers and the error scopes are per batch.
     buffers: Mutex<Buffers>,
     uploads: AtomicU64,
@@ -371,7 +117,7 @@ pub struct GpuEngine {
 /// (`select::prepare`). [`GpuDevice::engine`] uploads a grid and gives the engine.
 pub struct GpuDevice {
     ctx: Context,
-    kernels: batch::Kernels,
+    kernels: kernels::Kernels,
     opts: GpuOptions,
     fit_wanted: bool,
     software: bool,
@@ -394,7 +140,7 @@ impl GpuDevice {
                 FitOn::Auto => !software,
             };
         let kernels = ctx.scoped("compiling the kernels", || {
-            batch::Kernels::new(&ctx, fit_wanted)
+            kernels::Kernels::new(&ctx, fit_wanted)
         })?;
         let device = GpuDevice {
             ctx,
@@ -467,7 +213,7 @@ impl GpuDevice {
     pub fn engine_with(
         self,
         grid: Arc<Grid>,
-        store: Option<batch::PointStore>,
+        store: Option<resources::PointStore>,
     ) -> Result<GpuEngine, EngineError> {
         let GpuDevice {
             ctx,
@@ -476,8 +222,8 @@ impl GpuDevice {
             fit_wanted,
             software,
         } = self;
-        let limits = batch::Limits::new(&ctx, &opts, grid.len());
-        let statics = batch::Statics::upload(&ctx, &grid, store, &limits, fit_wanted)?;
+        let limits = resources::Limits::new(&ctx, &opts, grid.len());
+        let statics = resources::Statics::upload(&ctx, &grid, store, &limits, fit_wanted)?;
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         let device_fit = fit_wanted && kernels.fit.is_some() && statics.world.is_some();
         Ok(GpuEngine {
@@ -583,274 +329,6 @@ impl GpuEngine {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Buffers> {
         self.buffers.lock().unwrap_or_else(|p| p.into_inner())
-    }
-
-    /// Runs `kind` over `queries` in sub-batches, calling `each(first query, output)` for
-    /// every sub-batch in order; a sub-batch too large for the buffers is split, and a
-    /// single query that still does not fit is marked for the host.
-    fn run(
-        &self,
-        b: &mut Buffers,
-        kind: Kind,
-        queries: &[Query],
-        ks: &[u64],
-        each: &mut dyn FnMut(usize, batch::Output) -> Result<(), EngineError>,
-    ) -> Result<(), EngineError> {
-        self.run_with(b, kind, queries, ks, &[], each)
-    }
-
-    /// [`Self::run`] with the fit batch's per-query frames (`fit`, one per query).
-    fn run_with(
-        &self,
-        b: &mut Buffers,
-        kind: Kind,
-        queries: &[Query],
-        ks: &[u64],
-        fit: &[layout::FitQuery],
-        each: &mut dyn FnMut(usize, batch::Output) -> Result<(), EngineError>,
-    ) -> Result<(), EngineError> {
-        let t = std::time::Instant::now();
-        let mut waited = 0.0;
-        let mut todo: Vec<std::ops::Range<usize>> = (0..queries.len())
-            .step_by(self.opts.max_queries)
-            .map(|a| a..(a + self.opts.max_queries).min(queries.len()))
-            .rev()
-            .collect();
-        while let Some(r) = todo.pop() {
-            let ks = if ks.is_empty() { ks } else { &ks[r.clone()] };
-            let fit = if fit.is_empty() { fit } else { &fit[r.clone()] };
-            let ctx = &self.ctx;
-            let out = ctx.scoped("running a batch", || {
-                batch::submit(
-                    ctx,
-                    &self.kernels,
-                    &self.statics,
-                    &self.opts,
-                    &self.grid,
-                    b,
-                    kind,
-                    &queries[r.clone()],
-                    ks,
-                    fit,
-                )
-            })??;
-            match out {
-                batch::Attempt::Done(o, w) => {
-                    waited += w;
-                    each(r.start, o)?;
-                }
-                batch::Attempt::TooLarge(w) => {
-                    waited += w;
-                    if r.len() > 1 {
-                        let mid = r.start + r.len() / 2;
-                        todo.push(mid..r.end);
-                        todo.push(r.start..mid);
-                    } else {
-                        each(r.start, batch::Output::host_only(1))?;
-                    }
-                }
-            }
-        }
-        self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
-        Ok(())
-    }
-
-    /// The stats of every query (fields not in `want` zeroed) and, with `cover`, the
-    /// coverage mask of the batch, from one device batch.
-    fn stats_batch(
-        &self,
-        b: &mut Buffers,
-        queries: &[Query],
-        want: Want,
-        cover: bool,
-    ) -> Result<(Vec<CylStats>, Option<Coverage>), EngineError> {
-        let n_points = self.grid.len();
-        let ctx = &self.ctx;
-        let asked = cover;
-        let cover = cover && n_points > 0;
-        if cover {
-            ctx.scoped("clearing the coverage mask", || {
-                batch::clear_mask(ctx, b, &self.opts, n_points)
-            })??;
-        }
-        let mut out = vec![CylStats::default(); queries.len()];
-        let grid = &*self.grid;
-        let cell = grid.cell;
-        let fallbacks = &self.fallbacks;
-        // Members the device left to the host (flagged points, host-answered queries).
-        let mut extra: Vec<u32> = Vec::new();
-        self.run(
-            b,
-            Kind::Stats {
-                sides: want.sides,
-                cover,
-            },
-            queries,
-            &[],
-            &mut |first, o| {
-                let n = o.results.len();
-                let qs = &queries[first..first + n];
-                let spans = host::spans(&o.flags, n);
-                out[first..first + n]
-                    .par_iter_mut()
-                    .enumerate()
-                    .with_min_len(64)
-                    .for_each(|(i, s)| {
-                        let r = &o.results[i];
-                        if r.status & layout::STATUS_HOST != 0 {
-                            fallbacks.fetch_add(1, Ordering::Relaxed);
-                            *s = host::stats(grid, &qs[i]);
-                            return;
-                        }
-                        *s = batch::stats_of(r, cell);
-                        for f in &o.flags[spans[i].clone()] {
-                            host::add_member(grid, &qs[i], f.1, s);
-                        }
-                    });
-                if cover {
-                    for (i, r) in o.results.iter().enumerate() {
-                        if r.status & layout::STATUS_HOST != 0 {
-                            host::for_each_member(grid, &qs[i], |j| extra.push(j as u32));
-                        }
-                    }
-                    for &(q, p) in &o.flags {
-                        if host::is_member(grid, &qs[q as usize], p) {
-                            extra.push(p);
-                        }
-                    }
-                }
-                Ok(())
-            },
-        )?;
-        for a in &mut out {
-            if !want.sums {
-                a.sum_d2 = 0.0;
-                a.sum_offset = DVec3::ZERO;
-            }
-            if !want.sides {
-                a.side_pos = 0;
-            }
-        }
-        if !cover {
-            return Ok((out, asked.then(Coverage::default)));
-        }
-        let t = std::time::Instant::now();
-        let (words, waited) = ctx.scoped("reading the coverage mask", || {
-            batch::read_mask(ctx, b, n_points)
-        })??;
-        let mut mask: Vec<u64> = words
-            .chunks(2)
-            .map(|w| w[0] as u64 | (w.get(1).copied().unwrap_or(0) as u64) << 32)
-            .collect();
-        for p in extra {
-            mask[p as usize / 64] |= 1u64 << (p % 64);
-        }
-        self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
-        Ok((out, Some(Coverage { mask })))
-    }
-
-    /// For query `i`, sums over its `k[i]` members nearest to the line, and its count.
-    fn nearest_batch(
-        &self,
-        b: &mut Buffers,
-        queries: &[Query],
-        k: &[u64],
-    ) -> Result<(Vec<NearestSum>, Vec<u64>), EngineError> {
-        let mut out = vec![(NearestSum::default(), 0u64); queries.len()];
-        let grid = &*self.grid;
-        let fallbacks = &self.fallbacks;
-        self.run(b, Kind::Nearest, queries, k, &mut |first, o| {
-            let n = o.results.len();
-            let qs = &queries[first..first + n];
-            let spans = host::spans(&o.flags, n);
-            out[first..first + n]
-                .par_iter_mut()
-                .enumerate()
-                .with_min_len(64)
-                .for_each(|(i, s)| {
-                    let q = &qs[i];
-                    let k = k[first + i];
-                    match host::nearest(
-                        grid,
-                        q,
-                        k,
-                        &o.results[i],
-                        o.plans.get(i),
-                        &o.flags[spans[i].clone()],
-                    ) {
-                        Some(x) => *s = x,
-                        None => {
-                            fallbacks.fetch_add(1, Ordering::Relaxed);
-                            *s = host::exact_nearest(grid, q, k);
-                        }
-                    }
-                });
-            Ok(())
-        })?;
-        Ok(out.into_iter().unzip())
-    }
-}
-
-impl GpuEngine {
-    /// Every query's members (see [`Engine::members`]) from device batches; a query the
-    /// device leaves to the host (walk too long, too many members, a miscount) gets the
-    /// CPU engine's list.
-    fn members_batch(
-        &self,
-        b: &mut Buffers,
-        queries: &[Query],
-    ) -> Result<Vec<Vec<super::Member>>, EngineError> {
-        let mut out: Vec<Vec<super::Member>> = vec![Vec::new(); queries.len()];
-        let grid = &*self.grid;
-        let fallbacks = &self.fallbacks;
-        self.run(b, Kind::Members, queries, &[], &mut |first, o| {
-            let n = o.results.len();
-            let qs = &queries[first..first + n];
-            let spans = host::spans(&o.flags, n);
-            // Query after query, the device's sure members.
-            let mut at = 0usize;
-            let lists: Vec<std::ops::Range<usize>> = o
-                .results
-                .iter()
-                .map(|r| {
-                    let c = if r.status & layout::STATUS_HOST == 0 {
-                        r.count as usize
-                    } else {
-                        0
-                    };
-                    at += c;
-                    at - c..at
-                })
-                .collect();
-            out[first..first + n]
-                .par_iter_mut()
-                .enumerate()
-                .with_min_len(8)
-                .for_each(|(i, m)| {
-                    let q = &qs[i];
-                    let device = o.results[i].status & layout::STATUS_HOST == 0
-                        && !o.bad
-                        && lists[i].end <= o.members.len()
-                        && q.r.is_finite()
-                        && q.r >= 0.0;
-                    let list = device
-                        .then(|| {
-                            host::members(
-                                grid,
-                                q,
-                                &o.members[lists[i].clone()],
-                                &o.flags[spans[i].clone()],
-                            )
-                        })
-                        .flatten();
-                    *m = list.unwrap_or_else(|| {
-                        fallbacks.fetch_add(1, Ordering::Relaxed);
-                        super::cpu::member_list(grid, q)
-                    });
-                });
-            Ok(())
-        })?;
-        Ok(out)
     }
 }
 
@@ -983,24 +461,13 @@ impl Engine for GpuEngine {
         ask.nearest.check(queries.len())?;
         self.count_batch(queries.len());
         if !queries.is_empty() && queries.len() <= self.small_batch {
-            let t = std::time::Instant::now();
-            let out = self.cpu.query(queries, ask);
-            self.cpu_batches.fetch_add(1, Ordering::Relaxed);
-            self.cpu_queries
-                .fetch_add(queries.len() as u64, Ordering::Relaxed);
-            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-            return out;
+            return self.on_cpu(queries.len(), || self.cpu.query(queries, ask));
         }
-        // The ordering is host work of the batch (`host_seconds`).
-        let (order, sent, ks) = self.on_host(|| {
-            let order = SpatialOrder::new(&self.grid, queries);
-            let sent = order.apply(queries);
-            let ks = match ask.nearest {
-                Nearest::K(k) => order.apply(k),
-                _ => Vec::new(),
-            };
-            (order, sent, ks)
-        });
+        let (order, sent) = self.in_order(queries);
+        let ks = match ask.nearest {
+            Nearest::K(k) => self.on_host(|| order.apply(k)),
+            _ => Vec::new(),
+        };
         let nearest = match ask.nearest {
             Nearest::K(_) => Nearest::K(&ks),
             other => other,
@@ -1022,19 +489,9 @@ impl Engine for GpuEngine {
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
         if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
-            let t = std::time::Instant::now();
-            let out = self.cpu.members(queries);
-            self.cpu_batches.fetch_add(1, Ordering::Relaxed);
-            self.cpu_queries
-                .fetch_add(queries.len() as u64, Ordering::Relaxed);
-            self.clock.add(t.elapsed().as_secs_f64(), 0.0);
-            return out;
+            return self.on_cpu(queries.len(), || self.cpu.members(queries));
         }
-        let (order, sent) = self.on_host(|| {
-            let order = SpatialOrder::new(&self.grid, queries);
-            let sent = order.apply(queries);
-            (order, sent)
-        });
+        let (order, sent) = self.in_order(queries);
         let lists = self.members_batch(&mut self.lock(), &sent)?;
         Ok(self.on_host(|| order.restore(lists)))
     }
@@ -1103,6 +560,24 @@ impl GpuEngine {
         out
     }
 
+    /// A batch of `n` queries that the CPU engine's code answers on the host (`f`),
+    /// counted as such (`cpu_batches`, `cpu_queries`) and as host work.
+    fn on_cpu<R>(&self, n: usize, f: impl FnOnce() -> R) -> R {
+        self.cpu_batches.fetch_add(1, Ordering::Relaxed);
+        self.cpu_queries.fetch_add(n as u64, Ordering::Relaxed);
+        self.on_host(f)
+    }
+
+    /// The order the device gets `queries` in, and the queries in it; the ordering is
+    /// host work of the batch (`host_seconds`).
+    fn in_order(&self, queries: &[Query]) -> (SpatialOrder, Vec<Query>) {
+        self.on_host(|| {
+            let order = SpatialOrder::new(&self.grid, queries);
+            let sent = order.apply(queries);
+            (order, sent)
+        })
+    }
+
     /// One device batch for the stats and the coverage together (one walk, each point
     /// evaluated once), then, for nearest sums, the k-nearest batch (whose `k` may come
     /// from the first batch's counts); a nearest-only ask gets its counts from the
@@ -1139,79 +614,5 @@ impl GpuEngine {
             out.nearest = near;
         }
         Ok(out)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::geom::{Aabb, Segment};
-
-    #[test]
-    fn morton_codes_interleave_x_lowest() {
-        assert_eq!(morton3(0, 0, 0), 0);
-        assert_eq!(morton3(1, 0, 0), 0b001);
-        assert_eq!(morton3(0, 1, 0), 0b010);
-        assert_eq!(morton3(0, 0, 1), 0b100);
-        assert_eq!(morton3(3, 0, 0), 0b001_001);
-        assert_eq!(morton3(2, 3, 1), 0b011_110);
-        // All 21 bits of each coordinate survive.
-        let top = 1u32 << 20;
-        assert_eq!(morton3(top, 0, 0), 1u64 << 60);
-        assert_eq!(morton3(0, 0, top), 1u64 << 62);
-    }
-
-    fn grid_4x4x4() -> Grid {
-        let pts: Vec<[f32; 3]> = (0..64)
-            .map(|i| {
-                [
-                    (i % 4) as f32 + 0.5,
-                    ((i / 4) % 4) as f32 + 0.5,
-                    (i / 16) as f32 + 0.5,
-                ]
-            })
-            .collect();
-        let b = Aabb {
-            min: DVec3::ZERO,
-            max: DVec3::splat(3.99),
-        };
-        Grid::build(&pts, b, 1.0)
-    }
-
-    fn at(x: f64, y: f64, z: f64) -> Query {
-        let p = DVec3::new(x, y, z);
-        Query::new(Segment::new(p - DVec3::X * 0.1, p + DVec3::X * 0.1), 0.2)
-    }
-
-    #[test]
-    fn queries_go_in_morton_order_and_answers_come_back_in_the_callers() {
-        let g = grid_4x4x4();
-        assert_eq!(g.dims, [4, 4, 4]);
-        // Cells (3,3,3), (0,0,0), (1,0,0), (0,1,0), (0,0,1), and (0,0,0) again.
-        let qs = [
-            at(3.5, 3.5, 3.5),
-            at(0.5, 0.5, 0.5),
-            at(1.5, 0.5, 0.5),
-            at(0.5, 1.5, 0.5),
-            at(0.5, 0.5, 1.5),
-            at(0.6, 0.4, 0.5),
-        ];
-        let order = SpatialOrder::new(&g, &qs);
-        // Ties (queries 1 and 5 share a cell) keep the caller's order.
-        assert_eq!(order.perm, vec![1, 5, 2, 3, 4, 0]);
-        assert_eq!(order.index(5), 0);
-        let sent = order.apply(&qs);
-        assert_eq!(sent[0], qs[1]);
-        assert_eq!(sent[5], qs[0]);
-        // An answer computed from each sent query comes back to its own slot.
-        let answers: Vec<f64> = sent
-            .iter()
-            .map(|q| q.seg.p1.x + 10.0 * q.seg.p1.z)
-            .collect();
-        let back = order.restore(answers);
-        for (q, a) in qs.iter().zip(&back) {
-            assert_eq!(*a, q.seg.p1.x + 10.0 * q.seg.p1.z);
-        }
-        assert!(order.restore(Vec::<f64>::new()).is_empty());
     }
 }

@@ -1,0 +1,262 @@
+//! The answers of device batches: [`GpuEngine::run_with`] sends a batch in sub-batches that
+//! fit the buffers, and each kind of batch turns a sub-batch's [`Output`] into its
+//! queries' answers (the flagged points decided on the host in f64, the queries the device
+//! left to the host answered there), one query at a time in parallel ([`per_query`]).
+
+use super::batch::{self, Kind, Output};
+use super::query::stats_of;
+use super::resources::{self, Buffers};
+use super::{host, layout, GpuEngine};
+use crate::engine::{Coverage, CylStats, EngineError, Member, NearestSum, Query, Want};
+use glam::DVec3;
+use rayon::prelude::*;
+use std::sync::atomic::Ordering;
+
+/// `answer(i, flags of query i, &mut out[i])` for every query of a sub-batch, in parallel
+/// (`min_len` queries a task): `out` is the sub-batch's slice of the answers, `o` its
+/// output.
+pub(super) fn per_query<T: Send>(
+    out: &mut [T],
+    o: &Output,
+    min_len: usize,
+    answer: impl Fn(usize, &[(u32, u32)], &mut T) + Sync + Send,
+) {
+    let spans = host::spans(&o.flags, out.len());
+    out.par_iter_mut()
+        .enumerate()
+        .with_min_len(min_len)
+        .for_each(|(i, a)| answer(i, &o.flags[spans[i].clone()], a));
+}
+
+impl GpuEngine {
+    /// Runs `kind` over `queries` in sub-batches, calling `each(first query, output)` for
+    /// every sub-batch in order; a sub-batch too large for the buffers is split, and a
+    /// single query that still does not fit is marked for the host.
+    pub(super) fn run(
+        &self,
+        b: &mut Buffers,
+        kind: Kind,
+        queries: &[Query],
+        ks: &[u64],
+        each: &mut dyn FnMut(usize, Output) -> Result<(), EngineError>,
+    ) -> Result<(), EngineError> {
+        self.run_with(b, kind, queries, ks, &[], each)
+    }
+
+    /// [`Self::run`] with the fit batch's per-query frames (`fit`, one per query).
+    pub(super) fn run_with(
+        &self,
+        b: &mut Buffers,
+        kind: Kind,
+        queries: &[Query],
+        ks: &[u64],
+        fit: &[layout::FitQuery],
+        each: &mut dyn FnMut(usize, Output) -> Result<(), EngineError>,
+    ) -> Result<(), EngineError> {
+        let t = std::time::Instant::now();
+        let mut waited = 0.0;
+        let mut todo: Vec<std::ops::Range<usize>> = (0..queries.len())
+            .step_by(self.opts.max_queries)
+            .map(|a| a..(a + self.opts.max_queries).min(queries.len()))
+            .rev()
+            .collect();
+        while let Some(r) = todo.pop() {
+            let ks = if ks.is_empty() { ks } else { &ks[r.clone()] };
+            let fit = if fit.is_empty() { fit } else { &fit[r.clone()] };
+            let ctx = &self.ctx;
+            let out = ctx.scoped("running a batch", || {
+                batch::submit(
+                    ctx,
+                    &self.kernels,
+                    &self.statics,
+                    &self.opts,
+                    &self.grid,
+                    b,
+                    kind,
+                    &queries[r.clone()],
+                    ks,
+                    fit,
+                )
+            })??;
+            match out {
+                batch::Attempt::Done(o, w) => {
+                    waited += w;
+                    each(r.start, o)?;
+                }
+                batch::Attempt::TooLarge(w) => {
+                    waited += w;
+                    if r.len() > 1 {
+                        let mid = r.start + r.len() / 2;
+                        todo.push(mid..r.end);
+                        todo.push(r.start..mid);
+                    } else {
+                        each(r.start, Output::host_only(1))?;
+                    }
+                }
+            }
+        }
+        self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
+        Ok(())
+    }
+
+    /// The stats of every query (fields not in `want` zeroed) and, with `cover`, the
+    /// coverage mask of the batch, from one device batch.
+    pub(super) fn stats_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+        want: Want,
+        cover: bool,
+    ) -> Result<(Vec<CylStats>, Option<Coverage>), EngineError> {
+        let n_points = self.grid.len();
+        let ctx = &self.ctx;
+        let asked = cover;
+        let cover = cover && n_points > 0;
+        if cover {
+            ctx.scoped("clearing the coverage mask", || {
+                resources::clear_mask(ctx, b, &self.opts, n_points)
+            })??;
+        }
+        let mut out = vec![CylStats::default(); queries.len()];
+        let grid = &*self.grid;
+        let fallbacks = &self.fallbacks;
+        // Members the device left to the host (flagged points, host-answered queries).
+        let mut extra: Vec<u32> = Vec::new();
+        let kind = Kind::Stats {
+            sides: want.sides,
+            cover,
+        };
+        self.run(b, kind, queries, &[], &mut |first, o| {
+            let n = o.results.len();
+            let qs = &queries[first..first + n];
+            per_query(&mut out[first..first + n], &o, 64, |i, flags, s| {
+                let r = &o.results[i];
+                if r.status & layout::STATUS_HOST != 0 {
+                    fallbacks.fetch_add(1, Ordering::Relaxed);
+                    *s = host::stats(grid, &qs[i]);
+                    return;
+                }
+                *s = stats_of(r, grid.cell);
+                for f in flags {
+                    host::add_member(grid, &qs[i], f.1, s);
+                }
+            });
+            if cover {
+                for (i, r) in o.results.iter().enumerate() {
+                    if r.status & layout::STATUS_HOST != 0 {
+                        host::for_each_member(grid, &qs[i], |j| extra.push(j as u32));
+                    }
+                }
+                for &(q, p) in &o.flags {
+                    if host::is_member(grid, &qs[q as usize], p) {
+                        extra.push(p);
+                    }
+                }
+            }
+            Ok(())
+        })?;
+        for a in &mut out {
+            if !want.sums {
+                a.sum_d2 = 0.0;
+                a.sum_offset = DVec3::ZERO;
+            }
+            if !want.sides {
+                a.side_pos = 0;
+            }
+        }
+        if !cover {
+            return Ok((out, asked.then(Coverage::default)));
+        }
+        let t = std::time::Instant::now();
+        let (words, waited) = ctx.scoped("reading the coverage mask", || {
+            resources::read_mask(ctx, b, n_points)
+        })??;
+        let mut mask: Vec<u64> = words
+            .chunks(2)
+            .map(|w| w[0] as u64 | (w.get(1).copied().unwrap_or(0) as u64) << 32)
+            .collect();
+        for p in extra {
+            mask[p as usize / 64] |= 1u64 << (p % 64);
+        }
+        self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
+        Ok((out, Some(Coverage { mask })))
+    }
+
+    /// For query `i`, sums over its `k[i]` members nearest to the line, and its count.
+    pub(super) fn nearest_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+        k: &[u64],
+    ) -> Result<(Vec<NearestSum>, Vec<u64>), EngineError> {
+        let mut out = vec![(NearestSum::default(), 0u64); queries.len()];
+        let grid = &*self.grid;
+        let fallbacks = &self.fallbacks;
+        self.run(b, Kind::Nearest, queries, k, &mut |first, o| {
+            let n = o.results.len();
+            let qs = &queries[first..first + n];
+            per_query(&mut out[first..first + n], &o, 64, |i, flags, s| {
+                let (q, k) = (&qs[i], k[first + i]);
+                let plan = o.plans.get(i);
+                match host::nearest(grid, q, k, &o.results[i], plan, flags) {
+                    Some(x) => *s = x,
+                    None => {
+                        fallbacks.fetch_add(1, Ordering::Relaxed);
+                        *s = host::exact_nearest(grid, q, k);
+                    }
+                }
+            });
+            Ok(())
+        })?;
+        Ok(out.into_iter().unzip())
+    }
+
+    /// Every query's members (see [`crate::engine::Engine::members`]) from device batches;
+    /// a query the device leaves to the host (walk too long, too many members, a
+    /// miscount) gets the CPU engine's list.
+    pub(super) fn members_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+    ) -> Result<Vec<Vec<Member>>, EngineError> {
+        let mut out: Vec<Vec<Member>> = vec![Vec::new(); queries.len()];
+        let grid = &*self.grid;
+        let fallbacks = &self.fallbacks;
+        self.run(b, Kind::Members, queries, &[], &mut |first, o| {
+            let n = o.results.len();
+            let qs = &queries[first..first + n];
+            // Query after query, the device's sure members.
+            let mut at = 0usize;
+            let lists: Vec<std::ops::Range<usize>> = o
+                .results
+                .iter()
+                .map(|r| {
+                    let c = if r.status & layout::STATUS_HOST == 0 {
+                        r.count as usize
+                    } else {
+                        0
+                    };
+                    at += c;
+                    at - c..at
+                })
+                .collect();
+            per_query(&mut out[first..first + n], &o, 8, |i, flags, m| {
+                let q = &qs[i];
+                let device = o.results[i].status & layout::STATUS_HOST == 0
+                    && !o.bad
+                    && lists[i].end <= o.members.len()
+                    && q.r.is_finite()
+                    && q.r >= 0.0;
+                let list = device
+                    .then(|| host::members(grid, q, &o.members[lists[i].clone()], flags))
+                    .flatten();
+                *m = list.unwrap_or_else(|| {
+                    fallbacks.fetch_add(1, Ordering::Relaxed);
+                    crate::engine::cpu::member_list(grid, q)
+                });
+            });
+            Ok(())
+        })?;
+        Ok(out)
+    }
+}

@@ -1,0 +1,171 @@
+//! The order the queries of a batch go to the device in.
+
+use crate::engine::Query;
+use crate::index::Grid;
+use rayon::prelude::*;
+
+/// The order a batch's queries go to the device in: along a Morton (Z-order) curve through
+/// the cells holding their segments' midpoints, so that queries next to each other in the
+/// batch (the lanes of one SIMD group or warp, the invocations in flight together) walk
+/// neighbouring rows of the cell table and read neighbouring points, and their items share
+/// cache lines. In the caller's order (a file's, a step's) each lane reads its own stretch
+/// of memory; on lavapipe the kernels of the bench scene's evaluation batch take a fifth
+/// less time in this order. Answers are per query, so restoring the caller's order gives them
+/// bit for bit (the coverage mask is a union, the same in any order).
+pub struct SpatialOrder {
+    /// `perm[j]`: the caller's index of the `j`-th query sent.
+    perm: Vec<u32>,
+}
+
+impl SpatialOrder {
+    pub fn new(grid: &Grid, queries: &[Query]) -> SpatialOrder {
+        let (dx, dy) = (grid.dims[0], grid.dims[1]);
+        // One u64 per query: the Morton code (its top 40 bits where the grid needs more)
+        // above the query's index (24 bits), sorted as plain integers; ties keep the
+        // caller's order.
+        const INDEX_BITS: u32 = 24;
+        let axis_bits =
+            32 - (grid.dims.iter().max().copied().unwrap_or(1).max(1) - 1).leading_zeros();
+        let shift = (3 * axis_bits).saturating_sub(64 - INDEX_BITS);
+        let code = |q: &Query| {
+            // `cell_of` clamps into the grid (an invalid segment's NaN midpoint: cell 0).
+            let c = grid.cell_of(q.seg.midpoint());
+            morton3(c % dx, (c / dx) % dy, c / (dx * dy))
+        };
+        if queries.len() >= 1 << INDEX_BITS {
+            let mut keys: Vec<(u64, u32)> = queries
+                .par_iter()
+                .enumerate()
+                .map(|(i, q)| (code(q), i as u32))
+                .collect();
+            keys.par_sort_unstable();
+            return SpatialOrder {
+                perm: keys.into_iter().map(|(_, i)| i).collect(),
+            };
+        }
+        let mut keys: Vec<u64> = queries
+            .par_iter()
+            .with_min_len(4096)
+            .enumerate()
+            .map(|(i, q)| (code(q) >> shift) << INDEX_BITS | i as u64)
+            .collect();
+        keys.par_sort_unstable();
+        let mask = (1u64 << INDEX_BITS) - 1;
+        SpatialOrder {
+            perm: keys.into_iter().map(|k| (k & mask) as u32).collect(),
+        }
+    }
+
+    /// The caller's index of the `j`-th query sent.
+    pub fn index(&self, j: usize) -> usize {
+        self.perm[j] as usize
+    }
+
+    /// `xs` (one per query, in the caller's order) in the order sent.
+    pub fn apply<T: Clone>(&self, xs: &[T]) -> Vec<T> {
+        self.perm.iter().map(|&i| xs[i as usize].clone()).collect()
+    }
+
+    /// Answers in the order sent, back in the caller's order (empty stays empty).
+    pub fn restore<T>(&self, ys: Vec<T>) -> Vec<T> {
+        if ys.is_empty() {
+            return ys;
+        }
+        debug_assert_eq!(ys.len(), self.perm.len());
+        let mut out: Vec<Option<T>> = (0..ys.len()).map(|_| None).collect();
+        for (&i, y) in self.perm.iter().zip(ys) {
+            out[i as usize] = Some(y);
+        }
+        out.into_iter()
+            .map(|y| y.expect("a permutation fills every slot"))
+            .collect()
+    }
+}
+
+/// Interleaves the low 21 bits of `x`, `y` and `z` (x lowest): the cell's Morton code.
+fn morton3(x: u32, y: u32, z: u32) -> u64 {
+    fn spread(v: u32) -> u64 {
+        let mut v = (v & 0x1F_FFFF) as u64;
+        v = (v | v << 32) & 0x001F_0000_0000_FFFF;
+        v = (v | v << 16) & 0x001F_0000_FF00_00FF;
+        v = (v | v << 8) & 0x100F_00F0_0F00_F00F;
+        v = (v | v << 4) & 0x10C3_0C30_C30C_30C3;
+        v = (v | v << 2) & 0x1249_2492_4924_9249;
+        v
+    }
+    spread(x) | spread(y) << 1 | spread(z) << 2
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geom::{Aabb, Segment};
+
+    #[test]
+    fn morton_codes_interleave_x_lowest() {
+        assert_eq!(morton3(0, 0, 0), 0);
+        assert_eq!(morton3(1, 0, 0), 0b001);
+        assert_eq!(morton3(0, 1, 0), 0b010);
+        assert_eq!(morton3(0, 0, 1), 0b100);
+        assert_eq!(morton3(3, 0, 0), 0b001_001);
+        assert_eq!(morton3(2, 3, 1), 0b011_110);
+        // All 21 bits of each coordinate survive.
+        let top = 1u32 << 20;
+        assert_eq!(morton3(top, 0, 0), 1u64 << 60);
+        assert_eq!(morton3(0, 0, top), 1u64 << 62);
+    }
+
+    fn grid_4x4x4() -> Grid {
+        let pts: Vec<[f32; 3]> = (0..64)
+            .map(|i| {
+                [
+                    (i % 4) as f32 + 0.5,
+                    ((i / 4) % 4) as f32 + 0.5,
+                    (i / 16) as f32 + 0.5,
+                ]
+            })
+            .collect();
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::splat(3.99),
+        };
+        Grid::build(&pts, b, 1.0)
+    }
+
+    fn at(x: f64, y: f64, z: f64) -> Query {
+        let p = DVec3::new(x, y, z);
+        Query::new(Segment::new(p - DVec3::X * 0.1, p + DVec3::X * 0.1), 0.2)
+    }
+
+    #[test]
+    fn queries_go_in_morton_order_and_answers_come_back_in_the_callers() {
+        let g = grid_4x4x4();
+        assert_eq!(g.dims, [4, 4, 4]);
+        // Cells (3,3,3), (0,0,0), (1,0,0), (0,1,0), (0,0,1), and (0,0,0) again.
+        let qs = [
+            at(3.5, 3.5, 3.5),
+            at(0.5, 0.5, 0.5),
+            at(1.5, 0.5, 0.5),
+            at(0.5, 1.5, 0.5),
+            at(0.5, 0.5, 1.5),
+            at(0.6, 0.4, 0.5),
+        ];
+        let order = SpatialOrder::new(&g, &qs);
+        // Ties (queries 1 and 5 share a cell) keep the caller's order.
+        assert_eq!(order.perm, vec![1, 5, 2, 3, 4, 0]);
+        assert_eq!(order.index(5), 0);
+        let sent = order.apply(&qs);
+        assert_eq!(sent[0], qs[1]);
+        assert_eq!(sent[5], qs[0]);
+        // An answer computed from each sent query comes back to its own slot.
+        let answers: Vec<f64> = sent
+            .iter()
+            .map(|q| q.seg.p1.x + 10.0 * q.seg.p1.z)
+            .collect();
+        let back = order.restore(answers);
+        for (q, a) in qs.iter().zip(&back) {
+            assert_eq!(*a, q.seg.p1.x + 10.0 * q.seg.p1.z);
+        }
+        assert!(order.restore(Vec::<f64>::new()).is_empty());
+    }
+}

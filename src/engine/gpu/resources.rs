@@ -1,0 +1,387 @@
+//! What the engine keeps on the device: the sizes it works within, the cell table and
+//! point store uploaded once, and the per-batch buffers reused and grown across batches.
+
+use super::device::{Context, Reusable};
+use super::layout::*;
+use super::GpuOptions;
+use crate::engine::EngineError;
+use crate::geom::p64;
+use crate::index::Grid;
+use rayon::prelude::*;
+
+/// The sizes the engine works within, from the options and the device.
+pub struct Limits {
+    /// Points per part of the point store.
+    pub part_len: u32,
+    /// The device's own binding limit (cell table, coverage mask).
+    pub device_binding: u64,
+    pub item_max: u32,
+    pub flag_max: u32,
+    /// Most entries of a members batch's member list.
+    pub member_max: u32,
+    pub max_queries: usize,
+    pub max_x: u32,
+}
+
+impl Limits {
+    pub fn new(ctx: &Context, opts: &GpuOptions, _n_points: usize) -> Limits {
+        let device_binding = ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size);
+        let binding = opts
+            .max_binding_bytes
+            .unwrap_or(u64::MAX)
+            .min(device_binding);
+        let part_len = (binding / 16).clamp(1, u32::MAX as u64 / 2) as u32;
+        let item_max = (opts.max_items as u64)
+            .min(device_binding / std::mem::size_of::<Partial>() as u64)
+            .clamp(1, 1 << 28) as u32;
+        let flag_max = ((device_binding / 4 - CTL_HEAD as u64) / 2).min(1 << 30) as u32;
+        let per_query = (NBINS as u64 * 4).max(std::mem::size_of::<GQuery>() as u64);
+        let max_queries = opts
+            .max_queries
+            .min((device_binding / per_query) as usize)
+            .clamp(1, 1 << 22);
+        // Half the binding: the staging buffer holds the list and the per-query results.
+        let member_max = (device_binding / 8).clamp(1, 1 << 30) as u32;
+        Limits {
+            part_len,
+            device_binding,
+            item_max,
+            flag_max,
+            member_max,
+            max_queries,
+            max_x: opts.max_workgroups_x.max(1),
+        }
+    }
+}
+
+/// What lives on the device for the engine's whole life.
+pub struct Statics {
+    pub cell_start: wgpu::Buffer,
+    pub cell_bytes: u64,
+    pub parts: Vec<(wgpu::Buffer, u64)>,
+    pub dims: [u32; 3],
+    /// The sorted centers' own f32 coordinates (3 words each), for the fit kernel's f64
+    /// geometry; uploaded only for the device fit, and only when one binding holds them.
+    pub world: Option<(wgpu::Buffer, u64)>,
+}
+
+/// The point store's contents: every sorted center as its offset from its own cell's
+/// corner in cell units (computed in f64, so the f32 keeps ~1e-7 of a cell) and its cell's
+/// x index. Needs the grid, not the device: [`crate::engine::select`] computes it while the
+/// device is still opening.
+pub struct PointStore {
+    /// The grid it was computed from.
+    grid: std::sync::Weak<Grid>,
+    rel: Vec<[f32; 4]>,
+}
+
+impl PointStore {
+    pub fn of(grid: &std::sync::Arc<Grid>) -> PointStore {
+        let mut rel = vec![[0f32; 4]; grid.points.len()];
+        rel.par_chunks_mut(STORE_RUN)
+            .enumerate()
+            .for_each(|(k, run)| store_run(grid, k * STORE_RUN, run));
+        PointStore {
+            grid: std::sync::Arc::downgrade(grid),
+            rel,
+        }
+    }
+}
+
+/// Points per piece of the point store computed at once (64 KiB: a piece is written to
+/// the staging memory from a reused buffer that stays in cache).
+const STORE_RUN: usize = 4096;
+
+/// The point store's entries of the sorted points `start..start + out.len()`. Each point's
+/// cell is the one whose range of the cell table holds it (the cell the grid sorted it
+/// into), found once per piece and then stepped, so the cost is the offsets' arithmetic.
+fn store_run(grid: &Grid, start: usize, out: &mut [[f32; 4]]) {
+    let (dx, dy) = (grid.dims[0], grid.dims[1]);
+    let inv = 1.0 / grid.cell;
+    let starts = &grid.cell_start;
+    // The last cell whose range begins at or before `start`: the cell holding it.
+    let mut c = starts.partition_point(|&s| s as usize <= start) - 1;
+    let mut cell = None;
+    for (j, slot) in out.iter_mut().enumerate() {
+        let i = start + j;
+        while starts[c + 1] as usize <= i {
+            c += 1;
+            cell = None;
+        }
+        let (x, o) = *cell.get_or_insert_with(|| {
+            let (x, t) = (c as u32 % dx, c as u32 / dx);
+            (x, grid.cell_origin(x, t % dy, t / dy))
+        });
+        let r = (p64(grid.points[i]) - o) * inv;
+        // w: the cell's x index mod 2^16 (exact in f32), for the kernels to move the point
+        // into a neighbouring cell's frame.
+        *slot = [r.x as f32, r.y as f32, r.z as f32, (x & 0xFFFF) as f32];
+    }
+}
+
+/// The point store's entries of the sorted points `first..` written straight into `dst`
+/// (the upload's staging memory), piece by piece in parallel: no store of its own.
+fn write_store(grid: &Grid, dst: wgpu::WriteOnly<'_, [u8]>, first: usize) {
+    const PIECE: usize = STORE_RUN * 16;
+    let (whole, tail) = dst.into_chunks::<PIECE>();
+    let pieces: Vec<wgpu::WriteOnly<'_, [u8; PIECE]>> = whole.into_iter().collect();
+    let n_whole = pieces.len();
+    let write = |buf: &mut Vec<[f32; 4]>, k: usize, mut piece: wgpu::WriteOnly<'_, [u8]>| {
+        let run = &mut buf[..piece.len() / 16];
+        store_run(grid, first + k * STORE_RUN, run);
+        piece.copy_from_slice(bytemuck::cast_slice(run));
+    };
+    pieces.into_par_iter().enumerate().for_each_init(
+        || vec![[0f32; 4]; STORE_RUN],
+        |buf, (k, piece)| write(buf, k, piece.into()),
+    );
+    if !tail.is_empty() {
+        write(&mut vec![[0f32; 4]; STORE_RUN], n_whole, tail);
+    }
+}
+
+impl Statics {
+    /// Uploads the cell table and the point store (computed now unless given for this
+    /// very grid); with `world`, also the centers' own coordinates where one binding holds
+    /// them.
+    pub fn upload(
+        ctx: &Context,
+        grid: &std::sync::Arc<Grid>,
+        store: Option<PointStore>,
+        lim: &Limits,
+        world: bool,
+    ) -> Result<Statics, EngineError> {
+        let cell_bytes = (grid.cell_start.len() * 4) as u64;
+        if cell_bytes > lim.device_binding {
+            return Err(EngineError::Gpu(format!(
+                "the grid's cell table ({cell_bytes} bytes) is above the device's binding limit"
+            )));
+        }
+        // A store computed for another grid is not used (computed here instead).
+        let given = match store {
+            Some(s) if std::ptr::eq(s.grid.as_ptr(), std::sync::Arc::as_ptr(grid)) => Some(s.rel),
+            _ => None,
+        };
+        // The bytes of `src` at the start of `dst`.
+        let copy = |mut dst: wgpu::WriteOnly<'_, [u8]>, src: &[u8]| {
+            dst.slice(..src.len()).copy_from_slice(src)
+        };
+        ctx.scoped("uploading the Gaussians", || {
+            let storage = wgpu::BufferUsages::STORAGE;
+            let cell_start = ctx.filled_buffer("cell_start", cell_bytes, |dst| {
+                copy(dst, bytemuck::cast_slice(&grid.cell_start))
+            });
+            let mut parts = Vec::new();
+            let n = grid.points.len();
+            let part_len = lim.part_len as usize;
+            for first in (0..n).step_by(part_len) {
+                let len = part_len.min(n - first);
+                let bytes = (len * 16) as u64;
+                // Computed straight into the buffer or the staging memory unless given.
+                let buf = ctx.filled_buffer("points", bytes, |dst| match &given {
+                    Some(rel) => copy(dst, bytemuck::cast_slice(&rel[first..first + len])),
+                    None => write_store(grid, dst, first),
+                });
+                parts.push((buf, bytes));
+            }
+            if parts.is_empty() {
+                parts.push((ctx.buffer("points", 16, storage), 16));
+            }
+            let world_bytes = (grid.points.len() * 12).max(12) as u64;
+            let world = (world && world_bytes <= lim.device_binding).then(|| {
+                let buf = ctx.filled_buffer("world", world_bytes, |dst| {
+                    copy(dst, bytemuck::cast_slice(&grid.points))
+                });
+                (buf, world_bytes)
+            });
+            ctx.queue.submit([]);
+            Statics {
+                cell_start,
+                cell_bytes,
+                parts,
+                world,
+                dims: grid.dims,
+            }
+        })
+    }
+}
+
+/// Per-batch buffers, reused and grown across batches, with the capacities learnt.
+pub struct Buffers {
+    pub params: Reusable,
+    pub queries: Reusable,
+    pub scan: Reusable,
+    pub items: Reusable,
+    pub partials: Reusable,
+    pub results: Reusable,
+    pub ctl: Reusable,
+    pub indirect: Reusable,
+    /// The k-nearest histograms, or the coverage mask.
+    pub aux: Reusable,
+    pub plans: Reusable,
+    /// Members batches: the scan of the items' member counts, and the member list.
+    pub mscan: Reusable,
+    pub members: Reusable,
+    /// Fit batches: the queries' frames and the ridges.
+    pub fitq: Reusable,
+    pub fitout: Reusable,
+    pub staging: Reusable,
+    /// Bytes of the coverage mask in `aux` (set by `clear_mask`).
+    pub aux_len: u64,
+    pub item_cap: u32,
+    /// Whether `item_cap` was sized for a first batch ([`super::batch::submit`]).
+    pub sized: bool,
+    pub flag_cap: u32,
+    pub member_cap: u32,
+}
+
+impl Buffers {
+    /// See [`super::GpuEngine::item_capacity`].
+    pub fn item_cap(&self) -> u32 {
+        self.item_cap
+    }
+
+    pub fn new(_ctx: &Context, lim: &Limits) -> Buffers {
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        Buffers {
+            params: Reusable::new("params", wgpu::BufferUsages::UNIFORM),
+            queries: Reusable::new("queries", storage),
+            scan: Reusable::new("scan", storage),
+            items: Reusable::new("items", storage),
+            partials: Reusable::new("partials", storage),
+            results: Reusable::new("results", storage),
+            ctl: Reusable::new("ctl", storage),
+            indirect: Reusable::new(
+                "indirect",
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT,
+            ),
+            aux: Reusable::new("aux", storage),
+            plans: Reusable::new("plans", storage),
+            mscan: Reusable::new("mscan", storage),
+            members: Reusable::new("members", storage),
+            fitq: Reusable::new("fitq", storage),
+            fitout: Reusable::new("fitout", storage),
+            staging: Reusable::new("staging", wgpu::BufferUsages::MAP_READ),
+            aux_len: 4,
+            item_cap: lim.item_max.min(1 << 16),
+            sized: false,
+            flag_cap: lim.flag_max.min(1 << 14),
+            member_cap: lim.member_max.min(1 << 16),
+        }
+    }
+}
+
+/// Allocates and clears the coverage mask over `n` points (`b.aux`).
+pub fn clear_mask(
+    ctx: &Context,
+    b: &mut Buffers,
+    lim: &Limits,
+    n: usize,
+) -> Result<(), EngineError> {
+    let bytes = (n.div_ceil(32) * 4) as u64;
+    if bytes > lim.device_binding {
+        return Err(EngineError::Gpu(format!(
+            "coverage of {n} points needs a {bytes}-byte mask, above the device's binding limit"
+        )));
+    }
+    b.aux_len = bytes;
+    let aux = b.aux.get(ctx, bytes).clone();
+    let mut enc = ctx.encoder();
+    enc.clear_buffer(&aux, 0, Some(bytes.next_multiple_of(4)));
+    ctx.queue.submit([enc.finish()]);
+    Ok(())
+}
+
+/// Reads the coverage mask back: the u32 words, and the seconds spent waiting.
+pub fn read_mask(ctx: &Context, b: &mut Buffers, n: usize) -> Result<(Vec<u32>, f64), EngineError> {
+    let bytes = (n.div_ceil(32) * 4) as u64;
+    let aux = b.aux.get(ctx, bytes).clone();
+    let staging = b.staging.get(ctx, bytes).clone();
+    let mut enc = ctx.encoder();
+    enc.copy_buffer_to_buffer(&aux, 0, &staging, 0, bytes);
+    ctx.submit_and_map(enc, &staging, bytes, bytemuck::pod_collect_to_vec)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geom::Aabb;
+    use std::sync::Arc;
+
+    /// A grid with empty cells, crowded cells and more points than a few pieces.
+    fn grid() -> Arc<Grid> {
+        let mut s = 5u64;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let pts: Vec<[f32; 3]> = (0..3 * STORE_RUN + 123)
+            .map(|i| {
+                let t = next();
+                if i % 3 == 0 {
+                    // A dense line: crowded cells among empty ones.
+                    [t as f32, 0.5, 0.5]
+                } else {
+                    [t as f32, next() as f32, next() as f32]
+                }
+            })
+            .collect();
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::ONE,
+        };
+        Arc::new(Grid::build(&pts, b, 0.05))
+    }
+
+    /// Each point's entry from its own cell (`cell_of`, the function the grid sorted with).
+    fn by_cell_of(g: &Grid) -> Vec<[f32; 4]> {
+        let (dx, dy) = (g.dims[0], g.dims[1]);
+        g.points
+            .iter()
+            .map(|p| {
+                let p = p64(*p);
+                let c = g.cell_of(p);
+                let r = (p - g.cell_origin(c % dx, (c / dx) % dy, c / (dx * dy))) / g.cell;
+                [
+                    r.x as f32,
+                    r.y as f32,
+                    r.z as f32,
+                    ((c % dx) & 0xFFFF) as f32,
+                ]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_point_store_finds_each_points_own_cell() {
+        let g = grid();
+        assert!(g.cell_start.windows(2).any(|w| w[0] == w[1]), "empty cells");
+        let want = by_cell_of(&g);
+        let rel = PointStore::of(&g).rel;
+        assert_eq!(rel.len(), want.len());
+        for (i, (a, b)) in rel.iter().zip(&want).enumerate() {
+            // The same arithmetic up to the multiplication by 1 / cell: within an ulp.
+            for k in 0..3 {
+                assert!((a[k] - b[k]).abs() <= 1e-6, "point {i}: {a:?} vs {b:?}");
+            }
+            assert_eq!(a[3], b[3], "point {i}: cell x index");
+        }
+    }
+
+    #[test]
+    fn the_store_written_into_staging_memory_is_the_computed_one() {
+        let g = grid();
+        let rel = PointStore::of(&g).rel;
+        // From point 100 on, as a part that starts mid-grid, with a piece left over.
+        let first = 100;
+        let mut got = vec![[0f32; 4]; rel.len() - first];
+        let bytes: &mut [u8] = bytemuck::cast_slice_mut(got.as_mut_slice());
+        write_store(&g, wgpu::WriteOnly::from_mut(bytes), first);
+        assert_eq!(got, &rel[first..]);
+    }
+}
