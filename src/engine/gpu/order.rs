@@ -100,6 +100,7 @@ fn morton3(x: u32, y: u32, z: u32) -> u64 {
 mod tests {
     use super::*;
     use crate::geom::{Aabb, Segment};
+    use glam::DVec3;
 
     #[test]
     fn morton_codes_interleave_x_lowest() {

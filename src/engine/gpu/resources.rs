@@ -309,6 +309,7 @@ pub fn read_mask(ctx: &Context, b: &mut Buffers, n: usize) -> Result<(Vec<u32>, 
 mod tests {
     use super::*;
     use crate::geom::Aabb;
+    use glam::DVec3;
     use std::sync::Arc;
 
     /// A grid with empty cells, crowded cells and more points than a few pieces.
