@@ -183,13 +183,23 @@ mod tests {
         assert!(seen.contains_key("num-gaussians") && seen.contains_key("gaussians"));
     }
 
-    /// The `linegs-gpu ...` commands of the README, continuation lines joined, comments cut.
+    /// The README and the documentation pages that quote commands.
+    const DOCS: [&str; 6] = [
+        include_str!("../README.md"),
+        include_str!("../docs/method.md"),
+        include_str!("../docs/accuracy.md"),
+        include_str!("../docs/formats.md"),
+        include_str!("../docs/benchmarks.md"),
+        include_str!("../docs/troubleshooting.md"),
+    ];
+
+    /// The `linegs-gpu ...` commands of the README and the documentation, continuation
+    /// lines joined, comments cut.
     fn readme_commands() -> Vec<String> {
-        let readme = include_str!("../README.md");
         let mut out = Vec::new();
         let mut in_code = false;
         let mut pending = String::new();
-        for line in readme.lines() {
+        for line in DOCS.iter().flat_map(|d| d.lines()) {
             if line.trim_start().starts_with("```") {
                 in_code = !in_code;
                 continue;
@@ -230,7 +240,7 @@ mod tests {
                 // `--help` and `--version` are successful parses that print.
                 use clap::error::ErrorKind::{DisplayHelp, DisplayVersion};
                 if !matches!(e.kind(), DisplayHelp | DisplayVersion) {
-                    panic!("README command does not parse: {c}\n{e}");
+                    panic!("README or docs command does not parse: {c}\n{e}");
                 }
             }
         }
