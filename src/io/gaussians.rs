@@ -5,13 +5,12 @@
 //! the same way whatever the format.
 
 use std::fs::File;
-use std::io::{Read, Write};
+use std::io::Read;
 use std::path::Path;
 
 use super::error::{Error, Position};
 use super::input::{check_readable, open_input, read_input, Input};
 use super::ply::{self, GaussianCloud, PlyOptions, PropKind, BOM};
-use super::write::write_atomic;
 use super::{ply_compressed, splat, spz};
 
 /// The Gaussian formats [`read_gaussians`] recognises.
@@ -367,59 +366,6 @@ impl<'a> Sink<'a> {
             opacity,
         ))
     }
-}
-
-/// Writes Gaussian centers (and opacity logits, when given) as a binary little-endian PLY
-/// with `float x y z [opacity]`: what every 3DGS tool and this one read, 16 bytes a
-/// Gaussian instead of the 248 of the full 3DGS layout.
-pub fn write_gaussians_ply(
-    path: &Path,
-    centers: &[[f32; 3]],
-    opacity_logit: Option<&[f32]>,
-    comment: &str,
-) -> Result<(), Error> {
-    if let Some(op) = opacity_logit {
-        if op.len() != centers.len() {
-            return Err(Error::Unsupported {
-                path: path.to_path_buf(),
-                msg: format!(
-                    "{} opacities for {} centers; give one per Gaussian",
-                    op.len(),
-                    centers.len()
-                ),
-            });
-        }
-    }
-    let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
-    for line in comment.lines() {
-        header.push_str(&format!("comment {line}\n"));
-    }
-    header.push_str(&format!(
-        "element vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
-        centers.len()
-    ));
-    if opacity_logit.is_some() {
-        header.push_str("property float opacity\n");
-    }
-    header.push_str("end_header\n");
-    write_atomic(path, |w| {
-        w.write_all(header.as_bytes())?;
-        let mut rec = [0u8; 16];
-        for (i, c) in centers.iter().enumerate() {
-            for k in 0..3 {
-                rec[4 * k..4 * k + 4].copy_from_slice(&c[k].to_le_bytes());
-            }
-            let n = match opacity_logit {
-                Some(o) => {
-                    rec[12..16].copy_from_slice(&o[i].to_le_bytes());
-                    16
-                }
-                None => 12,
-            };
-            w.write_all(&rec[..n])?;
-        }
-        Ok(())
-    })
 }
 
 #[cfg(test)]

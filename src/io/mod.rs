@@ -24,7 +24,7 @@ pub use edges_json::{Curves, POLYLINE_PIECES};
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
     detect_gaussians, is_gaussian_model, parse_gaussian_model, read_gaussians,
-    read_gaussians_with_opacity, write_gaussians_ply, GaussianFormat,
+    read_gaussians_with_opacity, GaussianFormat,
 };
 pub use info::{info, info_with, FileInfo, FileKind};
 pub(crate) use input::read_input;
@@ -39,6 +39,6 @@ pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};
 pub use write::{
     check_line_output, check_output_extension, gaussian_3dgs_properties, write_bytes_atomic,
-    write_gaussians_3dgs, write_lines, write_lines_line3dpp, write_lines_ply_layers,
-    DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
+    write_gaussians_3dgs, write_gaussians_ply, write_lines, write_lines_line3dpp,
+    write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
 };

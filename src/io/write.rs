@@ -308,18 +308,7 @@ pub fn write_gaussians_3dgs(
     centers: &[[f32; 3]],
     opacity_logit: Option<&[f32]>,
 ) -> Result<(), Error> {
-    if let Some(op) = opacity_logit {
-        if op.len() != centers.len() {
-            return Err(Error::Unsupported {
-                path: path.to_path_buf(),
-                msg: format!(
-                    "{} opacities for {} centers; give one per Gaussian",
-                    op.len(),
-                    centers.len()
-                ),
-            });
-        }
-    }
+    check_opacities(path, centers, opacity_logit)?;
     if let Some(i) = centers
         .iter()
         .position(|c| !c.iter().all(|v| v.is_finite()))
@@ -336,24 +325,81 @@ pub fn write_gaussians_3dgs(
         ));
     }
     let names = gaussian_3dgs_properties();
-    let mut header = format!(
-        "ply\nformat binary_little_endian 1.0\nelement vertex {}\n",
-        centers.len()
-    );
-    for n in &names {
-        header.push_str(&format!("property float {n}\n"));
+    write_gaussian_vertices(path, "", &names, centers.len(), |i, rec| {
+        rec[0..3].copy_from_slice(&centers[i]);
+        rec[54] = opacity_logit.map_or(DEFAULT_OPACITY_LOGIT, |o| o[i]);
+        // f_dc = 0 is SH band 0 at grey 0.5; log-scale of 0.01; quaternion (w,x,y,z) = (1,0,0,0).
+        rec[55..58].fill((0.01f32).ln());
+        rec[58] = 1.0;
+    })
+}
+
+/// Writes Gaussian centers (and opacity logits, when given) as a binary little-endian PLY
+/// with `float x y z [opacity]`: what every 3DGS tool and this one read, 16 bytes a
+/// Gaussian instead of the 248 of the full 3DGS layout.
+pub fn write_gaussians_ply(
+    path: &Path,
+    centers: &[[f32; 3]],
+    opacity_logit: Option<&[f32]>,
+    comment: &str,
+) -> Result<(), Error> {
+    check_opacities(path, centers, opacity_logit)?;
+    let mut names: Vec<String> = ["x", "y", "z"].map(String::from).to_vec();
+    if opacity_logit.is_some() {
+        names.push("opacity".into());
+    }
+    write_gaussian_vertices(path, comment, &names, centers.len(), |i, rec| {
+        rec[0..3].copy_from_slice(&centers[i]);
+        if let Some(o) = opacity_logit {
+            rec[3] = o[i];
+        }
+    })
+}
+
+/// One opacity per center, when opacities are given.
+fn check_opacities(
+    path: &Path,
+    centers: &[[f32; 3]],
+    opacity_logit: Option<&[f32]>,
+) -> Result<(), Error> {
+    match opacity_logit {
+        Some(op) if op.len() != centers.len() => Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: format!(
+                "{} opacities for {} centers; give one per Gaussian",
+                op.len(),
+                centers.len()
+            ),
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// The one Gaussian writer: a binary little-endian PLY (`comment` lines in its header)
+/// whose `n` vertices have the float properties `names`; `fill(i, values)` writes
+/// Gaussian `i`'s values (the buffer keeps what the previous call left).
+fn write_gaussian_vertices(
+    path: &Path,
+    comment: &str,
+    names: &[String],
+    n: usize,
+    mut fill: impl FnMut(usize, &mut [f32]),
+) -> Result<(), Error> {
+    let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
+    for line in comment.lines() {
+        header.push_str(&format!("comment {line}\n"));
+    }
+    header.push_str(&format!("element vertex {n}\n"));
+    for name in names {
+        header.push_str(&format!("property float {name}\n"));
     }
     header.push_str("end_header\n");
     write_atomic(path, |w| {
         w.write_all(header.as_bytes())?;
-        let mut rec = [0f32; 62];
-        // f_dc = 0 is SH band 0 at grey 0.5; log-scale of 0.01; quaternion (w,x,y,z) = (1,0,0,0).
-        rec[55..58].fill((0.01f32).ln());
-        rec[58] = 1.0;
-        let mut bytes = [0u8; 62 * 4];
-        for (i, c) in centers.iter().enumerate() {
-            rec[0..3].copy_from_slice(c);
-            rec[54] = opacity_logit.map_or(DEFAULT_OPACITY_LOGIT, |o| o[i]);
+        let mut rec = vec![0f32; names.len()];
+        let mut bytes = vec![0u8; 4 * names.len()];
+        for i in 0..n {
+            fill(i, &mut rec);
             for (b, v) in bytes.chunks_exact_mut(4).zip(&rec) {
                 b.copy_from_slice(&v.to_le_bytes());
             }
