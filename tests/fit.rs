@@ -50,6 +50,7 @@ fn two_face_families_give_the_corner_not_the_centroid() {
     let attrs = Attributes {
         normals: Some(normals),
         opacity: None,
+        thickness: None,
     };
     let f = fit_edges(&e, &[input], &attrs, R, &edge_params()).unwrap();
     assert_eq!(f.how[0], How::Corner);

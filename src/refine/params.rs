@@ -205,6 +205,13 @@ pub struct Params {
     /// effect where the model has no opacities or all are equal.
     #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
     pub fit_opacity_weight: bool,
+    /// Edge fit: keep a segment where it is unless its Gaussians explain the move (the
+    /// move gate): a corner only when both faces are thin slabs of splats and the input
+    /// line lies outside one of them; a ridge only when less than a third of it is face
+    /// splats. Measured in one batch of members of the fitted lines. `false`: every
+    /// fitted move stands.
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set, value_name = "BOOL")]
+    pub fit_gate: bool,
     /// Leave out of refinement every Gaussian whose largest standard deviation
     /// (`exp(max scale_i)`) exceeds this x r: a Gaussian wider than the cylinder cannot
     /// place a line within r (large ones are surfaces and floaters). Needs a 3DGS PLY
@@ -357,6 +364,7 @@ impl Default for Params {
             fit_bandwidth: 0.25,
             fit_min_points: 8,
             fit_opacity_weight: false,
+            fit_gate: true,
             max_scale: None,
             max_sagitta: 0.0,
             split_gaps: None,
