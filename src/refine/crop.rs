@@ -18,6 +18,28 @@ struct Search {
     done: bool,
 }
 
+/// Fix `crop_chance`: the largest chance of an end window so sparse at the middle's
+/// density for which the end is still searched (as `--split-gaps`' default level).
+pub const CROP_CHANCE: f64 = 0.01;
+
+/// `P(X <= n)` for `X ~ Poisson(lambda)` (1 for `lambda <= 0`).
+pub fn poisson_cdf(n: u64, lambda: f64) -> f64 {
+    if !(lambda > 0.0) {
+        return 1.0;
+    }
+    // Terms in log space: exp(k ln(lambda) - lambda - ln k!), summed while they matter.
+    let mut log_term = -lambda;
+    let mut sum = log_term.exp();
+    for k in 1..=n {
+        log_term += lambda.ln() - (k as f64).ln();
+        sum += log_term.exp();
+        if sum >= 1.0 {
+            return 1.0;
+        }
+    }
+    sum.min(1.0)
+}
+
 pub fn crop(
     engine: &dyn Engine,
     segments: &[Segment],
@@ -43,8 +65,15 @@ pub fn crop(
         let dm = super::density(w[3 * i + 2].count, p.crop_mid_frac * l);
         mid_density.push(dm);
         for (end, first) in [(0usize, true), (1, false)] {
-            let de = super::density(w[3 * i + end].count, e);
-            if de < p.crop_ratio * dm {
+            let n_end = w[3 * i + end].count;
+            let de = super::density(n_end, e);
+            // Fix `crop_chance`: the end window must be sparse beyond chance, not only
+            // below the ratio: at the middle's density it would hold `dm x e` points on
+            // average, and so few (or fewer) come by chance at most CROP_CHANCE of the
+            // time. A sparse model's end window expects a point or two, and its
+            // emptiness says nothing; a dense model's says as much as before.
+            let beyond_chance = !fixes.crop_chance || poisson_cdf(n_end, dm * e) <= CROP_CHANCE;
+            if de < p.crop_ratio * dm && beyond_chance {
                 let (a, b) = if first { (0.0, 0.5 * l) } else { (0.5 * l, l) };
                 searches.push(Search {
                     seg: i,
@@ -140,6 +169,18 @@ pub fn crop(
     }
     for s in &searches {
         let t = 0.5 * (s.a + s.b);
+        // Fix `crop_min_cut`: a sparse stretch shorter than the cylinder's radius at an end
+        // is no overextension: it is where the Gaussians thin out at a corner (trained
+        // models thin out within a splat's size of an edge, more where edges meet), as
+        // `--split-gaps` leaves interior holes shorter than r.
+        let cut = if s.first {
+            t
+        } else {
+            segments[s.seg].length() - t
+        };
+        if fixes.crop_min_cut && cut < r {
+            continue;
+        }
         if s.first {
             ends[s.seg].0 = t;
         } else {

@@ -229,7 +229,8 @@ pub fn run_steps_noted(
     let alpha = p.split_gaps();
     if alpha > 0.0 {
         let t = Instant::now();
-        let (split, g) = gaps::split_gaps(engine, &lines, r, alpha, p.fit_min_points)?;
+        let (split, g) =
+            gaps::split_gaps(engine, &lines, r, alpha, p.fit_min_points, p.split_interior)?;
         lines = split;
         notes.gaps_ends_cut = Some(g.ends_cut);
         notes.gaps_split = Some(g.split);

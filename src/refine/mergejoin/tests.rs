@@ -518,7 +518,7 @@ fn reference_orders_every_merged_segment_so_a_later_join_sees_its_p1_first() {
     let s0 = DVec3::new(-0.9, 0.9, 0.0);
     let s = Segment::new(s0, s0 + DVec3::new(phi.cos(), phi.sin(), 0.0) * 0.5);
     let p = Params::reference();
-    let g_prime = rules::merge_candidate(&g, &s, &p).unwrap().g_prime;
+    let g_prime = rules::merge_candidate(&g, &s, &p, None).unwrap().g_prime;
     assert!(g_prime.p1.length() > g_prime.p2.length(), "{g_prime:?}");
     let d = g_prime.dir();
     let t = Segment::new(g_prime.p1 - d * 0.6, g_prime.p1 - d * 0.05);
