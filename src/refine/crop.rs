@@ -24,7 +24,7 @@ pub const CROP_CHANCE: f64 = 0.01;
 
 /// `P(X <= n)` for `X ~ Poisson(lambda)` (1 for `lambda <= 0`).
 pub fn poisson_cdf(n: u64, lambda: f64) -> f64 {
-    if !(lambda > 0.0) {
+    if lambda.is_nan() || lambda <= 0.0 {
         return 1.0;
     }
     // Terms in log space: exp(k ln(lambda) - lambda - ln k!), summed while they matter.
@@ -307,4 +307,28 @@ fn extend(
         .filter(|k| k.u > 0.0)
         .map(|k| (k.seg, k.first, k.u))
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::poisson_cdf;
+
+    #[test]
+    fn poisson_cdf_matches_the_closed_forms() {
+        // P(X <= 0) = e^-l, P(X <= 1) = e^-l (1 + l), and the whole mass is 1.
+        for l in [0.5, 2.0, 7.3] {
+            assert!((poisson_cdf(0, l) - (-l).exp()).abs() < 1e-15);
+            assert!((poisson_cdf(1, l) - (-l).exp() * (1.0 + l)).abs() < 1e-15);
+            assert!((poisson_cdf(200, l) - 1.0).abs() < 1e-12);
+        }
+        // An end window expecting 1.2 points is empty by chance 30 % of the time: never
+        // beyond chance; expecting 20 and holding 3 is (2e-6).
+        assert!(poisson_cdf(0, 1.2) > 0.3);
+        assert!(poisson_cdf(3, 20.0) < 1e-5);
+        // No density: nothing is beyond chance.
+        assert_eq!(poisson_cdf(0, 0.0), 1.0);
+        assert_eq!(poisson_cdf(0, f64::NAN), 1.0);
+        // A dense model's count far below its mean underflows to 0, not NaN.
+        assert_eq!(poisson_cdf(5, 5000.0), 0.0);
+    }
 }

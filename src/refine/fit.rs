@@ -470,7 +470,7 @@ pub fn fit_edges(
     while !active.is_empty() && iterations < p.fit_iterations {
         iterations += 1;
         // Exact copies (the same segment now and at the start) fit alike: each distinct
-        // one is asked and fitted once and its result given to its copies (issue #9).
+        // one is asked and fitted once and its result given to its copies.
         let mut seen: std::collections::HashMap<[u64; 12], usize> = Default::default();
         let mut uniq: Vec<usize> = Vec::new();
         let of: Vec<usize> = active

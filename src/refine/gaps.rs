@@ -165,7 +165,7 @@ mod tests {
             segments: vec![Segment::new(DVec3::ZERO, DVec3::new(0.81, 0.0, 0.0))],
             groups: Some(vec![7]),
         };
-        let (out, notes) = split_gaps(&e, &lines, 0.01, 0.01, 8).unwrap();
+        let (out, notes) = split_gaps(&e, &lines, 0.01, 0.01, 8, true).unwrap();
         assert_eq!(out.len(), 2, "{:?}", out.segments);
         assert_eq!(notes.split, 1);
         assert_eq!(out.groups, Some(vec![7, 7]));
@@ -179,7 +179,7 @@ mod tests {
             "{b:?}"
         );
         // Off: unchanged.
-        let (same, _) = split_gaps(&e, &lines, 0.01, 0.0, 8).unwrap();
+        let (same, _) = split_gaps(&e, &lines, 0.01, 0.0, 8, true).unwrap();
         assert_eq!(same, lines);
     }
 
@@ -195,7 +195,7 @@ mod tests {
         // The segment runs 0.1 past the last point: that end is cut, the other kept. (r
         // 0.005: the gap is longer than r, so only the statistics keep it.)
         let lines = LineSet::new(vec![Segment::new(DVec3::ZERO, DVec3::new(0.4, 0.0, 0.0))]);
-        let (out, notes) = split_gaps(&e, &lines, 0.005, 0.01, 8).unwrap();
+        let (out, notes) = split_gaps(&e, &lines, 0.005, 0.01, 8, true).unwrap();
         assert_eq!(out.len(), 1, "{:?}", out.segments);
         assert_eq!((notes.split, notes.ends_cut), (0, 1));
         let s = out.segments[0];
