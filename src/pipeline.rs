@@ -130,6 +130,9 @@ pub struct Scene {
     /// Each Gaussian's largest standard deviation (scene units), same order, where the
     /// file has scales (`--max-scale`).
     pub max_scale: Option<Vec<f32>>,
+    /// Smallest standard deviation of each Gaussian (its thickness), where the file has
+    /// scales.
+    pub min_scale: Option<Vec<f32>>,
     /// Each Gaussian's opacity in `[0, 1]`, same order, where the file has rotations,
     /// scales and opacities (`--fit-opacity-weight`).
     pub opacity: Option<Vec<f32>>,
@@ -146,12 +149,17 @@ impl Scene {
         // would have to turn them too: with one, the edge fit uses the centers only.
         let attrs = io::read_gaussian_attributes(gaussians, opts.min_opacity)?
             .filter(|a| a.normals.len() == cloud.centers.len());
-        let (normals, max_scale, opacity) = match attrs {
+        let (normals, max_scale, min_scale, opacity) = match attrs {
             // Opacities do not depend on the frame; normals would have to turn and scales
             // to scale with it: with a transform only the opacities are used.
-            Some(a) if opts.transform.is_some() => (None, None, a.opacity),
-            Some(a) => (Some(a.normals), Some(a.max_scale), a.opacity),
-            None => (None, None, None),
+            Some(a) if opts.transform.is_some() => (None, None, None, a.opacity),
+            Some(a) => (
+                Some(a.normals),
+                Some(a.max_scale),
+                Some(a.min_scale),
+                a.opacity,
+            ),
+            None => (None, None, None, None),
         };
         if let Some(t) = &opts.transform {
             t.apply(&mut cloud.centers);
@@ -180,6 +188,7 @@ impl Scene {
             load_seconds: t.elapsed().as_secs_f64(),
             normals,
             max_scale,
+            min_scale,
             opacity,
             description: None,
         })
@@ -254,6 +263,7 @@ impl Scene {
             load_seconds: 0.0,
             normals: None,
             max_scale: None,
+            min_scale: None,
             opacity: None,
             description: None,
         })
@@ -392,9 +402,30 @@ impl Refiner {
             },
             None => None,
         };
-        let a = refine::fit::Attributes { normals, opacity };
+        let a = refine::fit::Attributes {
+            normals,
+            opacity,
+            thickness: None,
+        };
         self.attrs = a;
         true
+    }
+
+    /// Gives the move gate each Gaussian's thickness (smallest standard deviation, in the
+    /// order of `gaussians`); `false` (and nothing set) when the count differs.
+    pub fn set_thickness(
+        &mut self,
+        gaussians: &[[f32; 3]],
+        thickness: &[f32],
+        segments: &[Segment],
+    ) -> bool {
+        match refine::fit::cut_to_working_set(gaussians, thickness, segments) {
+            Some(w) if w.len() == self.n_box() => {
+                self.attrs.thickness = Some(w);
+                true
+            }
+            _ => false,
+        }
     }
 
     /// Before-evaluation, the steps of docs/method.md#the-refinement-steps and
@@ -554,6 +585,7 @@ impl Job {
             gaussians,
             normals: scene.normals.as_deref().map(pick),
             max_scale: Some(pick_of(sc, &keep)),
+            min_scale: scene.min_scale.as_deref().map(|v| pick_of(v, &keep)),
             opacity: scene.opacity.as_deref().map(|o| pick_of(o, &keep)),
             lines: scene.lines.clone(),
             input: scene.input.clone(),
@@ -586,6 +618,10 @@ impl Job {
                 scene.opacity.as_deref(),
                 &scene.lines.segments,
             );
+            if let Some(th) = &scene.min_scale {
+                normals_unused |=
+                    !refiner.set_thickness(&scene.gaussians, th, &scene.lines.segments);
+            }
         }
         let mut out = refiner.refine(&scene.lines, on_stage)?;
         let mut n_box = refiner.n_box();

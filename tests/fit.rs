@@ -6,7 +6,7 @@ mod common;
 use common::*;
 use glam::DVec3;
 use linegs_gpu::geom::Segment;
-use linegs_gpu::refine::fit::{fit_edges, Attributes, How};
+use linegs_gpu::refine::fit::{fit_edges, gate, Attributes, How};
 use linegs_gpu::refine::{translate, Params};
 
 const R: f64 = 0.03;
@@ -50,6 +50,7 @@ fn two_face_families_give_the_corner_not_the_centroid() {
     let attrs = Attributes {
         normals: Some(normals),
         opacity: None,
+        thickness: None,
     };
     let f = fit_edges(&e, &[input], &attrs, R, &edge_params()).unwrap();
     assert_eq!(f.how[0], How::Corner);
@@ -167,4 +168,112 @@ fn a_short_segment_keeps_its_direction_and_the_fit_does_not_amplify_rounding() {
         .map(|(x, y)| (x.p1 - y.p1).length().max((x.p2 - y.p2).length()))
         .fold(0.0, f64::max);
     assert!(worst < 1e-6 * R, "{} r", worst / R);
+}
+
+/// The edge fit followed by the move gate, as `refine` runs them.
+fn fit_and_gate(
+    e: &linegs_gpu::engine::cpu::CpuEngine,
+    input: Segment,
+    attrs: &Attributes,
+) -> linegs_gpu::refine::fit::FitResult {
+    let mut f = fit_edges(e, &[input], attrs, R, &edge_params()).unwrap();
+    gate(e, &[input], &mut f, attrs, R, &edge_params()).unwrap();
+    f
+}
+
+/// Face splats (their normals and a thickness of 0.02 r) on z = 0 and y = 0, from `near`
+/// to `far` off the x axis: none closer to the edge than `near`.
+fn faces(n: usize, near: f64, far: f64, rng: &mut Lcg) -> (Vec<[f32; 3]>, Attributes) {
+    let mut pts = Vec::new();
+    let mut normals = Vec::new();
+    for i in 0..n {
+        let x = rng.f();
+        let w = near + (far - near) * rng.f();
+        let jitter = 0.02 * R * (rng.f() - 0.5);
+        if i % 2 == 0 {
+            pts.push([x as f32, w as f32, jitter as f32]);
+            normals.push([0.0, 0.0, 1.0]);
+        } else {
+            pts.push([x as f32, jitter as f32, w as f32]);
+            normals.push([0.0, -1.0, 0.0]);
+        }
+    }
+    let thickness = Some(vec![(0.02 * R) as f32; pts.len()]);
+    let attrs = Attributes {
+        normals: Some(normals),
+        opacity: None,
+        thickness,
+    };
+    (pts, attrs)
+}
+
+#[test]
+fn the_gate_lets_two_thin_faces_place_their_corner_though_no_center_is_near_it() {
+    let mut rng = Lcg(21);
+    // No center within r/2 of the edge: the faces stop short of it, as trained splats do.
+    let (pts, attrs) = faces(8000, 0.5 * R, 2.0 * R, &mut rng);
+    let input = seg([0.0, 0.35 * R, 0.35 * R], [1.0, 0.35 * R, 0.35 * R]);
+    let e = cpu_engine(&pts, &[input], R);
+    let f = fit_and_gate(&e, input, &attrs);
+    assert_eq!(f.how[0], How::Corner);
+    assert!(off_axis(&f.segments[0]) < 0.05 * R, "{:?}", f.segments[0]);
+}
+
+#[test]
+fn the_gate_keeps_a_line_already_inside_both_faces_slabs() {
+    let mut rng = Lcg(22);
+    let (pts, attrs) = faces(8000, 0.5 * R, 2.0 * R, &mut rng);
+    // 0.005 r off the corner: inside both slabs (half-width 3 x 0.02 r).
+    let input = seg([0.0, 0.005 * R, 0.005 * R], [1.0, 0.005 * R, 0.005 * R]);
+    let e = cpu_engine(&pts, &[input], R);
+    let f = fit_and_gate(&e, input, &attrs);
+    assert_eq!(f.segments[0], input);
+    assert_eq!(f.how[0], How::Kept);
+}
+
+#[test]
+fn the_gate_keeps_a_line_over_a_one_sided_shell_of_splats() {
+    let mut rng = Lcg(23);
+    // One face only (z = 0, y in [-2 r, 2 r]): no corner, and the centers' densest line
+    // is a line on the face, not an edge.
+    let mut pts = Vec::new();
+    let mut normals = Vec::new();
+    for _ in 0..6000 {
+        let x = rng.f();
+        let y = 4.0 * R * (rng.f() - 0.5);
+        pts.push([x as f32, y as f32, (0.02 * R * (rng.f() - 0.5)) as f32]);
+        normals.push([0.0, 0.0, 1.0]);
+    }
+    let attrs = Attributes {
+        normals: Some(normals),
+        opacity: None,
+        thickness: Some(vec![(0.02 * R) as f32; pts.len()]),
+    };
+    let input = seg([0.0, 0.0, 0.4 * R], [1.0, 0.0, 0.4 * R]);
+    let e = cpu_engine(&pts, &[input], R);
+    // The fit alone pulls the line down onto the shell ...
+    let moved = fit_edges(&e, &[input], &attrs, R, &edge_params()).unwrap();
+    assert!(moved.segments[0].p1.z < 0.2 * R, "{:?}", moved.segments[0]);
+    // ... the gate leaves it where it was.
+    let f = fit_and_gate(&e, input, &attrs);
+    assert_eq!(f.segments[0], input);
+    assert_eq!(f.how[0], How::Kept);
+}
+
+#[test]
+fn the_gate_lets_a_ridge_of_small_round_gaussians_be_reached() {
+    let mut rng = Lcg(24);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let pts = edge_points(&edge, 4000, 0.004, &mut rng);
+    // Round Gaussians: no normal (zero), as a flat-splat test leaves them.
+    let attrs = Attributes {
+        normals: Some(vec![[0.0; 3]; pts.len()]),
+        opacity: None,
+        thickness: Some(vec![0.004; pts.len()]),
+    };
+    let input = seg([0.0, 0.6 * R, 0.0], [1.0, 0.6 * R, 0.0]);
+    let e = cpu_engine(&pts, &[input], R);
+    let f = fit_and_gate(&e, input, &attrs);
+    assert_eq!(f.how[0], How::Ridge);
+    assert!(off_axis(&f.segments[0]) < 0.1 * R, "{:?}", f.segments[0]);
 }

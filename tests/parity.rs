@@ -712,6 +712,7 @@ fn the_device_fit_answers_like_the_host() {
     let with = Attributes {
         normals: Some(normals),
         opacity: None,
+        thickness: None,
     };
     let ask = FitAsk {
         attrs: &with,

@@ -17,6 +17,9 @@ pub struct GaussianAttributes {
     pub normals: Vec<[f32; 3]>,
     /// Largest standard deviation `exp(max scale_i)` (scene units).
     pub max_scale: Vec<f32>,
+    /// Smallest standard deviation `exp(min scale_i)` (scene units): a flat Gaussian's
+    /// thickness along its normal.
+    pub min_scale: Vec<f32>,
     /// Opacity in `[0, 1]` (`sigmoid` of the stored logit), where the file has it.
     pub opacity: Option<Vec<f32>>,
 }
@@ -85,6 +88,7 @@ pub fn read_gaussian_attributes(
     let mut out = GaussianAttributes {
         normals: Vec::with_capacity(vertex.count),
         max_scale: Vec::with_capacity(vertex.count),
+        min_scale: Vec::with_capacity(vertex.count),
         opacity: has_opacity.then(|| Vec::with_capacity(vertex.count)),
     };
     body.for_each(path, vertex, &wanted, |_, v| {
@@ -102,6 +106,9 @@ pub fn read_gaussian_attributes(
             .push(shortest_axis([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]]));
         let s = v[7].max(v[8]).max(v[9]).exp();
         out.max_scale
+            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
+        let s = v[7].min(v[8]).min(v[9]).exp();
+        out.min_scale
             .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
         if let (Some(o), Some(a)) = (&mut out.opacity, alpha) {
             o.push(if a.is_nan() { 0.0 } else { a as f32 });

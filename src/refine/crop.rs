@@ -18,6 +18,28 @@ struct Search {
     done: bool,
 }
 
+/// Fix `crop_chance`: the largest chance of an end window so sparse at the middle's
+/// density for which the end is still searched (as `--split-gaps`' default level).
+pub const CROP_CHANCE: f64 = 0.01;
+
+/// `P(X <= n)` for `X ~ Poisson(lambda)` (1 for `lambda <= 0`).
+pub fn poisson_cdf(n: u64, lambda: f64) -> f64 {
+    if lambda.is_nan() || lambda <= 0.0 {
+        return 1.0;
+    }
+    // Terms in log space: exp(k ln(lambda) - lambda - ln k!), summed while they matter.
+    let mut log_term = -lambda;
+    let mut sum = log_term.exp();
+    for k in 1..=n {
+        log_term += lambda.ln() - (k as f64).ln();
+        sum += log_term.exp();
+        if sum >= 1.0 {
+            return 1.0;
+        }
+    }
+    sum.min(1.0)
+}
+
 pub fn crop(
     engine: &dyn Engine,
     segments: &[Segment],
@@ -43,8 +65,15 @@ pub fn crop(
         let dm = super::density(w[3 * i + 2].count, p.crop_mid_frac * l);
         mid_density.push(dm);
         for (end, first) in [(0usize, true), (1, false)] {
-            let de = super::density(w[3 * i + end].count, e);
-            if de < p.crop_ratio * dm {
+            let n_end = w[3 * i + end].count;
+            let de = super::density(n_end, e);
+            // Fix `crop_chance`: the end window must be sparse beyond chance, not only
+            // below the ratio: at the middle's density it would hold `dm x e` points on
+            // average, and so few (or fewer) come by chance at most CROP_CHANCE of the
+            // time. A sparse model's end window expects a point or two, and its
+            // emptiness says nothing; a dense model's says as much as before.
+            let beyond_chance = !fixes.crop_chance || poisson_cdf(n_end, dm * e) <= CROP_CHANCE;
+            if de < p.crop_ratio * dm && beyond_chance {
                 let (a, b) = if first { (0.0, 0.5 * l) } else { (0.5 * l, l) };
                 searches.push(Search {
                     seg: i,
@@ -140,6 +169,18 @@ pub fn crop(
     }
     for s in &searches {
         let t = 0.5 * (s.a + s.b);
+        // Fix `crop_min_cut`: a sparse stretch shorter than the cylinder's radius at an end
+        // is no overextension: it is where the Gaussians thin out at a corner (trained
+        // models thin out within a splat's size of an edge, more where edges meet), as
+        // `--split-gaps` leaves interior holes shorter than r.
+        let cut = if s.first {
+            t
+        } else {
+            segments[s.seg].length() - t
+        };
+        if fixes.crop_min_cut && cut < r {
+            continue;
+        }
         if s.first {
             ends[s.seg].0 = t;
         } else {
@@ -266,4 +307,28 @@ fn extend(
         .filter(|k| k.u > 0.0)
         .map(|k| (k.seg, k.first, k.u))
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::poisson_cdf;
+
+    #[test]
+    fn poisson_cdf_matches_the_closed_forms() {
+        // P(X <= 0) = e^-l, P(X <= 1) = e^-l (1 + l), and the whole mass is 1.
+        for l in [0.5, 2.0, 7.3] {
+            assert!((poisson_cdf(0, l) - (-l).exp()).abs() < 1e-15);
+            assert!((poisson_cdf(1, l) - (-l).exp() * (1.0 + l)).abs() < 1e-15);
+            assert!((poisson_cdf(200, l) - 1.0).abs() < 1e-12);
+        }
+        // An end window expecting 1.2 points is empty by chance 30 % of the time: never
+        // beyond chance; expecting 20 and holding 3 is (2e-6).
+        assert!(poisson_cdf(0, 1.2) > 0.3);
+        assert!(poisson_cdf(3, 20.0) < 1e-5);
+        // No density: nothing is beyond chance.
+        assert_eq!(poisson_cdf(0, 0.0), 1.0);
+        assert_eq!(poisson_cdf(0, f64::NAN), 1.0);
+        // A dense model's count far below its mean underflows to 0, not NaN.
+        assert_eq!(poisson_cdf(5, 5000.0), 0.0);
+    }
 }

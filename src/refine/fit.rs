@@ -35,6 +35,9 @@ pub struct Attributes {
     /// Opacity of each Gaussian in `[0, 1]`: the fit's per-point weight with
     /// `--fit-opacity-weight`.
     pub opacity: Option<Vec<f32>>,
+    /// Thickness of each Gaussian (its smallest standard deviation): the move gate widens
+    /// a face's slab of splats by it.
+    pub thickness: Option<Vec<f32>>,
 }
 
 /// `values` (one per center, same order) cut to the working set of `segments` by the same
@@ -70,6 +73,7 @@ impl Attributes {
         Some(Attributes {
             normals: Some(cut_to_working_set(centers, normals, segments)?),
             opacity: None,
+            thickness: None,
         })
     }
 
@@ -85,9 +89,15 @@ impl Attributes {
 /// What the fit did to one segment.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum How {
+    /// Moved onto two faces' intersection.
     Corner,
+    /// Moved onto a dense ridge of centers.
     Ridge,
+    /// Too few points for any estimate: not moved.
     Unclear,
+    /// An estimate existed, but the move gate found that the Gaussians do not explain it
+    /// better than the input line: not moved.
+    Kept,
 }
 
 pub struct FitResult {
@@ -460,7 +470,7 @@ pub fn fit_edges(
     while !active.is_empty() && iterations < p.fit_iterations {
         iterations += 1;
         // Exact copies (the same segment now and at the start) fit alike: each distinct
-        // one is asked and fitted once and its result given to its copies (issue #9).
+        // one is asked and fitted once and its result given to its copies.
         let mut seen: std::collections::HashMap<[u64; 12], usize> = Default::default();
         let mut uniq: Vec<usize> = Vec::new();
         let of: Vec<usize> = active
@@ -501,12 +511,21 @@ pub fn fit_edges(
         let mut next = Vec::with_capacity(active.len());
         for (&i, &d) in active.iter().zip(&of) {
             let (res, h) = fitted[d];
-            how[i] = h;
-            if let Some((s, moved)) = res {
-                cur[i] = s;
-                if moved > 1e-3 * r {
-                    next.push(i);
+            // A segment that has moved keeps the model of its last move: a later step
+            // that found too few points does not undo what placed it.
+            let has_moved = cur[i] != segments[i];
+            match res {
+                Some((s, moved)) => {
+                    if moved > 0.0 || !has_moved {
+                        how[i] = h;
+                    }
+                    cur[i] = s;
+                    if moved > 1e-3 * r {
+                        next.push(i);
+                    }
                 }
+                None if !has_moved => how[i] = h,
+                None => {}
             }
         }
         active = next;
@@ -516,6 +535,249 @@ pub fn fit_edges(
         how,
         iterations,
     })
+}
+
+/// The move gate's ridge test: a ridge of centers stands only where less than this share
+/// of its kernel weight comes from flat Gaussians (face splats, [`Attributes::normals`]
+/// non-zero). Face splats mark surfaces, and their centers' densest line is not an edge:
+/// on trained models it sits a splat's size inside the faces (measured on the trained
+/// pairs: 0.35 to 1 of a fitted ridge's weight, median 0.8); a ridge sampled on an edge,
+/// or of small round or needle-shaped Gaussians, has none.
+pub const GATE_FACE_SHARE: f64 = 1.0 / 3.0;
+
+/// The move gate's slab: a face's splats, offsets along its normal, span this many robust
+/// standard deviations (1.4826 x the median absolute deviation) to each side.
+pub const GATE_SLAB_SIGMAS: f64 = 3.0;
+
+/// Median and robust standard deviation (1.4826 x the median absolute deviation) of `v`.
+fn median_sigma(v: &mut [f64]) -> (f64, f64) {
+    let m = median(v);
+    let mut dev: Vec<f64> = v.iter().map(|x| (x - m).abs()).collect();
+    (m, 1.4826 * median(&mut dev))
+}
+
+/// What the gate concluded about one fitted segment.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GateVerdict {
+    /// The move stands.
+    pub keep_move: bool,
+    /// Corner: the thicker slab's half-width; ridge: the face splats' share.
+    pub measure: f64,
+}
+
+/// What [`gate_corner`] reads of one fitted segment: its members (cross-section offsets,
+/// weights, working-set ids), the model's normals and thicknesses, the fitted line's
+/// cross-section frame and the input line's ends in it.
+#[derive(Clone, Copy)]
+struct CornerInput<'a> {
+    pts: &'a [(f64, DVec2)],
+    pw: &'a [f64],
+    normals: &'a [[f32; 3]],
+    thickness: Option<&'a [f32]>,
+    ids: &'a [u32],
+    frame: (DVec3, DVec3),
+    ends: [DVec2; 2],
+}
+
+/// The corner test: both faces' splats form slabs no thicker than the kernel `h` (each
+/// half-width [`GATE_SLAB_SIGMAS`] times the robust deviation of their offsets along the
+/// face's normal combined with the splats' median thickness), and an end of the input line (`ends`, offsets in the fitted line's frame)
+/// lies outside one of them. A line inside both slabs is as consistent with the faces as
+/// their intersection is: the splats cannot place the edge more finely than their slabs.
+fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> GateVerdict {
+    let CornerInput {
+        pts,
+        pw,
+        normals,
+        thickness,
+        ids,
+        frame: (e1, e2),
+        ends,
+    } = *c;
+    let mut keep = Vec::new();
+    let mut n2 = Vec::new();
+    for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
+        if p.1.length() > r {
+            continue;
+        }
+        let n = crate::geom::p64(normals[*id as usize]);
+        let across = DVec2::new(n.dot(e1), n.dot(e2));
+        if across.length() > 0.866 {
+            keep.push(i);
+            n2.push(across.normalize());
+        }
+    }
+    let no = GateVerdict {
+        keep_move: false,
+        measure: f64::INFINITY,
+    };
+    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
+    let Some(fam) = families(&n2, &sub_w, min_points) else {
+        return no;
+    };
+    let mut thickest: f64 = 0.0;
+    let mut outside = false;
+    for (n, members) in &fam {
+        let mut off: Vec<f64> = members.iter().map(|&j| n.dot(pts[keep[j]].1)).collect();
+        let (c, sigma) = median_sigma(&mut off);
+        // Each splat's own extent along its normal adds to the spread of their centers.
+        let own = thickness.map_or(0.0, |th| {
+            let mut t: Vec<f64> = members
+                .iter()
+                .map(|&j| f64::from(th[ids[keep[j]] as usize]))
+                .collect();
+            median(&mut t)
+        });
+        let half = GATE_SLAB_SIGMAS * sigma.hypot(own);
+        thickest = thickest.max(half);
+        outside |= ends.iter().any(|e| (n.dot(*e) - c).abs() > half);
+    }
+    GateVerdict {
+        keep_move: thickest <= h && outside,
+        measure: thickest,
+    }
+}
+
+/// The ridge test: around the fitted line (mean shift with the kernel `h` from it), less
+/// than [`GATE_FACE_SHARE`] of the kernel weight comes from flat Gaussians (`flat`; all
+/// round where the model has no normals, so the move stands).
+fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: Option<&[bool]>, h: f64) -> GateVerdict {
+    let Some(flat) = flat else {
+        return GateVerdict {
+            keep_move: true,
+            measure: 0.0,
+        };
+    };
+    let kernel = |c: DVec2, p: &(f64, DVec2), w: f64| {
+        w * (-(p.1 - c).length_squared() / (2.0 * h * h)).exp()
+    };
+    let mut c = DVec2::ZERO;
+    let mut sw = 0.0;
+    for _ in 0..50 {
+        let mut s = DVec2::ZERO;
+        sw = 0.0;
+        for (p, w) in pts.iter().zip(pw) {
+            let k = kernel(c, p, *w);
+            s += p.1 * k;
+            sw += k;
+        }
+        if sw <= 0.0 {
+            break;
+        }
+        let next = s / sw;
+        let moved = (next - c).length();
+        c = next;
+        if moved < 1e-6 * h {
+            break;
+        }
+    }
+    let faces: f64 = pts
+        .iter()
+        .zip(pw)
+        .zip(flat)
+        .filter(|(_, f)| **f)
+        .map(|((p, w), _)| kernel(c, p, *w))
+        .sum();
+    let share = if sw > 0.0 { faces / sw } else { 1.0 };
+    GateVerdict {
+        keep_move: share < GATE_FACE_SHARE,
+        measure: share,
+    }
+}
+
+/// The move gate (`--fit-gate`): each segment the edge fit moved (`fitted`, from `input`)
+/// keeps its move only where the Gaussians within r of its new line explain it (a corner by [`gate_corner`], a ridge by [`gate_ridge`]); the others go
+/// back to their input and are marked [`How::Kept`]. One engine batch of members; the
+/// decision is the host's, so both engines agree. Returns how many moves it undid.
+pub fn gate(
+    engine: &dyn Engine,
+    input: &[Segment],
+    fitted: &mut FitResult,
+    attrs: &Attributes,
+    r: f64,
+    p: &Params,
+) -> Result<usize, EngineError> {
+    let moved: Vec<usize> = (0..input.len())
+        .filter(|&i| {
+            fitted.segments[i] != input[i]
+                && matches!(fitted.how[i], How::Corner | How::Ridge)
+                && fitted.segments[i].is_valid()
+        })
+        .collect();
+    if moved.is_empty() {
+        return Ok(0);
+    }
+    let queries: Vec<Query> = moved
+        .iter()
+        .map(|&i| Query::new(fitted.segments[i], r))
+        .collect();
+    let members = engine.members(&queries)?;
+    let h = p.fit_bandwidth * r;
+    let min_points = p.fit_min_points.max(1) as usize;
+    let verdicts: Vec<GateVerdict> = {
+        use rayon::prelude::*;
+        moved
+            .par_iter()
+            .zip(&members)
+            .map(|(&i, m)| {
+                let s = &fitted.segments[i];
+                let d = s.dir();
+                let (e1, e2) = basis(d);
+                let pts: Vec<(f64, DVec2)> = m
+                    .iter()
+                    .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
+                    .collect();
+                let pw: Vec<f64> = if p.fit_opacity_weight {
+                    m.iter().map(|m| attrs.weight(m.id)).collect()
+                } else {
+                    vec![1.0; m.len()]
+                };
+                match fitted.how[i] {
+                    How::Corner => {
+                        let Some(ns) = &attrs.normals else {
+                            return GateVerdict {
+                                keep_move: false,
+                                measure: f64::INFINITY,
+                            };
+                        };
+                        let ids: Vec<u32> = m.iter().map(|m| m.id).collect();
+                        let end = |q: glam::DVec3| {
+                            let v = q - s.p1;
+                            let o = v - d * v.dot(d);
+                            DVec2::new(o.dot(e1), o.dot(e2))
+                        };
+                        let ends = [end(input[i].p1), end(input[i].p2)];
+                        let input = CornerInput {
+                            pts: &pts,
+                            pw: &pw,
+                            normals: ns,
+                            thickness: attrs.thickness.as_deref(),
+                            ids: &ids,
+                            frame: (e1, e2),
+                            ends,
+                        };
+                        gate_corner(&input, r, h, min_points)
+                    }
+                    _ => {
+                        let flat: Option<Vec<bool>> = attrs
+                            .normals
+                            .as_ref()
+                            .map(|ns| m.iter().map(|m| ns[m.id as usize] != [0.0; 3]).collect());
+                        gate_ridge(&pts, &pw, flat.as_deref(), h)
+                    }
+                }
+            })
+            .collect()
+    };
+    let mut undone = 0;
+    for (&i, v) in moved.iter().zip(&verdicts) {
+        if !v.keep_move {
+            fitted.segments[i] = input[i];
+            fitted.how[i] = How::Kept;
+            undone += 1;
+        }
+    }
+    Ok(undone)
 }
 
 #[cfg(test)]

@@ -29,13 +29,15 @@ pub struct GapNotes {
 }
 
 /// The kept `[a, b]` intervals (axial, from P1) of one segment of length `l`, given its
-/// members' sorted axial positions `t`; no stretch shorter than `min_gap` is cut.
+/// members' sorted axial positions `t`; no stretch shorter than `min_gap` is cut, and
+/// interior gaps split the segment only with `interior`.
 pub fn pieces(
     t: &[f64],
     l: f64,
     alpha: f64,
     min_gap: f64,
     min_points: u32,
+    interior: bool,
 ) -> (Vec<(f64, f64)>, GapNotes) {
     let mut notes = GapNotes::default();
     let n = t.len();
@@ -56,7 +58,7 @@ pub fn pieces(
     }
     // Runs of points separated by interior gaps: [start index, end index].
     let mut runs = vec![(0usize, n - 1)];
-    for i in 0..n - 1 {
+    for i in 0..n.saturating_sub(1) * usize::from(interior) {
         if t[i + 1] - t[i] >= inner_gap {
             runs.last_mut().expect("one run").1 = i;
             runs.push((i + 1, n - 1));
@@ -92,6 +94,7 @@ pub fn split_gaps(
     r: f64,
     alpha: f64,
     min_points: u32,
+    interior: bool,
 ) -> Result<(LineSet, GapNotes), EngineError> {
     let mut total = GapNotes::default();
     if alpha <= 0.0 || lines.is_empty() {
@@ -108,7 +111,7 @@ pub fn split_gaps(
         let l = s.length();
         let mut t: Vec<f64> = m.iter().map(|x| x.t.clamp(0.0, l)).collect();
         t.sort_by(f64::total_cmp);
-        let (kept, notes) = pieces(&t, l, alpha, r, min_points);
+        let (kept, notes) = pieces(&t, l, alpha, r, min_points, interior);
         total.ends_cut += notes.ends_cut;
         total.split += notes.split;
         total.pieces_dropped += notes.pieces_dropped;
@@ -162,7 +165,7 @@ mod tests {
             segments: vec![Segment::new(DVec3::ZERO, DVec3::new(0.81, 0.0, 0.0))],
             groups: Some(vec![7]),
         };
-        let (out, notes) = split_gaps(&e, &lines, 0.01, 0.01, 8).unwrap();
+        let (out, notes) = split_gaps(&e, &lines, 0.01, 0.01, 8, true).unwrap();
         assert_eq!(out.len(), 2, "{:?}", out.segments);
         assert_eq!(notes.split, 1);
         assert_eq!(out.groups, Some(vec![7, 7]));
@@ -176,7 +179,7 @@ mod tests {
             "{b:?}"
         );
         // Off: unchanged.
-        let (same, _) = split_gaps(&e, &lines, 0.01, 0.0, 8).unwrap();
+        let (same, _) = split_gaps(&e, &lines, 0.01, 0.0, 8, true).unwrap();
         assert_eq!(same, lines);
     }
 
@@ -192,7 +195,7 @@ mod tests {
         // The segment runs 0.1 past the last point: that end is cut, the other kept. (r
         // 0.005: the gap is longer than r, so only the statistics keep it.)
         let lines = LineSet::new(vec![Segment::new(DVec3::ZERO, DVec3::new(0.4, 0.0, 0.0))]);
-        let (out, notes) = split_gaps(&e, &lines, 0.005, 0.01, 8).unwrap();
+        let (out, notes) = split_gaps(&e, &lines, 0.005, 0.01, 8, true).unwrap();
         assert_eq!(out.len(), 1, "{:?}", out.segments);
         assert_eq!((notes.split, notes.ends_cut), (0, 1));
         let s = out.segments[0];
@@ -204,7 +207,7 @@ mod tests {
     fn a_few_stray_points_past_a_gap_are_dropped() {
         let mut t: Vec<f64> = (0..200).map(|i| i as f64 * 0.001).collect();
         t.extend([0.5, 0.501, 0.502]);
-        let (kept, notes) = pieces(&t, 0.51, 0.01, 0.01, 8);
+        let (kept, notes) = pieces(&t, 0.51, 0.01, 0.01, 8, true);
         assert_eq!(kept.len(), 1, "{kept:?}");
         assert_eq!((notes.split, notes.pieces_dropped), (1, 1));
         assert!((kept[0].1 - 0.199).abs() < 1e-9);
@@ -219,9 +222,9 @@ mod tests {
             .filter(|&x| !(0.05..0.055).contains(&x))
             .collect();
         let l = t[t.len() - 1];
-        let (kept, notes) = pieces(&t, l, 0.01, 0.01, 8);
+        let (kept, notes) = pieces(&t, l, 0.01, 0.01, 8, true);
         assert_eq!((kept.len(), notes.split), (1, 0), "{kept:?}");
-        let (kept, notes) = pieces(&t, l, 0.01, 0.001, 8);
+        let (kept, notes) = pieces(&t, l, 0.01, 0.001, 8, true);
         assert_eq!((kept.len(), notes.split), (2, 1), "{kept:?}");
     }
 }

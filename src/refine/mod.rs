@@ -88,6 +88,10 @@ pub struct StepNotes {
     pub fit_corner: usize,
     pub fit_ridge: usize,
     pub fit_unclear: usize,
+    /// Edge fit: segments the move gate kept at their input (`--fit-gate`): an estimate
+    /// existed, but the Gaussians did not explain the move.
+    #[serde(default)]
+    pub fit_kept: usize,
     pub lengths: Vec<StageLength>,
     /// `--max-scale`: Gaussians left out as wider than `max_scale x r` (null when off).
     pub scale_cut: Option<usize>,
@@ -139,6 +143,7 @@ pub fn run_steps_noted(
         fit_corner: 0,
         fit_ridge: 0,
         fit_unclear: 0,
+        fit_kept: 0,
         lengths: Vec::new(),
         scale_cut: None,
         curved_dropped: None,
@@ -163,12 +168,16 @@ pub fn run_steps_noted(
         Fit::Paper => translate::translate(engine, &lines.segments, r, p.translate_keep)?,
         Fit::None => lines.segments.clone(),
         Fit::Edge => {
-            let f = fit::fit_edges(engine, &lines.segments, attrs, r, p)?;
+            let mut f = fit::fit_edges(engine, &lines.segments, attrs, r, p)?;
+            if p.fit_gate {
+                fit::gate(engine, &lines.segments, &mut f, attrs, r, p)?;
+            }
             notes.fit_iterations = f.iterations;
             let count = |h| f.how.iter().filter(|&&x| x == h).count();
             notes.fit_corner = count(fit::How::Corner);
             notes.fit_ridge = count(fit::How::Ridge);
             notes.fit_unclear = count(fit::How::Unclear);
+            notes.fit_kept = count(fit::How::Kept);
             f.segments
         }
     };
@@ -220,7 +229,8 @@ pub fn run_steps_noted(
     let alpha = p.split_gaps();
     if alpha > 0.0 {
         let t = Instant::now();
-        let (split, g) = gaps::split_gaps(engine, &lines, r, alpha, p.fit_min_points)?;
+        let (split, g) =
+            gaps::split_gaps(engine, &lines, r, alpha, p.fit_min_points, p.split_interior)?;
         lines = split;
         notes.gaps_ends_cut = Some(g.ends_cut);
         notes.gaps_split = Some(g.split);

@@ -206,6 +206,13 @@ pub struct Params {
     /// effect where the model has no opacities or all are equal.
     #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
     pub fit_opacity_weight: bool,
+    /// Edge fit: keep a segment where it is unless its Gaussians explain the move (the
+    /// move gate): a corner only when both faces are thin slabs of splats and the input
+    /// line lies outside one of them; a ridge only when less than a third of it is face
+    /// splats. Measured in one batch of members of the fitted lines. `false`: every
+    /// fitted move stands.
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set, value_name = "BOOL")]
+    pub fit_gate: bool,
     /// Leave out of refinement every Gaussian whose largest standard deviation
     /// (`exp(max scale_i)`) exceeds this x r: a Gaussian wider than the cylinder cannot
     /// place a line within r (large ones are surfaces and floaters). Needs a 3DGS PLY
@@ -228,6 +235,12 @@ pub struct Params {
     /// (0.01 for default, 0 for reference).
     #[arg(long, value_parser = fraction)]
     pub split_gaps: Option<f64>,
+    /// `--split-gaps` also splits a segment at an empty interior stretch (not only cuts an
+    /// empty end). Off by default: trained models leave stretches of a true edge without
+    /// Gaussians (textureless faces, thinning near edges), and the chance rule, which
+    /// assumes evenly spread Gaussians, split true edges there.
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
+    pub split_interior: bool,
 
     /// Outliers: drop segments with density <= ratio x mean density; -1 uses
     /// max(mean - 2 std, 0).
@@ -334,6 +347,21 @@ pub struct Params {
     /// Default: profile.
     #[arg(long, value_name = "BOOL")]
     pub fix_crop_density: Option<bool>,
+    /// Fix: crop cuts an end only where the sparse stretch is at least r long (a shorter
+    /// one is where the Gaussians thin out at a corner, not an overextension). Default:
+    /// profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_crop_min_cut: Option<bool>,
+    /// Fix: crop searches an end only where its window is sparse beyond chance at the
+    /// middle's density (Poisson, chance at most 0.01), so that a sparse model's few
+    /// points do not cut true extent. Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_crop_chance: Option<bool>,
+    /// Fix: a merge or join keeps every input endpoint within r/2 (the most one edge-fit
+    /// step moves a line) of the line it makes, so that chords of a curve are not merged
+    /// or joined across it and nearby parallel edges are not averaged. Default: profile.
+    #[arg(long, value_name = "BOOL")]
+    pub fix_merge_fidelity: Option<bool>,
     /// Order the endpoints of each segment so that |P1| <= |P2|, at load and for every
     /// segment a merge or join makes, as the authors' segment constructor does. Default:
     /// on for reference, off for default.
@@ -358,6 +386,8 @@ impl Default for Params {
             fit_bandwidth: 0.25,
             fit_min_points: 8,
             fit_opacity_weight: false,
+            fit_gate: true,
+            split_interior: false,
             max_scale: None,
             max_sagitta: 0.0,
             split_gaps: None,
@@ -388,6 +418,9 @@ impl Default for Params {
             fix_join_order: None,
             fix_join_gap: None,
             fix_crop_density: None,
+            fix_crop_min_cut: None,
+            fix_crop_chance: None,
+            fix_merge_fidelity: None,
             order_endpoints: None,
             eval: EvalParams::default(),
         }
@@ -403,6 +436,9 @@ pub struct Fixes {
     pub join_order: bool,
     pub join_gap: bool,
     pub crop_density: bool,
+    pub crop_min_cut: bool,
+    pub crop_chance: bool,
+    pub merge_fidelity: bool,
     pub order_endpoints: bool,
     pub r_l: RlMode,
     pub fit: Fit,
@@ -547,6 +583,9 @@ impl Params {
             join_order: self.fix_join_order.unwrap_or(on),
             join_gap: self.fix_join_gap.unwrap_or(on),
             crop_density: self.fix_crop_density.unwrap_or(on),
+            crop_min_cut: self.fix_crop_min_cut.unwrap_or(on),
+            crop_chance: self.fix_crop_chance.unwrap_or(on),
+            merge_fidelity: self.fix_merge_fidelity.unwrap_or(on),
             order_endpoints: self.order_endpoints.unwrap_or(!on),
             fit: self.fit.unwrap_or(if on { Fit::Edge } else { Fit::Paper }),
             r_l: self

@@ -55,6 +55,12 @@ struct Ctx<'a> {
 }
 
 impl<'a> Ctx<'a> {
+    /// Fix `merge_fidelity`: how far a merge or join may put a line from its inputs'
+    /// endpoints: `r / 2`, the most one edge-fit step moves a line.
+    fn fidelity(&self) -> Option<f64> {
+        self.fixes.merge_fidelity.then_some(0.5 * self.r)
+    }
+
     fn new(mode: Mode, s: &'a Settings) -> Self {
         Ctx {
             mode,

@@ -321,10 +321,10 @@ impl Machine {
         let (a, b) = (&self.items[i].seg, &self.items[j].seg);
         match phase {
             Phase::Merge if rules::overlaps(a, b, cx.fixes) => {
-                rules::merge_candidate(a, b, cx.p).map(Ok)
+                rules::merge_candidate(a, b, cx.p, cx.fidelity()).map(Ok)
             }
             Phase::Join if cx.mode == Mode::Collinear || !rules::overlaps(a, b, cx.fixes) => {
-                rules::join_candidate(a, b, cx.p, cx.fixes).map(Err)
+                rules::join_candidate(a, b, cx.p, cx.fixes, cx.fidelity()).map(Err)
             }
             _ => None,
         }

@@ -50,8 +50,15 @@ pub struct MergeCandidate {
 }
 
 /// 8a, CPU part: `None` when the directions differ by more than `merge_angle_deg`, or
-/// both endpoints of `S` are farther than `merge_dist_frac x L_G` from `G`'s line.
-pub fn merge_candidate(a: &Segment, b: &Segment, p: &Params) -> Option<MergeCandidate> {
+/// both endpoints of `S` are farther than `merge_dist_frac x L_G` from `G`'s line, or
+/// (fix `merge_fidelity`, `fidelity = Some(tol)`) either is farther than `tol`: a merge
+/// replaces two lines by one, which must stay within `tol` of both.
+pub fn merge_candidate(
+    a: &Segment,
+    b: &Segment,
+    p: &Params,
+    fidelity: Option<f64>,
+) -> Option<MergeCandidate> {
     let g_is_a = longer_first(a, b);
     let (g, s) = if g_is_a { (a, b) } else { (b, a) };
     let (lg, ls) = (g.length(), s.length());
@@ -61,6 +68,11 @@ pub fn merge_candidate(a: &Segment, b: &Segment, p: &Params) -> Option<MergeCand
     let lim = p.merge_dist_frac * lg;
     if g.line_dist2(s.p1) > lim * lim && g.line_dist2(s.p2) > lim * lim {
         return None;
+    }
+    if let Some(tol) = fidelity {
+        if g.line_dist2(s.p1) > tol * tol || g.line_dist2(s.p2) > tol * tol {
+            return None;
+        }
     }
     let prop = ls / (ls + lg);
     let g_prime = g.translated((s.foot(g.p1) - g.p1) * prop);
@@ -137,12 +149,14 @@ pub struct JoinCandidate {
 /// 8b, CPU part: the four endpoints sorted (`reference`: by distance from `a.P1`; fix
 /// `join_order`: by projection on `a`'s direction); `None` when `J` is more than
 /// `join_angle_deg` from either direction, or the gap is longer than `join_gap_frac x`
-/// either length.
+/// either length, or (fix `merge_fidelity`, `fidelity = Some(tol)`) an inner endpoint
+/// lies farther than `tol` from `J`'s line: joined pieces of a curve would cut across it.
 pub fn join_candidate(
     a: &Segment,
     b: &Segment,
     p: &Params,
     fixes: &Fixes,
+    fidelity: Option<f64>,
 ) -> Option<JoinCandidate> {
     let d1 = a.dir();
     let pts = [a.p1, a.p2, b.p1, b.p2];
@@ -165,6 +179,11 @@ pub fn join_candidate(
         return None;
     }
     let (g0, g1) = (pts[o[1]], pts[o[2]]);
+    if let Some(tol) = fidelity {
+        if joined.line_dist2(g0) > tol * tol || joined.line_dist2(g1) > tol * tol {
+            return None;
+        }
+    }
     let gap = (g1 - g0).length();
     if gap > p.join_gap_frac * a.length() || gap > p.join_gap_frac * b.length() {
         return None;

@@ -28,7 +28,7 @@ fn try_pair(
     let overlap = rules::overlaps(sa, sb, cx.fixes);
     if merge {
         let Some(c) = overlap
-            .then(|| rules::merge_candidate(sa, sb, cx.p))
+            .then(|| rules::merge_candidate(sa, sb, cx.p, cx.fidelity()))
             .flatten()
         else {
             return Ok(None);
@@ -41,7 +41,7 @@ fn try_pair(
     if overlap && cx.mode == Mode::Cluster {
         return Ok(None);
     }
-    let Some(c) = rules::join_candidate(sa, sb, cx.p, cx.fixes) else {
+    let Some(c) = rules::join_candidate(sa, sb, cx.p, cx.fixes, cx.fidelity()) else {
         return Ok(None);
     };
     let (st_a, st_b) = (ask(engine, *sa, cx.r)?, ask(engine, *sb, cx.r)?);

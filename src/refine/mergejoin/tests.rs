@@ -74,17 +74,64 @@ fn two_duplicate_pairs_in_one_cluster_both_merge() {
 
 #[test]
 fn a_merge_keeps_the_shifted_longer_when_it_fits_better() {
-    // Ridge at y = 0.01; G at y = 0 (2 long), S at y = 0.02 (1 long): prop = 1/3, so G'
-    // sits at y = 0.02/3, closer to the ridge, with the same count: G' is kept.
-    let e = engine(&ridge(0.0, 2.0, 0.005, 0.01));
+    // Ridge at y = 0.006; G at y = 0 (2 long), S at y = 0.012 (1 long): prop = 1/3, so G'
+    // sits at y = 0.004, closer to the ridge, with the same count: G' is kept.
+    let e = engine(&ridge(0.0, 2.0, 0.005, 0.006));
     let g = seg(0.0, 0.0, 2.0, 0.0);
-    let s = seg(0.5, 0.02, 1.5, 0.02);
-    let want = g.translated(DVec3::new(0.0, 0.02 / 3.0, 0.0));
+    let s = seg(0.5, 0.012, 1.5, 0.012);
+    let want = g.translated(DVec3::new(0.0, 0.012 / 3.0, 0.0));
     for p in [Params::default(), Params::reference()] {
         let out = run(&e, vec![s, g], &p);
         assert_eq!(out.len(), 1);
         assert!(near(&out[0], &want, 1e-12), "{:?}", out[0]);
     }
+}
+
+#[test]
+fn a_merge_farther_than_half_r_from_an_input_is_refused_by_default() {
+    // S lies 0.02 (2/3 r) beside G: the paper's rule merges them (G' between the two),
+    // the default profile keeps both, since G' would pass r/2 from neither.
+    let e = engine(&ridge(0.0, 2.0, 0.005, 0.01));
+    let g = seg(0.0, 0.0, 2.0, 0.0);
+    let s = seg(0.5, 0.02, 1.5, 0.02);
+    assert_eq!(run(&e, vec![s, g], &Params::reference()).len(), 1);
+    let fixed_off = Params {
+        fix_merge_fidelity: Some(false),
+        ..Params::default()
+    };
+    assert_eq!(run(&e, vec![s, g], &fixed_off).len(), 1);
+    assert_eq!(run(&e, vec![s, g], &Params::default()), vec![s, g]);
+}
+
+#[test]
+fn two_chords_of_a_curve_are_not_joined_across_it_by_default() {
+    // Chords (0,0)-(1,0) and (1,0)-(2,0.036) at 2 degrees, with Gaussians spread 0.025 on
+    // both sides of each (a trained model's face splats about an edge, so that the paper's
+    // error test passes): the joined line passes 0.018 (0.6 r) from their shared end.
+    let spread = |x: f64, y: f64, k: usize| {
+        let z = if k % 2 == 0 { 0.025 } else { -0.025 };
+        [x as f32, y as f32, z as f32]
+    };
+    let n = 200;
+    let pts: Vec<[f32; 3]> = (0..=n)
+        .map(|k| spread(k as f64 / n as f64, 0.0, k))
+        .chain((0..=n).map(|k| {
+            let t = k as f64 / n as f64;
+            spread(1.0 + t, 0.036 * t, k)
+        }))
+        .collect();
+    let e = engine(&pts);
+    let (a, b) = (seg(0.0, 0.0, 1.0, 0.0), seg(1.0, 0.0, 2.0, 0.036));
+    let fixed_off = Params {
+        fix_merge_fidelity: Some(false),
+        ..Params::default()
+    };
+    assert_eq!(
+        run(&e, vec![a, b], &fixed_off).len(),
+        1,
+        "joined without the rule"
+    );
+    assert_eq!(run(&e, vec![a, b], &Params::default()), vec![a, b]);
 }
 
 #[test]
@@ -518,7 +565,7 @@ fn reference_orders_every_merged_segment_so_a_later_join_sees_its_p1_first() {
     let s0 = DVec3::new(-0.9, 0.9, 0.0);
     let s = Segment::new(s0, s0 + DVec3::new(phi.cos(), phi.sin(), 0.0) * 0.5);
     let p = Params::reference();
-    let g_prime = rules::merge_candidate(&g, &s, &p).unwrap().g_prime;
+    let g_prime = rules::merge_candidate(&g, &s, &p, None).unwrap().g_prime;
     assert!(g_prime.p1.length() > g_prime.p2.length(), "{g_prime:?}");
     let d = g_prime.dir();
     let t = Segment::new(g_prime.p1 - d * 0.6, g_prime.p1 - d * 0.05);
