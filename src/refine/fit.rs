@@ -639,15 +639,8 @@ fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> GateVe
 }
 
 /// The ridge test: around the fitted line (mean shift with the kernel `h` from it), less
-/// than [`GATE_FACE_SHARE`] of the kernel weight comes from flat Gaussians (`flat`; all
-/// round where the model has no normals, so the move stands).
-fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: Option<&[bool]>, h: f64) -> GateVerdict {
-    let Some(flat) = flat else {
-        return GateVerdict {
-            keep_move: true,
-            measure: 0.0,
-        };
-    };
+/// than [`GATE_FACE_SHARE`] of the kernel weight comes from flat Gaussians (`flat`).
+fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> GateVerdict {
     let kernel = |c: DVec2, p: &(f64, DVec2), w: f64| {
         w * (-(p.1 - c).length_squared() / (2.0 * h * h)).exp()
     };
@@ -686,9 +679,11 @@ fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: Option<&[bool]>, h: f64) -
 }
 
 /// The move gate (`--fit-gate`): each segment the edge fit moved (`fitted`, from `input`)
-/// keeps its move only where the Gaussians within r of its new line explain it (a corner by [`gate_corner`], a ridge by [`gate_ridge`]); the others go
-/// back to their input and are marked [`How::Kept`]. One engine batch of members; the
-/// decision is the host's, so both engines agree. Returns how many moves it undid.
+/// keeps its move only where the Gaussians within r of its new line explain it (a corner
+/// by [`gate_corner`], a ridge by [`gate_ridge`]); the others go back to their input and
+/// are marked [`How::Kept`]. One engine batch of members, none without normals (every
+/// ridge then stands); the decision is the host's, so both engines agree. Returns how
+/// many moves it undid.
 pub fn gate(
     engine: &dyn Engine,
     input: &[Segment],
@@ -704,6 +699,10 @@ pub fn gate(
                 && fitted.segments[i].is_valid()
         })
         .collect();
+    // Without normals every ridge stands and there is no corner: nothing to ask.
+    let Some(ns) = attrs.normals.as_deref() else {
+        return Ok(0);
+    };
     if moved.is_empty() {
         return Ok(0);
     }
@@ -734,12 +733,6 @@ pub fn gate(
                 };
                 match fitted.how[i] {
                     How::Corner => {
-                        let Some(ns) = &attrs.normals else {
-                            return GateVerdict {
-                                keep_move: false,
-                                measure: f64::INFINITY,
-                            };
-                        };
                         let ids: Vec<u32> = m.iter().map(|m| m.id).collect();
                         let end = |q: glam::DVec3| {
                             let v = q - s.p1;
@@ -759,11 +752,9 @@ pub fn gate(
                         gate_corner(&input, r, h, min_points)
                     }
                     _ => {
-                        let flat: Option<Vec<bool>> = attrs
-                            .normals
-                            .as_ref()
-                            .map(|ns| m.iter().map(|m| ns[m.id as usize] != [0.0; 3]).collect());
-                        gate_ridge(&pts, &pw, flat.as_deref(), h)
+                        let flat: Vec<bool> =
+                            m.iter().map(|m| ns[m.id as usize] != [0.0; 3]).collect();
+                        gate_ridge(&pts, &pw, &flat, h)
                     }
                 }
             })
