@@ -264,6 +264,8 @@ pub struct BatchOptions {
     pub skip_existing: bool,
     /// Extension of the refined segments' file (`obj`, `stl`, `ply`, `txt`, `npy`).
     pub format: String,
+    /// How the manifest's `gt` edges score the lines.
+    pub protocol: crate::eval::gt::Protocol,
 }
 
 /// What happened to one scene in this run.
@@ -294,7 +296,10 @@ pub fn entry_params(e: &Entry, base: &Params) -> Params {
 fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError> {
     let scene = Scene::load(&e.gaussians, &e.lines, &LoadOptions::default())?;
     let gt = match &e.gt {
-        Some(p) => Some(io::read_lines(p)?.lines.segments),
+        Some(p) => Some(crate::eval::gt::Reference {
+            edges: crate::eval::gt::GtEdges::from_segments(&io::read_lines(p)?.lines.segments),
+            protocol: opts.protocol,
+        }),
         None => None,
     };
     let job = Job {
