@@ -14,19 +14,16 @@ const LEAF: usize = 8;
 enum Node {
     /// `idx[start..end]` are the leaf's points.
     Leaf { start: u32, end: u32 },
-    /// Points with `p[axis] <= split` are under `left`, the others under `right`.
-    Split {
-        axis: u8,
-        split: f64,
-        left: u32,
-        right: u32,
-    },
+    /// Split at the median of the widest axis: the lower half under `left`.
+    Split { left: u32, right: u32 },
 }
 
 pub struct KdTree {
     points: Vec<DVec3>,
     idx: Vec<u32>,
     nodes: Vec<Node>,
+    /// The tight bounding box of each node's points (lo, hi).
+    boxes: Vec<(DVec3, DVec3)>,
 }
 
 impl KdTree {
@@ -35,6 +32,7 @@ impl KdTree {
             points: points.to_vec(),
             idx: (0..points.len() as u32).collect(),
             nodes: Vec::with_capacity(2 * points.len() / LEAF + 1),
+            boxes: Vec::with_capacity(2 * points.len() / LEAF + 1),
         };
         if !points.is_empty() {
             t.build(0, points.len());
@@ -53,22 +51,16 @@ impl KdTree {
     /// Builds the subtree of `idx[start..end]` and returns its node's index.
     fn build(&mut self, start: usize, end: usize) -> u32 {
         let id = self.nodes.len() as u32;
-        if end - start <= LEAF {
-            self.nodes.push(Node::Leaf {
-                start: start as u32,
-                end: end as u32,
-            });
-            return id;
-        }
         let mut lo = DVec3::splat(f64::INFINITY);
         let mut hi = DVec3::splat(f64::NEG_INFINITY);
         for &i in &self.idx[start..end] {
             lo = lo.min(self.points[i as usize]);
             hi = hi.max(self.points[i as usize]);
         }
+        self.boxes.push((lo, hi));
         let ext = hi - lo;
-        if ext.max_element() == 0.0 {
-            // All points equal: one leaf, however many.
+        if end - start <= LEAF || ext.max_element() == 0.0 {
+            // Few points, or all equal: one leaf, however many.
             self.nodes.push(Node::Leaf {
                 start: start as u32,
                 end: end as u32,
@@ -87,14 +79,7 @@ impl KdTree {
         self.idx[start..end].select_nth_unstable_by(mid - start, |&a, &b| {
             pts[a as usize][axis].total_cmp(&pts[b as usize][axis])
         });
-        let split = pts[self.idx[mid] as usize][axis];
-        // Left: strictly before `mid` (all <= split); right from `mid` (all >= split).
-        self.nodes.push(Node::Split {
-            axis: axis as u8,
-            split,
-            left: 0,
-            right: 0,
-        });
+        self.nodes.push(Node::Split { left: 0, right: 0 });
         let left = self.build(start, mid);
         let right = self.build(mid, end);
         if let Node::Split {
@@ -107,6 +92,13 @@ impl KdTree {
         id
     }
 
+    /// Squared distance from `q` to node `n`'s bounding box (0 inside).
+    fn box_distance(&self, n: u32, q: DVec3) -> f64 {
+        let (lo, hi) = self.boxes[n as usize];
+        let d = (lo - q).max(q - hi).max(DVec3::ZERO);
+        d.length_squared()
+    }
+
     /// The index (into the points given to [`KdTree::new`]) of a nearest point to `q` and
     /// its squared distance; `None` for an empty tree.
     pub fn nearest(&self, q: DVec3) -> Option<(usize, f64)> {
@@ -114,12 +106,14 @@ impl KdTree {
             return None;
         }
         let mut best = (usize::MAX, f64::INFINITY);
-        // (node, squared distance from q to the node's side of the split): far sides
-        // wait on the stack and are skipped once farther than the best.
+        // (node, squared distance from q to the node's bounding box): nodes wait on the
+        // stack and are skipped once farther than the best. Tight boxes (not the cells the
+        // splits cut) let a query far from every point prune all but the nearest nodes.
         let mut stack: Vec<(u32, f64)> = Vec::with_capacity(64);
-        stack.push((0, 0.0));
+        stack.push((0, self.box_distance(0, q)));
         while let Some((n, bound)) = stack.pop() {
-            if bound > best.1 {
+            // The margin keeps a node whose bound came out a few ulps high from rounding.
+            if bound > best.1 + best.1 * 1e-9 {
                 continue;
             }
             match self.nodes[n as usize] {
@@ -131,21 +125,16 @@ impl KdTree {
                         }
                     }
                 }
-                Node::Split {
-                    axis,
-                    split,
-                    left,
-                    right,
-                } => {
-                    let diff = q[axis as usize] - split;
-                    let (near, far) = if diff <= 0.0 {
-                        (left, right)
+                Node::Split { left, right, .. } => {
+                    let (dl, dr) = (self.box_distance(left, q), self.box_distance(right, q));
+                    // The farther child first onto the stack, so the nearer is searched first.
+                    if dl <= dr {
+                        stack.push((right, dr));
+                        stack.push((left, dl));
                     } else {
-                        (right, left)
-                    };
-                    // The far side first onto the stack, so the near one is searched first.
-                    stack.push((far, diff * diff));
-                    stack.push((near, bound));
+                        stack.push((left, dl));
+                        stack.push((right, dr));
+                    }
                 }
             }
         }
