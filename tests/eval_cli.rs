@@ -242,3 +242,56 @@ fn help_explains_both_protocols() {
         assert!(h.contains(needle), "`{needle}` not in --help");
     }
 }
+
+#[test]
+fn batch_summary_prints_the_papers_per_object_means_with_the_protocol() {
+    let sc = scene();
+    let d = sc.dir.path();
+    // Scene b's lines are all shorter than 0.005: no EMAP sample, so (as EMAP skips an
+    // object without predictions) it is left out of the input row's mean.
+    let short = d.join("short.txt");
+    std::fs::write(
+        &short,
+        "0.0671 0.7499 0.5 0.0671 0.7499 0.503\n0.0671 0.2501 0.4 0.0671 0.2501 0.403\n",
+    )
+    .unwrap();
+    let gt = data("abc_00000006/gt_sharp_lines.txt");
+    let lines = data("emap/l3d_input.txt");
+    let manifest = d.join("m.csv");
+    std::fs::write(
+        &manifest,
+        format!(
+            "name,gaussians,lines,gt,radius\na,{g},{l},{gt},0.03\nb,{g},{s},{gt},0.03\n",
+            g = s(&sc.gaussians),
+            l = s(&lines),
+            s = s(&short),
+            gt = s(&gt)
+        ),
+    )
+    .unwrap();
+    let out = d.join("out");
+    let o = run(&[
+        "batch",
+        s(&manifest),
+        "-o",
+        s(&out),
+        "--backend",
+        "cpu",
+        "--protocol",
+        "emap",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let md = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(md.contains("Ground truth, emap protocol"), "{md}");
+    assert!(md.contains("(of 2 with ground truth)"), "{md}");
+    // Scene a alone, measured by eval with the same protocol and GT.
+    let v = eval_json(&sc, &lines, &["--gt", s(&gt), "--protocol", "emap"]);
+    let g = &v["ground_truth"]["before"];
+    let row = format!(
+        "| input lines | 1 | {:.2} | {:.2} | {:.1} |",
+        1000.0 * g["accuracy"].as_f64().unwrap(),
+        1000.0 * g["completeness"].as_f64().unwrap(),
+        100.0 * g["scores"][0]["precision"].as_f64().unwrap()
+    );
+    assert!(md.contains(&row), "`{row}` not in:\n{md}");
+}
