@@ -253,8 +253,8 @@ pub fn voxel_average(points: &[[f32; 3]]) -> Vec<[f32; 3]> {
         let key = p.map(|c| ((c - min) / size).floor() as i32);
         let n = cells.len();
         let e = cells.entry(key).or_insert((n, [0.0; 3], 0));
-        for k in 0..3 {
-            e.1[k] += p[k];
+        for (sum, c) in e.1.iter_mut().zip(p) {
+            *sum += c;
         }
         e.2 += 1;
     }
