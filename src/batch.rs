@@ -297,7 +297,7 @@ fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError>
     let scene = Scene::load(&e.gaussians, &e.lines, &LoadOptions::default())?;
     let gt = match &e.gt {
         Some(p) => Some(crate::eval::gt::Reference {
-            edges: crate::eval::gt::GtEdges::from_segments(&io::read_lines(p)?.lines.segments),
+            edges: crate::eval::gt::read_gt_file(p)?.0,
             protocol: opts.protocol,
         }),
         None => None,

@@ -2,7 +2,7 @@ use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::abc::AbcGroundTruth;
-use linegs_gpu::eval::gt::{GtEdges, GtMetrics, Protocol, Reference};
+use linegs_gpu::eval::gt::{GtMetrics, Protocol, Reference};
 use linegs_gpu::eval::Metrics;
 use linegs_gpu::io;
 use linegs_gpu::pipeline::Job;
@@ -11,6 +11,14 @@ use linegs_gpu::render;
 use std::path::PathBuf;
 
 #[derive(Args, Debug)]
+#[command(
+    after_help = "A paper-style ABC-NEF row (EMAP's protocol: Acc / Comp in mm, P / R / F at 5 / 10 / 20 mm):
+  linegs-gpu eval -g point_cloud.ply -l refined.obj --protocol emap \\
+    --gt-abc MODEL_features_001.yml --gt-mesh MODEL_trimesh_001.obj --abc-stats chunk_0000_stats.json
+A dataset's table (per-object means, as the papers print): a batch manifest with a gt column, then
+  linegs-gpu batch scenes.csv -o results --protocol emap      (results/summary.md)
+More: docs/evaluation.md."
+)]
 pub struct EvalArgs {
     #[command(flatten)]
     pub input: InputArgs,
@@ -237,21 +245,11 @@ fn ground_truth(a: &EvalArgs) -> Result<Option<Reference>> {
         }
         g.edges(a.gt_lines_only)
     } else if let Some(p) = &a.gt {
-        if is_point_ply(p)? {
-            let cloud = io::read_gaussians(p, &Default::default())?;
-            let pts = cloud
-                .centers
-                .iter()
-                .map(|c| c.map(f64::from).into())
-                .collect();
-            GtEdges::from_points(pts)
-        } else {
-            let f = io::read_lines(p)?;
-            for w in &f.warnings {
-                eprintln!("warning: {w}");
-            }
-            GtEdges::from_segments(&f.lines.segments)
+        let (edges, warnings) = linegs_gpu::eval::gt::read_gt_file(p)?;
+        for w in &warnings {
+            eprintln!("warning: {w}");
         }
+        edges
     } else {
         return Ok(None);
     };
@@ -259,26 +257,6 @@ fn ground_truth(a: &EvalArgs) -> Result<Option<Reference>> {
         edges,
         protocol: a.protocol,
     }))
-}
-
-/// A `.ply` whose header declares vertices and no edges: sampled GT points.
-fn is_point_ply(p: &std::path::Path) -> Result<bool> {
-    if !p.extension().is_some_and(|e| e.eq_ignore_ascii_case("ply")) {
-        return Ok(false);
-    }
-    let mut head = vec![0u8; 4096];
-    let n = std::io::Read::read(
-        &mut std::fs::File::open(p).map_err(|cause| io::Error::Io {
-            path: p.to_path_buf(),
-            action: "open",
-            cause,
-        })?,
-        &mut head,
-    )
-    .unwrap_or(0);
-    let text = String::from_utf8_lossy(&head[..n]);
-    let header = text.split("end_header").next().unwrap_or("");
-    Ok(header.contains("element vertex") && !header.contains("element edge"))
 }
 
 /// Farther than this from every GT sample, the lines are taken to be in another frame.

@@ -115,6 +115,38 @@ impl GtEdges {
     }
 }
 
+/// Reads a ground-truth file: edges in any line format, or a `.ply` whose header declares
+/// vertices and no edges (sampled GT points, EMAP / EdgeGaussians `*_0.005.ply`). Also
+/// returns the reader's warnings.
+pub fn read_gt_file(path: &std::path::Path) -> Result<(GtEdges, Vec<String>), crate::io::Error> {
+    let is_ply = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("ply"));
+    if is_ply {
+        let mut head = vec![0u8; 4096];
+        let n = std::fs::File::open(path)
+            .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+            .map_err(|cause| crate::io::Error::Io {
+                path: path.to_path_buf(),
+                action: "read",
+                cause,
+            })?;
+        let text = String::from_utf8_lossy(&head[..n]);
+        let header = text.split("end_header").next().unwrap_or("");
+        if header.contains("element vertex") && !header.contains("element edge") {
+            let cloud = crate::io::read_gaussians(path, &Default::default())?;
+            let pts = cloud
+                .centers
+                .iter()
+                .map(|c| c.map(f64::from).into())
+                .collect();
+            return Ok((GtEdges::from_points(pts), Vec::new()));
+        }
+    }
+    let f = crate::io::read_lines(path)?;
+    Ok((GtEdges::from_segments(&f.lines.segments), f.warnings))
+}
+
 /// The ground truth and the protocol to score against it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Reference {
