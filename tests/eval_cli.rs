@@ -238,6 +238,7 @@ fn help_explains_both_protocols() {
         "--gt-abc",
         "--abc-stats",
         "256^3",
+        "--protocol emap      (results/summary.md)",
     ] {
         assert!(h.contains(needle), "`{needle}` not in --help");
     }
