@@ -264,6 +264,8 @@ pub struct BatchOptions {
     pub skip_existing: bool,
     /// Extension of the refined segments' file (`obj`, `stl`, `ply`, `txt`, `npy`).
     pub format: String,
+    /// How the manifest's `gt` edges score the lines.
+    pub protocol: crate::eval::gt::Protocol,
 }
 
 /// What happened to one scene in this run.
@@ -294,7 +296,10 @@ pub fn entry_params(e: &Entry, base: &Params) -> Params {
 fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError> {
     let scene = Scene::load(&e.gaussians, &e.lines, &LoadOptions::default())?;
     let gt = match &e.gt {
-        Some(p) => Some(io::read_lines(p)?.lines.segments),
+        Some(p) => Some(crate::eval::gt::Reference {
+            edges: crate::eval::gt::read_gt_file(p)?.0,
+            protocol: opts.protocol,
+        }),
         None => None,
     };
     let job = Job {
@@ -484,12 +489,121 @@ pub struct Summary {
     pub rows: Vec<(String, String, Vec<Option<f64>>)>,
     pub mean: Vec<Option<f64>>,
     pub finished: usize,
+    /// The ground-truth table the papers print (per-object means), when scenes have GT.
+    pub ground_truth: Option<GtTable>,
+}
+
+/// Per-object means of the ground-truth metrics, as EMAP's `eval_ABC.py` prints them:
+/// each metric averaged over the objects that have predictions (an object whose lines
+/// give no sample is left out, as there; a NaN F counts as 0).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GtTable {
+    /// `exact`, `emap`, or `mixed` when the reports disagree.
+    pub protocol: String,
+    /// Scenes with ground truth.
+    pub scenes: usize,
+    /// `(label, objects averaged, accuracy, completeness, [(P, R, F) per threshold])`
+    /// for the input and the refined lines.
+    pub rows: Vec<GtRow>,
+}
+
+pub type GtRow = (String, usize, Option<f64>, Option<f64>, Vec<[f64; 3]>);
+
+fn gt_row(label: &str, ms: &[&crate::eval::gt::GtMetrics]) -> GtRow {
+    let with: Vec<_> = ms.iter().filter(|m| m.accuracy.is_some()).collect();
+    let n = with.len();
+    let avg = |f: &dyn Fn(&crate::eval::gt::GtMetrics) -> f64| {
+        (n > 0).then(|| with.iter().map(|m| f(m)).sum::<f64>() / n as f64)
+    };
+    let acc = avg(&|m| m.accuracy.unwrap_or(0.0));
+    let comp = avg(&|m| m.completeness.unwrap_or(0.0));
+    let k = with.first().map_or(0, |m| m.scores.len());
+    let scores = (0..k)
+        .map(|i| {
+            let s = |f: fn(&crate::eval::gt::GtScore) -> f64| {
+                avg(&|m| m.scores.get(i).map_or(0.0, f)).unwrap_or(0.0)
+            };
+            [s(|x| x.precision), s(|x| x.recall), s(|x| x.f_score)]
+        })
+        .collect();
+    (label.to_string(), n, acc, comp, scores)
+}
+
+fn gt_table(reports: &[&Report]) -> Option<GtTable> {
+    let gts: Vec<_> = reports
+        .iter()
+        .filter_map(|r| r.ground_truth.as_ref())
+        .collect();
+    let first = gts.first()?;
+    let p = first.before.protocol;
+    let protocol = if gts.iter().all(|g| g.before.protocol == p) {
+        p.name().to_string()
+    } else {
+        "mixed".to_string()
+    };
+    let before: Vec<_> = gts.iter().map(|g| &g.before).collect();
+    let after: Vec<_> = gts.iter().filter_map(|g| g.after.as_ref()).collect();
+    Some(GtTable {
+        protocol,
+        scenes: gts.len(),
+        rows: vec![gt_row("input lines", &before), gt_row("refined", &after)],
+    })
+}
+
+impl GtTable {
+    /// The papers' table: Acc and Comp (mm under `emap`), then P / R / F in percent.
+    pub fn to_markdown(&self) -> String {
+        let emap = self.protocol == "emap";
+        let unit = if emap { "mm" } else { "lines' units" };
+        let mut s = format!(
+            "\nGround truth, {} protocol: per-object means over the scenes whose lines give \
+             samples (of {} with ground truth); accuracy and completeness in {unit}, \
+             precision / recall / F in percent at {}.\n\n",
+            self.protocol,
+            self.scenes,
+            if emap {
+                "5 / 10 / 20 mm"
+            } else {
+                "0.005 / 0.01 / 0.02"
+            }
+        );
+        s.push_str(
+            "| lines | objects | Acc | Comp | P5 | R5 | F5 | P10 | R10 | F10 | P20 | R20 | F20 |\n",
+        );
+        s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+        let scale = if emap { 1000.0 } else { 1.0 };
+        let prec = if emap { 2 } else { 5 };
+        for (label, n, acc, comp, scores) in &self.rows {
+            let _ = write!(
+                s,
+                "| {label} | {n} | {} | {} |",
+                num(acc.map(|x| x * scale), prec),
+                num(comp.map(|x| x * scale), prec)
+            );
+            for prf in scores {
+                for x in prf {
+                    let _ = write!(s, " {:.1} |", 100.0 * x);
+                }
+            }
+            s.push('\n');
+        }
+        s
+    }
 }
 
 pub fn summarize(m: &Manifest, outdir: &Path) -> Summary {
     let columns = value_columns();
     let mut rows = Vec::new();
-    for (name, state) in collect(m, outdir) {
+    let states = collect(m, outdir);
+    let reports: Vec<&Report> = states
+        .iter()
+        .filter_map(|(_, st)| match st {
+            Finished::Ok(r) => Some(&**r),
+            _ => None,
+        })
+        .collect();
+    let ground_truth = gt_table(&reports);
+    for (name, state) in states.iter().cloned() {
         let (status, values) = match state {
             Finished::Ok(r) => ("ok".to_string(), row_values(&r)),
             Finished::Failed(msg) => (
@@ -520,6 +634,7 @@ pub fn summarize(m: &Manifest, outdir: &Path) -> Summary {
         rows,
         mean,
         finished,
+        ground_truth,
     }
 }
 
@@ -607,6 +722,9 @@ impl Summary {
             self.finished,
             self.rows.len()
         );
+        if let Some(g) = &self.ground_truth {
+            s.push_str(&g.to_markdown());
+        }
         s
     }
 }

@@ -492,8 +492,9 @@ pub struct Job {
     pub backend: Backend,
     /// The paper's radius sweep: metrics at each of these radii, before and after.
     pub sweep: Option<Vec<f64>>,
-    /// Ground-truth edges for the ABC-NEF metrics (same frame as the lines).
-    pub gt: Option<Vec<Segment>>,
+    /// Ground-truth edges and the protocol of the ABC-NEF metrics (same frame as the
+    /// lines).
+    pub gt: Option<gt::Reference>,
     /// Check that the lines and the Gaussians share a frame ([`crate::frames`]): `refine`
     /// stops with [`RunError::FrameMismatch`] when (almost) no segment has a Gaussian center
     /// within `r`; `evaluate` adds a warning to the report.
@@ -643,13 +644,8 @@ impl Job {
             Some(&out.lines.segments),
         )?;
         let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
-            before: gt::gt_metrics(&scene.lines.segments, g, gt::STEP, &gt::THRESHOLDS),
-            after: Some(gt::gt_metrics(
-                &out.lines.segments,
-                g,
-                gt::STEP,
-                &gt::THRESHOLDS,
-            )),
+            before: g.measure(&scene.lines.segments),
+            after: Some(g.measure(&out.lines.segments)),
         });
         let mut report = Report::new("refine", scene, &refiner, out.before);
         report.input.n_box = n_box;
@@ -703,8 +699,8 @@ impl Job {
             compare.map(|c| &c.segments[..]),
         )?;
         let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
-            before: gt::gt_metrics(&scene.lines.segments, g, gt::STEP, &gt::THRESHOLDS),
-            after: compare.map(|c| gt::gt_metrics(&c.segments, g, gt::STEP, &gt::THRESHOLDS)),
+            before: g.measure(&scene.lines.segments),
+            after: compare.map(|c| g.measure(&c.segments)),
         });
         let mut report = Report::new("eval", scene, &refiner, before);
         report.warnings.extend(mismatch);

@@ -181,6 +181,14 @@ fn write_lines(py: Python<'_>, path: PathBuf, segments_f64: &[u8]) -> PyResult<(
     .map_err(to_py)
 }
 
+/// Ground-truth segments scored with the `exact` protocol (the command line's default).
+fn exact_gt(segs: &[Segment]) -> linegs_gpu::eval::gt::Reference {
+    linegs_gpu::eval::gt::Reference {
+        edges: linegs_gpu::eval::gt::GtEdges::from_segments(segs),
+        protocol: linegs_gpu::eval::gt::Protocol::Exact,
+    }
+}
+
 /// `(bytes of K x 2 x 3 f64, report JSON)`.
 #[pyfunction]
 #[pyo3(signature = (gaussians_f32, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None))]
@@ -197,7 +205,7 @@ fn refine(
 ) -> PyResult<(Py<PyBytes>, String)> {
     let job = Job {
         sweep,
-        gt: gt_f64.map(segments),
+        gt: gt_f64.map(|g| exact_gt(&segments(g))),
         ..Job::new(params(args)?, backend(backend_name)?)
     };
     let (bytes, report) = py
@@ -226,7 +234,7 @@ fn evaluate(
 ) -> PyResult<String> {
     let job = Job {
         sweep,
-        gt: gt_f64.map(segments),
+        gt: gt_f64.map(|g| exact_gt(&segments(g))),
         ..Job::new(params(args)?, backend(backend_name)?)
     };
     py.detach(|| {

@@ -34,6 +34,10 @@ pub struct BatchArgs {
     /// Format of the refined segments: obj, stl, ply, txt or npy.
     #[arg(long, default_value = "obj")]
     pub format: String,
+    /// How the manifest's `gt` edges score the lines: `exact` (every sample, `<=`
+    /// thresholds) or `emap` (the published ABC-NEF tables' rules; see `eval --help`).
+    #[arg(long, value_enum, default_value_t = linegs_gpu::eval::gt::Protocol::Exact)]
+    pub protocol: linegs_gpu::eval::gt::Protocol,
     /// Which engine answers the cylinder queries: `auto`, `gpu` or `cpu`.
     #[arg(long, value_enum, default_value_t = Backend::Auto)]
     pub backend: Backend,
@@ -63,6 +67,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
         shard,
         skip_existing: a.skip_existing,
         format: a.format.trim_start_matches('.').to_string(),
+        protocol: a.protocol,
     };
     let mut k = 0;
     let results = batch::run(&m, &a.output, &opts, |e, st| {

@@ -78,7 +78,10 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
     let radii = vec![0.02, 0.05, 0.1, 0.2];
     let job = Job {
         sweep: Some(radii.clone()),
-        gt: Some(toy_gt.clone()),
+        gt: Some(gt::Reference {
+            edges: gt::GtEdges::from_segments(&toy_gt),
+            protocol: gt::Protocol::Exact,
+        }),
         ..Job::new(Params::default(), a.engine.backend)
     };
     let mut out = job.refine(&input, |_| {})?;

@@ -1,7 +1,9 @@
 //! The paper's metrics (docs/method.md#evaluation): E_rms, R_covered, R_L and the score, at
 //! an evaluation radius, over the working set that refinement uses.
 
+pub mod abc;
 pub mod gt;
+pub mod kdtree;
 
 use crate::engine::{Ask, Engine, EngineError, Query, Want};
 use crate::geom::Segment;
