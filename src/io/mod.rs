@@ -33,7 +33,7 @@ pub use lines::{
     parse_lines, parse_lines_with, read_lines, read_lines_with, LineFile, LineFormat, LineOptions,
 };
 pub use normals::{read_gaussian_attributes, read_gaussian_normals, GaussianAttributes};
-pub use output::OutputSet;
+pub use output::{same_file, OutputSet};
 pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
 pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};
