@@ -459,6 +459,35 @@ fn no_output_may_replace_an_input_or_another_output() {
     assert_eq!(after, before, "every file as it was, nothing added");
 }
 
+/// Every file a run reads is an input: the `--gaussians-transform` too, and the folder of
+/// a LIMAP `finaltracks/` input may not receive an output.
+#[test]
+fn the_transform_and_an_input_folder_are_protected_from_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let t = file(dir.path(), "t.txt", b"1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n");
+    let report = file(dir.path(), "t.json", b"{}");
+    let o_obj = dir.path().join("o.obj");
+    let before = snapshot(dir.path());
+    let o = refine(&g, &l, &[&t, &t], &["-o", "--gaussians-transform"]);
+    assert_exit_2(&o, "t.txt", "-o is the input");
+    let o = refine(
+        &g,
+        &l,
+        &[&o_obj, &report, &report],
+        &["-o", "--report", "--gaussians-transform"],
+    );
+    assert_exit_2(&o, "t.json", "--report is the input");
+    assert_eq!(snapshot(dir.path()), before);
+    let tracks = dir.path().join("finaltracks");
+    std::fs::create_dir(&tracks).unwrap();
+    std::fs::write(tracks.join("track_0.txt"), "").unwrap();
+    let inside = tracks.join("track_1.txt");
+    let o = refine(&g, &tracks, &[&inside], &["-o"]);
+    assert_exit_2(&o, "track_1.txt", "inside the input folder");
+    assert!(!inside.exists());
+}
+
 #[test]
 fn a_run_whose_last_output_cannot_be_written_fails_before_any_work_and_keeps_every_file() {
     let dir = tempfile::tempdir().unwrap();

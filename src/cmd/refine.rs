@@ -37,7 +37,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         report: a.report.clone(),
         compare_ply: a.compare_ply.clone(),
     };
-    outputs.check(&[&a.input.gaussians, &a.input.lines])?;
+    outputs.check(&a.input.paths())?;
     let scene = load(&a.input)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {

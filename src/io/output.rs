@@ -199,6 +199,20 @@ impl OutputSet {
                     ),
                 ));
             }
+            let parent = std::fs::canonicalize(dir).ok();
+            if let Some(input) = self
+                .inputs
+                .iter()
+                .find(|i| i.is_dir() && parent.is_some() && std::fs::canonicalize(i).ok() == parent)
+            {
+                return Err(refuse(
+                    path,
+                    format!(
+                        "{option} is inside the input folder `{}`; writing there would change the input",
+                        input.display()
+                    ),
+                ));
+            }
             if let Some((other, p, _)) = seen.iter().find(|(_, _, i)| i.same(&id)) {
                 return Err(refuse(
                     path,
