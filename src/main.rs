@@ -2,6 +2,7 @@
 //! library.
 
 mod cmd;
+mod oom;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -103,6 +104,9 @@ fn quiet_stdio_errors() {
         std::process::exit(1);
     }));
 }
+
+#[global_allocator]
+static ALLOCATOR: oom::Checked = oom::Checked;
 
 fn main() -> ExitCode {
     quiet_stdio_errors();

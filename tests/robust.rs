@@ -713,3 +713,52 @@ fn a_segment_flung_to_1000_1000_1000_leaves_the_others_results_alone() {
     let changed = near.iter().filter(|s| !with_far.contains(s)).count();
     assert!(changed <= 1, "{changed} of {} segments changed", near.len());
 }
+
+// ----------------------------------------------------------------------------- memory
+
+/// `linegs-gpu args` under a virtual memory limit of `kb`.
+#[cfg(unix)]
+fn run_limited(kb: u64, args: &[&str]) -> Output {
+    Command::new("sh")
+        .arg("-c")
+        .arg(format!("ulimit -v {kb} && exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_linegs-gpu"))
+        .args(args)
+        .env("RAYON_NUM_THREADS", "2")
+        .output()
+        .unwrap()
+}
+
+/// Running out of memory is one line naming what did not fit and what to try, exit 1;
+/// not Rust's abort (SIGABRT, "memory allocation of N bytes failed").
+#[cfg(unix)]
+#[test]
+fn out_of_memory_names_what_did_not_fit_and_a_hint() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let png = dir.path().join("r.png");
+    let o = run_limited(
+        700_000,
+        &[
+            "render",
+            "-g",
+            g.to_str().unwrap(),
+            "-l",
+            l.to_str().unwrap(),
+            "-o",
+            png.to_str().unwrap(),
+            "--width",
+            "16384",
+            "--height",
+            "16384",
+        ],
+    );
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert_eq!(
+        e.trim_end(),
+        "error: out of memory: 1024.0 MiB more did not fit while drawing a 16384 x 16384 \
+         picture; give a smaller --width and --height"
+    );
+    assert!(!png.exists());
+}

@@ -157,6 +157,14 @@ pub fn outputs(a: &InputArgs) -> io::OutputSet {
 /// Reads the scene and prints what loading it found.
 
 pub fn load(a: &InputArgs) -> Result<Scene> {
+    crate::oom::doing(
+        format!(
+            "reading {} and {}",
+            a.gaussians.display(),
+            a.lines.display()
+        ),
+        "the model is held in memory whole: free memory or raise the limit (ulimit -v)",
+    );
     let scene = Scene::load(&a.gaussians, &a.lines, &a.load_options()?)?;
     for w in &scene.warnings {
         eprintln!("warning: {w}");
