@@ -103,7 +103,14 @@ impl Manifest {
     /// blank lines and lines starting with `#` are skipped. Paths are relative to the
     /// manifest's folder. Names must be unique and usable as folder names.
     pub fn read(path: &Path) -> Result<Manifest, RunError> {
-        let text = std::fs::read_to_string(path).map_err(|e| io::Error::io(path, "read", e))?;
+        let bytes = io::read_small(path, "a manifest", 256 << 20, false)?;
+        let text = String::from_utf8(bytes).map_err(|_| {
+            io::Error::parse(
+                path,
+                Position::Line(1),
+                "a manifest is UTF-8 text".to_string(),
+            )
+        })?;
         let bad = |line: usize, msg: String| -> RunError {
             io::Error::parse(path, Position::Line(line), msg).into()
         };

@@ -95,6 +95,10 @@ pub struct LoadOptions {
 
 /// Reads a Gaussian model with `opts` (checked first).
 pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianCloud, RunError> {
+    Ok(io::read_gaussians(path, &ply_options(opts)?)?)
+}
+
+fn ply_options(opts: &LoadOptions) -> Result<PlyOptions, RunError> {
     if let Some(o) = opts.min_opacity {
         if !(0.0..=1.0).contains(&o) {
             return Err(RunError::Input(format!(
@@ -102,13 +106,10 @@ pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianClo
             )));
         }
     }
-    Ok(io::read_gaussians(
-        path,
-        &PlyOptions {
-            min_opacity: opts.min_opacity,
-            strict: opts.strict,
-        },
-    )?)
+    Ok(PlyOptions {
+        min_opacity: opts.min_opacity,
+        strict: opts.strict,
+    })
 }
 
 /// The Gaussian centers and the line segments of one scene, in memory, with what loading
@@ -140,11 +141,10 @@ impl Scene {
     /// Reads the Gaussians (`point_cloud.ply` or any format of SPEC 6) and the lines.
     pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
         let t = Instant::now();
-        let mut cloud = read_gaussians(gaussians, opts)?;
         // Normals for the edge fit (PLY with rotations and scales). A frame transform
         // would have to turn them too: with one, the edge fit uses the centers only.
-        let attrs = io::read_gaussian_attributes(gaussians, opts.min_opacity)?
-            .filter(|a| a.normals.len() == cloud.centers.len());
+        let (mut cloud, attrs) = io::read_gaussians_and_attributes(gaussians, &ply_options(opts)?)?;
+        let attrs = attrs.filter(|a| a.normals.len() == cloud.centers.len());
         let (normals, max_scale, opacity) = match attrs {
             // Opacities do not depend on the frame; normals would have to turn and scales
             // to scale with it: with a transform only the opacities are used.

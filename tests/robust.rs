@@ -316,6 +316,113 @@ fn a_fifo_is_read_once_by_info_and_by_the_readers() {
     writer.join().unwrap();
 }
 
+/// A 3DGS model (with rotations and scales, whose attributes the edge fit reads) from a
+/// pipe: read once, not opened a second time for the attributes.
+#[cfg(unix)]
+#[test]
+fn refine_reads_a_model_from_a_pipe_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = (dir.path().join("g.ply"), dir.path().join("l.txt"));
+    let o = run(&[
+        "synth",
+        "toy",
+        "-o",
+        g.to_str().unwrap(),
+        "--lines-out",
+        l.to_str().unwrap(),
+        "-n",
+        "3000",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let f = dir.path().join("g.fifo");
+    let writer = fifo(&f, std::fs::read(&g).unwrap());
+    let out = dir.path().join("o.obj");
+    let o = run_bounded(&[
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        f.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    writer.join().unwrap();
+    // The same result as from the file.
+    let out2 = dir.path().join("o2.obj");
+    let o = run(&[
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        g.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+        "-o",
+        out2.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(&out).unwrap(), std::fs::read(&out2).unwrap());
+}
+
+/// Inputs beyond the model and the lines get the same checks: a device or a pipe inside a
+/// LIMAP folder, a device as the transform or the manifest, are refused without reading.
+#[cfg(unix)]
+#[test]
+fn folder_members_transforms_and_manifests_are_checked_like_the_main_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let tracks = dir.path().join("finaltracks");
+    std::fs::create_dir(&tracks).unwrap();
+    let track = "0 0 0 1 0 0 \n1 1\nimage_id_list 0 \nline_id_list 7 \nline2d_list\n10.5 20.5 30.5 40.5 \nEND\n";
+    std::fs::write(tracks.join("track_0.txt"), track).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", tracks.join("track_1.txt")).unwrap();
+    let t = tracks.to_str().unwrap();
+    let o = run_bounded(&["info", t]);
+    assert_exit_2(&o, "track_1.txt", "is a device");
+    std::fs::remove_file(tracks.join("track_1.txt")).unwrap();
+    let ok = Command::new("mkfifo")
+        .arg(tracks.join("track_1.txt"))
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    let o = run_bounded(&["info", t]);
+    assert_exit_2(&o, "track_1.txt", "is a pipe, not a file");
+    std::fs::remove_file(tracks.join("track_1.txt")).unwrap();
+    // Two files of one id: refused, not both read with an underflowed warning.
+    std::fs::write(tracks.join("track_1.txt"), track).unwrap();
+    std::fs::write(tracks.join("track_01.txt"), track).unwrap();
+    let o = run_bounded(&["info", t]);
+    assert_exit_2(&o, "track_1.txt", "holds track 1 like `track_01.txt`");
+    assert!(!stderr(&o).contains("18446744073709551615"));
+
+    let (g, l) = scene(dir.path());
+    let out = dir.path().join("o.obj");
+    let o = run_bounded(&[
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        g.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--gaussians-transform",
+        "/dev/zero",
+    ]);
+    assert_exit_2(&o, "/dev/zero", "is a device");
+    let o = run_bounded(&[
+        "batch",
+        "/dev/zero",
+        "-o",
+        dir.path().join("b").to_str().unwrap(),
+    ]);
+    assert_exit_2(&o, "/dev/zero", "is a device");
+    assert!(!out.exists() && !dir.path().join("b").exists());
+}
+
 #[test]
 fn a_ply_with_a_byte_order_mark_is_the_same_model_to_info_and_to_eval() {
     let dir = tempfile::tempdir().unwrap();
