@@ -374,6 +374,29 @@ impl Drop for SceneLock {
     }
 }
 
+/// An exclusive `flock` on `file` without waiting: `Ok(false)` when another process holds
+/// it. (Elsewhere than Unix, always `Ok(true)`: no lock.)
+fn try_lock(file: &std::fs::File) -> std::io::Result<bool> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a file descriptor this function borrows for the call.
+        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+            return Ok(true);
+        }
+        let e = std::io::Error::last_os_error();
+        if e.kind() == std::io::ErrorKind::WouldBlock {
+            return Ok(false);
+        }
+        Err(e)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = file;
+        Ok(true)
+    }
+}
+
 /// Takes the lock of `dir` (created if missing), or `None` when another run holds it.
 fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
     let path = dir.join(LOCK_NAME);
@@ -384,12 +407,10 @@ fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
             .write(true)
             .open(&path)
             .map_err(|e| io::Error::io(&path, "create", e))?;
-        match file.try_lock() {
-            Ok(()) => {}
-            Err(std::fs::TryLockError::WouldBlock) => return Ok(None),
-            Err(std::fs::TryLockError::Error(e)) => {
-                return Err(io::Error::io(&path, "lock", e).into())
-            }
+        match try_lock(&file) {
+            Ok(true) => {}
+            Ok(false) => return Ok(None),
+            Err(e) => return Err(io::Error::io(&path, "lock", e).into()),
         }
         // The holder before us may have removed the file after we opened it: the lock is
         // ours only if the path still names the file we locked.

@@ -301,6 +301,7 @@ fn an_input_named_like_an_output_of_batch_is_refused_not_overwritten() {
 }
 
 /// A scene another `batch` is working on (its lock held) is left alone, and said so.
+#[cfg(unix)]
 #[test]
 fn a_scene_locked_by_another_batch_is_left_to_it() {
     let dir = tempfile::tempdir().unwrap();
@@ -308,7 +309,12 @@ fn a_scene_locked_by_another_batch_is_left_to_it() {
     let out = dir.path().join("out");
     std::fs::create_dir_all(out.join("first")).unwrap();
     let lock = std::fs::File::create(out.join("first/.linegs-batch.lock")).unwrap();
-    lock.try_lock().unwrap();
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a descriptor that `lock` owns.
+        let r = unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        assert_eq!(r, 0);
+    }
     let o = run(
         &[
             "batch",

@@ -155,7 +155,6 @@ pub fn outputs(a: &InputArgs) -> io::OutputSet {
 }
 
 /// Reads the scene and prints what loading it found.
-
 pub fn load(a: &InputArgs) -> Result<Scene> {
     crate::oom::doing(
         format!(
