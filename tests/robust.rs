@@ -869,3 +869,42 @@ fn out_of_memory_names_what_did_not_fit_and_a_hint() {
     );
     assert!(!png.exists());
 }
+
+// ----------------------------------------------------------------------------- results
+
+/// A scene 1e7 from the origin, where the f32 centers collapse the refined segments to
+/// zero length: no file the readers reject is written; the error says why and what to do.
+#[test]
+fn a_result_no_reader_accepts_is_refused_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let off = 1e7;
+    let mut g = String::from("ply\nformat ascii 1.0\nelement vertex 400\nproperty float x\nproperty float y\nproperty float z\nend_header\n");
+    for i in 0..200 {
+        let t = i as f64 / 200.0;
+        g.push_str(&format!(
+            "{} {off} {off}\n{off} {} {off}\n",
+            off + t,
+            off + t
+        ));
+    }
+    let g = file(dir.path(), "far.ply", g.as_bytes());
+    let l = file(
+        dir.path(),
+        "far.txt",
+        format!(
+            "{off} {off} {off} {} {off} {off}\n{off} {off} {off} {off} {} {off}\n",
+            off + 1.0,
+            off + 1.0
+        )
+        .as_bytes(),
+    );
+    let out = dir.path().join("o.obj");
+    let o = refine(&g, &l, &[&out], &["-o"]);
+    assert_exit_2(&o, "", "no segment is left after refinement");
+    let e = stderr(&o);
+    assert!(
+        e.contains("1.000e7 from the origin") && e.contains("recentre"),
+        "{e}"
+    );
+    assert!(!out.exists());
+}
