@@ -172,6 +172,26 @@ impl Manifest {
                     format!("scene name `{name}` is already used on line {}", prev.line),
                 ));
             }
+            // Folders `S1` and `s1` are one folder on case-insensitive file systems.
+            if let Some(prev) = entries
+                .iter()
+                .find(|e| e.name.to_lowercase() == name.to_lowercase())
+            {
+                return Err(bad(
+                    line,
+                    format!(
+                        "scene name `{name}` differs from `{}` on line {} only in case, and \
+                         their folders would be one on a case-insensitive file system",
+                        prev.name, prev.line
+                    ),
+                ));
+            }
+            if name.eq_ignore_ascii_case("mean") {
+                return Err(bad(
+                    line,
+                    "scene name `mean` is the summary's row of the mean; rename the scene".into(),
+                ));
+            }
             let radius = get(4)
                 .map(|s| s.parse::<RadiusArg>())
                 .transpose()
@@ -736,6 +756,8 @@ impl Summary {
         );
         let mean = ("**mean**".to_string(), "ok".to_string(), self.mean.clone());
         for (name, status, v) in self.rows.iter().chain(std::iter::once(&mean)) {
+            // A `|` would end the table cell.
+            let (name, status) = (name.replace('|', "\\|"), status.replace('|', "\\|"));
             if status != "ok" {
                 let _ = writeln!(s, "| {name} | {status} | | | | | | |");
                 continue;
@@ -856,6 +878,14 @@ mod tests {
                 "radius: expected a positive number",
             ),
             ("name,gaussians,lines\n", "lists no scene"),
+            (
+                "name,gaussians,lines\nS1,g,l\ns1,g,l\n",
+                "line 3: scene name `s1` differs from `S1` on line 2 only in case",
+            ),
+            (
+                "name,gaussians,lines\nMean,g,l\n",
+                "`mean` is the summary's row",
+            ),
             ("", "empty"),
         ] {
             std::fs::write(&p, text).unwrap();
@@ -867,6 +897,16 @@ mod tests {
                 "{text:?}: {msg}"
             );
         }
+    }
+
+    #[test]
+    fn a_bar_in_a_scene_name_stays_in_its_cell_of_summary_md() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.csv");
+        std::fs::write(&p, "name,gaussians,lines\na|b,g,l\n").unwrap();
+        let m = Manifest::read(&p).unwrap();
+        let md = summarize(&m, dir.path()).to_markdown();
+        assert!(md.contains("| a\\|b | pending | | | | | | |\n"), "{md}");
     }
 
     #[test]
