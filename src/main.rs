@@ -55,7 +55,7 @@ enum Command {
 
 /// Mesa's Vulkan drivers (lavapipe included) probe for a Wayland display while the loader
 /// starts them, and libwayland prints `error: XDG_RUNTIME_DIR is invalid or not set in the
-/// environment.` when the variable is missing (containers, ssh sessions, CI) — on runs that
+/// environment.` when the variable is missing (containers, ssh logins, CI) — on runs that
 /// then succeed, so a new user's first sight is an "error". When it is unset or names no
 /// folder, we point it at a private folder of our own (created 0700, as the XDG base
 /// directory spec requires, and removed at exit): the probe then finds no display and
