@@ -3,8 +3,11 @@
 //! task), and a summary of every finished scene in the columns of the paper's Table I.
 //!
 //! Layout of `OUTDIR`: `<name>/refined.<ext>` and `<name>/report.json` for a finished
-//! scene, `<name>/error.txt` for a failed one; each folder appears whole (built under a
-//! temporary name, then renamed). `summary.csv` and `summary.md` are rewritten from the
+//! scene, `<name>/error.txt` for a failed one. These are the only files `batch` writes or
+//! removes in a scene's folder, so the folder may also hold the scene's inputs (`-o .`
+//! with inputs in `./<name>/`) or anything else; each is written atomically, and a lock
+//! file (`<name>/.linegs-batch.lock`, removed afterwards) keeps two runs from working on
+//! one scene at the same time. `summary.csv` and `summary.md` are rewritten from the
 //! folders after every run, so the last shard to finish (or a rerun with
 //! `--skip-existing`) leaves the summary of the whole dataset.
 
@@ -100,7 +103,14 @@ impl Manifest {
     /// blank lines and lines starting with `#` are skipped. Paths are relative to the
     /// manifest's folder. Names must be unique and usable as folder names.
     pub fn read(path: &Path) -> Result<Manifest, RunError> {
-        let text = std::fs::read_to_string(path).map_err(|e| io::Error::io(path, "read", e))?;
+        let bytes = io::read_small(path, "a manifest", 256 << 20, false)?;
+        let text = String::from_utf8(bytes).map_err(|_| {
+            io::Error::parse(
+                path,
+                Position::Line(1),
+                "a manifest is UTF-8 text".to_string(),
+            )
+        })?;
         let bad = |line: usize, msg: String| -> RunError {
             io::Error::parse(path, Position::Line(line), msg).into()
         };
@@ -160,6 +170,26 @@ impl Manifest {
                 return Err(bad(
                     line,
                     format!("scene name `{name}` is already used on line {}", prev.line),
+                ));
+            }
+            // Folders `S1` and `s1` are one folder on case-insensitive file systems.
+            if let Some(prev) = entries
+                .iter()
+                .find(|e| e.name.to_lowercase() == name.to_lowercase())
+            {
+                return Err(bad(
+                    line,
+                    format!(
+                        "scene name `{name}` differs from `{}` on line {} only in case, and \
+                         their folders would be one on a case-insensitive file system",
+                        prev.name, prev.line
+                    ),
+                ));
+            }
+            if name.eq_ignore_ascii_case("mean") {
+                return Err(bad(
+                    line,
+                    "scene name `mean` is the summary's row of the mean; rename the scene".into(),
                 ));
             }
             let radius = get(4)
@@ -271,8 +301,12 @@ pub struct BatchOptions {
 /// What happened to one scene in this run.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Status {
-    Done { seconds: f64 },
+    Done {
+        seconds: f64,
+    },
     Skipped,
+    /// Another `batch` holds the scene's lock (it is working on it now).
+    Busy,
     Failed(String),
 }
 
@@ -293,7 +327,31 @@ pub fn entry_params(e: &Entry, base: &Params) -> Params {
     p
 }
 
+/// The files `batch` writes in a scene's folder: the refined segments, the report, the
+/// error of a failed scene. Nothing else in the folder is touched.
+fn owned_files(dir: &Path, format: &str) -> [PathBuf; 3] {
+    [
+        dir.join(format!("refined.{format}")),
+        dir.join("report.json"),
+        dir.join("error.txt"),
+    ]
+}
+
+/// The files of `e` the run reads, which no file of the run may replace.
+fn entry_inputs(e: &Entry) -> Vec<&Path> {
+    let mut v = vec![e.gaussians.as_path(), e.lines.as_path()];
+    v.extend(e.gt.as_deref());
+    v
+}
+
 fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError> {
+    let [refined, report, _] = owned_files(dir, &opts.format);
+    let outputs = Outputs {
+        lines: refined,
+        report: Some(report),
+        compare_ply: None,
+    };
+    outputs.check(&entry_inputs(e))?;
     let scene = Scene::load(&e.gaussians, &e.lines, &LoadOptions::default())?;
     let gt = match &e.gt {
         Some(p) => Some(crate::eval::gt::Reference {
@@ -307,43 +365,173 @@ fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError>
         ..Job::new(entry_params(e, &opts.params), opts.backend)
     };
     let mut out = job.refine(&scene, |_| {})?;
-    Outputs {
-        lines: dir.join(format!("refined.{}", opts.format)),
-        report: Some(dir.join("report.json")),
-        compare_ply: None,
-    }
-    .write(&scene.lines, &mut out)
+    outputs.write(&scene.lines, &mut out)
 }
 
-/// Builds `<outdir>/<name>` under a temporary name with `fill`, then swaps it in, so the
-/// folder is never seen half written.
-fn commit_dir(
-    outdir: &Path,
-    name: &str,
-    fill: impl FnOnce(&Path) -> Result<(), RunError>,
-) -> Result<(), RunError> {
-    let tmp = tempfile::Builder::new()
-        .prefix(&format!(".{name}.partial-"))
-        .tempdir_in(outdir)
-        .map_err(|e| io::Error::io(outdir, "create a folder in", e))?;
-    fill(tmp.path())?;
-    let dst = scene_dir(outdir, name);
-    let old = outdir.join(format!(".{name}.old-{}", std::process::id()));
-    let had_old = dst.exists();
-    if had_old {
-        std::fs::rename(&dst, &old).map_err(|e| io::Error::io(&dst, "move aside", e))?;
+/// Removes `path` if it exists and is not one of `inputs`.
+fn remove_owned(path: &Path, inputs: &[&Path]) -> Result<(), RunError> {
+    if inputs.iter().any(|i| io::same_file(path, i)) {
+        return Ok(());
     }
-    let tmp = tmp.keep();
-    std::fs::rename(&tmp, &dst).map_err(|e| io::Error::io(&dst, "create", e))?;
-    if had_old {
-        let _ = std::fs::remove_dir_all(&old);
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(io::Error::io(path, "remove the earlier", e).into())
+        }
+        _ => Ok(()),
     }
-    Ok(())
+}
+
+/// Name of the lock file in a scene's folder, held while a run works on the scene.
+pub const LOCK_NAME: &str = ".linegs-batch.lock";
+
+/// The lock of one scene's folder: while it is held, no other `batch` works on the scene.
+/// Dropping it removes the lock file.
+struct SceneLock {
+    path: PathBuf,
+    _file: std::fs::File,
+}
+
+impl Drop for SceneLock {
+    fn drop(&mut self) {
+        // Removed while still locked, so a run that opened it meanwhile sees a stale inode
+        // and opens the new file instead (see `lock_scene`).
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// An exclusive `flock` on `file` without waiting: `Ok(false)` when another process holds
+/// it. (Elsewhere than Unix, always `Ok(true)`: no lock.)
+fn try_lock(file: &std::fs::File) -> std::io::Result<bool> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a file descriptor this function borrows for the call.
+        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+            return Ok(true);
+        }
+        let e = std::io::Error::last_os_error();
+        if e.kind() == std::io::ErrorKind::WouldBlock {
+            return Ok(false);
+        }
+        Err(e)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = file;
+        Ok(true)
+    }
+}
+
+/// Takes the lock of `dir` (created if missing), or `None` when another run holds it.
+fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
+    let path = dir.join(LOCK_NAME);
+    loop {
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&path)
+            .map_err(|e| io::Error::io(&path, "create", e))?;
+        match try_lock(&file) {
+            Ok(true) => {}
+            Ok(false) => return Ok(None),
+            Err(e) => return Err(io::Error::io(&path, "lock", e).into()),
+        }
+        // The holder before us may have removed the file after we opened it: the lock is
+        // ours only if the path still names the file we locked.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::MetadataExt;
+            let (Ok(a), Ok(b)) = (file.metadata(), std::fs::metadata(&path)) else {
+                continue;
+            };
+            if (a.dev(), a.ino()) != (b.dev(), b.ino()) {
+                continue;
+            }
+        }
+        return Ok(Some(SceneLock { path, _file: file }));
+    }
+}
+
+/// Removes what killed runs of `batch` left for scene `name`: the temporary files of its
+/// owned outputs in its folder (`.linegs-XXXXXX.tmp`, `.linegs-XXXXXX.<ext>`) and the
+/// `.NAME.partial-*` / `.NAME.old-*` folders that earlier versions built scenes in. Called
+/// with the scene's lock held, so no live run owns them.
+fn clean_litter(outdir: &Path, name: &str, dir: &Path, format: &str) {
+    let ours = |f: &str| {
+        let Some(rest) = f.strip_prefix(".linegs-") else {
+            return false;
+        };
+        let tail = rest.get(6..).unwrap_or("");
+        rest.len() > 6
+            && rest.as_bytes()[..6].iter().all(u8::is_ascii_alphanumeric)
+            && [".tmp", ".json", ".txt", &format!(".{format}")].contains(&tail)
+    };
+    if let Ok(rd) = std::fs::read_dir(dir) {
+        for d in rd.flatten() {
+            let f = d.file_name();
+            if ours(&f.to_string_lossy()) && d.file_type().is_ok_and(|t| t.is_file()) {
+                let _ = std::fs::remove_file(d.path());
+            }
+        }
+    }
+    let (partial, old) = (format!(".{name}.partial-"), format!(".{name}.old-"));
+    if let Ok(rd) = std::fs::read_dir(outdir) {
+        for d in rd.flatten() {
+            let f = d.file_name().to_string_lossy().into_owned();
+            if (f.starts_with(&partial) || f.starts_with(&old))
+                && d.file_type().is_ok_and(|t| t.is_dir())
+            {
+                let _ = std::fs::remove_dir_all(d.path());
+            }
+        }
+    }
+}
+
+/// Runs scene `e` into its folder, which may hold other files (the scene's own inputs, a
+/// user's notes): only the owned files are written, each atomically, and the one that
+/// does not apply to the outcome (`error.txt` after a success, the report and refined
+/// segments after a failure) is removed. `None` when another run holds the scene.
+fn run_locked(e: &Entry, opts: &BatchOptions, outdir: &Path) -> Result<Option<Status>, RunError> {
+    let dir = scene_dir(outdir, &e.name);
+    std::fs::create_dir_all(&dir).map_err(|err| io::Error::io(&dir, "create", err))?;
+    let Some(_lock) = lock_scene(&dir)? else {
+        return Ok(None);
+    };
+    clean_litter(outdir, &e.name, &dir, &opts.format);
+    let [refined, report, error] = owned_files(&dir, &opts.format);
+    let inputs = entry_inputs(e);
+    let t = Instant::now();
+    Ok(Some(match run_scene(e, opts, &dir) {
+        Ok(()) => {
+            remove_owned(&error, &inputs)?;
+            Status::Done {
+                seconds: t.elapsed().as_secs_f64(),
+            }
+        }
+        Err(err) => {
+            let msg = err.to_string();
+            let mut set = io::OutputSet::new();
+            for i in &inputs {
+                set.input(i);
+            }
+            set.output("error.txt", &error, &["txt"]);
+            set.check()?;
+            set.write(&error, |p| {
+                io::write_bytes_atomic(p, format!("{msg}\n").as_bytes())
+            })?;
+            set.commit()?;
+            remove_owned(&report, &inputs)?;
+            remove_owned(&refined, &inputs)?;
+            Status::Failed(msg)
+        }
+    }))
 }
 
 /// Runs this shard's scenes of `m` into `outdir`, calling `on_scene` after each, then
 /// rewrites the summary from every finished scene. A failing scene is recorded
-/// (`<name>/error.txt`) and does not stop the others.
+/// (`<name>/error.txt`) and does not stop the others; a scene that another `batch` is
+/// working on at the same time is left to it ([`Status::Busy`]).
 pub fn run(
     m: &Manifest,
     outdir: &Path,
@@ -361,23 +549,7 @@ pub fn run(
             if opts.skip_existing && scene_dir(outdir, &e.name).join("report.json").is_file() {
                 Status::Skipped
             } else {
-                let t = Instant::now();
-                match commit_dir(outdir, &e.name, |d| run_scene(e, opts, d)) {
-                    Ok(()) => Status::Done {
-                        seconds: t.elapsed().as_secs_f64(),
-                    },
-                    Err(err) => {
-                        let msg = err.to_string();
-                        commit_dir(outdir, &e.name, |d| {
-                            io::write_bytes_atomic(
-                                &d.join("error.txt"),
-                                format!("{msg}\n").as_bytes(),
-                            )?;
-                            Ok(())
-                        })?;
-                        Status::Failed(msg)
-                    }
-                }
+                run_locked(e, opts, outdir)?.unwrap_or(Status::Busy)
             };
         on_scene(e, &status);
         done.push((e.name.clone(), status));
@@ -699,6 +871,8 @@ impl Summary {
         );
         let mean = ("**mean**".to_string(), "ok".to_string(), self.mean.clone());
         for (name, status, v) in self.rows.iter().chain(std::iter::once(&mean)) {
+            // A `|` would end the table cell.
+            let (name, status) = (name.replace('|', "\\|"), status.replace('|', "\\|"));
             if status != "ok" {
                 let _ = writeln!(s, "| {name} | {status} | | | | | | |");
                 continue;
@@ -822,6 +996,14 @@ mod tests {
                 "radius: expected a positive number",
             ),
             ("name,gaussians,lines\n", "lists no scene"),
+            (
+                "name,gaussians,lines\nS1,g,l\ns1,g,l\n",
+                "line 3: scene name `s1` differs from `S1` on line 2 only in case",
+            ),
+            (
+                "name,gaussians,lines\nMean,g,l\n",
+                "`mean` is the summary's row",
+            ),
             ("", "empty"),
         ] {
             std::fs::write(&p, text).unwrap();
@@ -833,6 +1015,16 @@ mod tests {
                 "{text:?}: {msg}"
             );
         }
+    }
+
+    #[test]
+    fn a_bar_in_a_scene_name_stays_in_its_cell_of_summary_md() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.csv");
+        std::fs::write(&p, "name,gaussians,lines\na|b,g,l\n").unwrap();
+        let m = Manifest::read(&p).unwrap();
+        let md = summarize(&m, dir.path()).to_markdown();
+        assert!(md.contains("| a\\|b | pending | | | | | | |\n"), "{md}");
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! library.
 
 mod cmd;
+mod oom;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -73,7 +74,42 @@ fn private_runtime_dir() -> Option<tempfile::TempDir> {
     Some(dir)
 }
 
+/// The exit of a process whose standard output or error could not be written (the
+/// `println!` family panics then): a closed pipe (`linegs-gpu info m.ply | head -1`) ends
+/// it quietly with 141, as a Unix tool killed by SIGPIPE; any other failure (a full disk
+/// behind `> file`, `> /dev/full`) with one line and 1. Every file a command writes is
+/// complete before it prints about it, so the files stay valid either way.
+fn quiet_stdio_errors() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let p = info.payload();
+        let msg = p
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| p.downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        let Some(rest) = msg.strip_prefix("failed printing to ") else {
+            return default(info);
+        };
+        if rest.contains("os error 32") {
+            std::process::exit(141);
+        }
+        if let Some(cause) = rest.strip_prefix("stdout: ") {
+            use std::io::Write;
+            let _ = writeln!(
+                std::io::stderr(),
+                "error: cannot write to the standard output: {cause}"
+            );
+        }
+        std::process::exit(1);
+    }));
+}
+
+#[global_allocator]
+static ALLOCATOR: oom::Checked = oom::Checked;
+
 fn main() -> ExitCode {
+    quiet_stdio_errors();
     // After parsing: clap exits the process on `--help` and usage errors, which would
     // leave the folder behind.
     let cli = Cli::parse();

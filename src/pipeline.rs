@@ -96,6 +96,10 @@ pub struct LoadOptions {
 
 /// Reads a Gaussian model with `opts` (checked first).
 pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianCloud, RunError> {
+    Ok(io::read_gaussians(path, &ply_options(opts)?)?)
+}
+
+fn ply_options(opts: &LoadOptions) -> Result<PlyOptions, RunError> {
     if let Some(o) = opts.min_opacity {
         if !(0.0..=1.0).contains(&o) {
             return Err(RunError::Input(format!(
@@ -103,13 +107,10 @@ pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianClo
             )));
         }
     }
-    Ok(io::read_gaussians(
-        path,
-        &PlyOptions {
-            min_opacity: opts.min_opacity,
-            strict: opts.strict,
-        },
-    )?)
+    Ok(PlyOptions {
+        min_opacity: opts.min_opacity,
+        strict: opts.strict,
+    })
 }
 
 /// The Gaussian centers and the line segments of one scene, in memory, with what loading
@@ -144,11 +145,10 @@ impl Scene {
     /// Reads the Gaussians (`point_cloud.ply` or any format of docs/formats.md) and the lines.
     pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
         let t = Instant::now();
-        let mut cloud = read_gaussians(gaussians, opts)?;
         // Normals for the edge fit (PLY with rotations and scales). A frame transform
         // would have to turn them too: with one, the edge fit uses the centers only.
-        let attrs = io::read_gaussian_attributes(gaussians, opts.min_opacity)?
-            .filter(|a| a.normals.len() == cloud.centers.len());
+        let (mut cloud, attrs) = io::read_gaussians_and_attributes(gaussians, &ply_options(opts)?)?;
+        let attrs = attrs.filter(|a| a.normals.len() == cloud.centers.len());
         let (normals, max_scale, min_scale, opacity) = match attrs {
             // Opacities do not depend on the frame; normals would have to turn and scales
             // to scale with it: with a transform only the opacities are used.
@@ -776,6 +776,60 @@ pub struct Outputs {
     pub compare_ply: Option<PathBuf>,
 }
 
+/// Makes `out` a result the readers accept: zero-length segments (which f64 rounding can
+/// make of a scene far from the origin, or a refinement can leave) are dropped with a
+/// warning, and a result with no segment is an error that says why, before any file is
+/// written.
+fn readable_result(input: &LineSet, out: &mut Outcome) -> Result<(), RunError> {
+    let keep: Vec<usize> = (0..out.lines.len())
+        .filter(|&k| out.lines.segments[k].is_valid())
+        .collect();
+    let (mut lo, mut hi) = (
+        glam::DVec3::splat(f64::INFINITY),
+        glam::DVec3::splat(f64::NEG_INFINITY),
+    );
+    for s in input.segments.iter().filter(|s| s.is_valid()) {
+        lo = lo.min(s.p1).min(s.p2);
+        hi = hi.max(s.p1).max(s.p2);
+    }
+    let (far, size) = (
+        lo.abs().max(hi.abs()).max_element(),
+        (hi - lo).max_element(),
+    );
+    let hint = if far.is_finite() && far > 1e5 * size.max(f64::MIN_POSITIVE) {
+        format!(
+            "; the scene lies {far:.3e} from the origin and is {size:.3e} across, where the model's f32 centers cannot resolve it: recentre the lines and the model near the origin (subtract the scene's center from both)"
+        )
+    } else {
+        String::new()
+    };
+    if keep.len() < out.lines.len() {
+        let msg = format!(
+            "{} of {} refined segments have zero length and were left out of the output{hint}",
+            out.lines.len() - keep.len(),
+            out.lines.len()
+        );
+        match &mut out.report.refine {
+            Some(steps) => steps.warnings.push(msg),
+            None => out.report.warnings.push(msg),
+        }
+        out.lines = out.lines.select(&keep);
+    }
+    if out.lines.is_empty() {
+        return Err(RunError::Input(format!(
+            "no segment is left after refinement ({} in the input){}; nothing was written",
+            input.len(),
+            if hint.is_empty() {
+                " (see the stages' counts with --verbose: the outlier step, --outlier-ratio, drops the segments with the fewest Gaussians)"
+                    .to_string()
+            } else {
+                hint
+            }
+        )));
+    }
+    Ok(())
+}
+
 /// Colours of the input and refined layers in comparison files.
 pub const BEFORE_COLOR: [u8; 3] = [220, 50, 40];
 pub const AFTER_COLOR: [u8; 3] = [30, 90, 220];
@@ -818,6 +872,7 @@ impl Outputs {
         input: &LineSet,
         out: &mut Outcome,
     ) -> Result<(), RunError> {
+        readable_result(input, out)?;
         let t = Instant::now();
         set.write(&self.lines, |p| io::write_lines(p, &out.lines.segments))?;
         if let Some(cp) = &self.compare_ply {

@@ -197,3 +197,148 @@ fn a_failing_scene_is_reported_and_the_others_finish() {
     assert!(stderr(&o).contains("bad.csv: line 1"), "{}", stderr(&o));
     assert!(!o2.exists());
 }
+
+fn names_in(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+/// The natural layout: each scene's inputs in `./<name>/` and `-o .`. The scene folders
+/// keep every file `batch` did not write, across reruns, failures and successes.
+#[test]
+fn an_output_folder_that_holds_the_inputs_keeps_every_file_batch_did_not_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    std::fs::write(
+        &m,
+        "name,gaussians,lines\ns1,s1/g.ply,s1/l.txt\ns2,s2/g.ply,s2/l.txt\n",
+    )
+    .unwrap();
+    std::fs::write(dir.path().join("s1/notes.txt"), "mine").unwrap();
+    // Litter of killed runs: a temporary of an owned output and an old-style folder.
+    std::fs::write(dir.path().join("s1/.linegs-AbC123.tmp"), "x").unwrap();
+    std::fs::create_dir(dir.path().join(".s1.partial-Xy12ab")).unwrap();
+    std::fs::write(dir.path().join(".s1.partial-Xy12ab/refined.obj"), "x").unwrap();
+    let batch = || {
+        let mut c = linegs();
+        c.current_dir(dir.path())
+            .args(["batch", "scenes.csv", "-o", ".", "--backend", "cpu"]);
+        c.output().unwrap()
+    };
+    let o = batch();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        names_in(&dir.path().join("s1")),
+        [
+            "g.ply",
+            "gt.obj",
+            "l.txt",
+            "notes.txt",
+            "refined.obj",
+            "report.json"
+        ]
+    );
+    assert!(!dir.path().join(".s1.partial-Xy12ab").exists());
+    // A rerun replaces only the owned files; a failure then swaps the report for an
+    // error, and a later success swaps it back, the inputs and notes untouched.
+    let o = batch();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let good = std::fs::read(dir.path().join("s2/l.txt")).unwrap();
+    std::fs::write(dir.path().join("s2/l.txt"), "3\n1 2 3\n").unwrap();
+    let o = batch();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert_eq!(
+        names_in(&dir.path().join("s2")),
+        ["error.txt", "g.ply", "gt.obj", "l.txt"]
+    );
+    std::fs::write(dir.path().join("s2/l.txt"), good).unwrap();
+    let o = batch();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        names_in(&dir.path().join("s2")),
+        ["g.ply", "gt.obj", "l.txt", "refined.obj", "report.json"]
+    );
+    assert_eq!(
+        std::fs::read_to_string(dir.path().join("s1/notes.txt")).unwrap(),
+        "mine"
+    );
+    assert_eq!(
+        names_in(dir.path()),
+        ["s1", "s2", "s3", "scenes.csv", "summary.csv", "summary.md"]
+    );
+}
+
+/// An input named like an owned output is never replaced or removed.
+#[test]
+fn an_input_named_like_an_output_of_batch_is_refused_not_overwritten() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    let input = dir.path().join("s1/refined.txt");
+    std::fs::rename(dir.path().join("s1/l.txt"), &input).unwrap();
+    std::fs::write(&m, "name,gaussians,lines\ns1,s1/g.ply,s1/refined.txt\n").unwrap();
+    let before = std::fs::read(&input).unwrap();
+    let o = run(
+        &[
+            "batch",
+            m.to_str().unwrap(),
+            "-o",
+            dir.path().to_str().unwrap(),
+            "--format",
+            "txt",
+            "--backend",
+            "cpu",
+        ],
+        &[],
+    );
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("is the input"), "{}", stderr(&o));
+    assert_eq!(std::fs::read(&input).unwrap(), before);
+    assert!(!dir.path().join("s1/report.json").exists());
+}
+
+/// A scene another `batch` is working on (its lock held) is left alone, and said so.
+#[cfg(unix)]
+#[test]
+fn a_scene_locked_by_another_batch_is_left_to_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    let out = dir.path().join("out");
+    std::fs::create_dir_all(out.join("first")).unwrap();
+    let lock = std::fs::File::create(out.join("first/.linegs-batch.lock")).unwrap();
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a descriptor that `lock` owns.
+        let r = unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        assert_eq!(r, 0);
+    }
+    let o = run(
+        &[
+            "batch",
+            m.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--backend",
+            "cpu",
+        ],
+        &[],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("first: skipped (another batch is working on it"),
+        "{}",
+        stdout(&o)
+    );
+    assert!(!out.join("first/report.json").exists());
+    assert!(out.join("second/report.json").is_file());
+    // The others' locks are gone after the run; the held one stays.
+    assert_eq!(
+        names_in(&out.join("second")),
+        ["refined.obj", "report.json"]
+    );
+    assert!(out.join("first/.linegs-batch.lock").exists());
+    drop(lock);
+}

@@ -809,3 +809,129 @@ fn an_input_error_while_the_device_opens_exits_2_cleanly() {
         assert!(!out.exists(), "no partial output");
     }
 }
+
+/// Options whose edge values crashed or wrote unreadable files are refused by their
+/// parser, with the range in `--help`.
+#[test]
+fn option_ranges_refuse_crashing_values_with_the_range_in_help() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let (g, l) = (g.to_str().unwrap(), l.to_str().unwrap());
+    let o_obj = dir.path().join("o.obj");
+    let out = o_obj.to_str().unwrap();
+    for (flag, value, needle) in [
+        ("--fit-min-points", "0", "0 is not in 1.."),
+        (
+            "--outlier-ratio",
+            "1e300",
+            "expected a number in [0, 1] or -1",
+        ),
+        ("--outlier-ratio", "-2", "expected a number in [0, 1] or -1"),
+    ] {
+        let o = run(&[
+            "refine",
+            "-g",
+            g,
+            "-l",
+            l,
+            "-o",
+            out,
+            "--backend",
+            "cpu",
+            flag,
+            value,
+        ]);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}: {}", stderr(&o));
+        assert!(
+            stderr(&o).contains(needle),
+            "{flag} {value}: {}",
+            stderr(&o)
+        );
+        assert!(!stderr(&o).contains("panicked") && !o_obj.exists());
+    }
+    let help = stdout(&run(&["refine", "--help"]));
+    assert!(help.contains("for a move; 1 or more"), "{help}");
+    assert!(help.contains("a ratio in [0, 1]"), "{help}");
+    let gp = dir.path().join("s.ply");
+    for (flag, value) in [
+        ("--sigma", "inf"),
+        ("--sigma", "NaN"),
+        ("--background", "2"),
+    ] {
+        let o = run(&[
+            "synth",
+            "around",
+            "--lines",
+            l,
+            "-o",
+            gp.to_str().unwrap(),
+            flag,
+            value,
+        ]);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}: {}", stderr(&o));
+        assert!(!gp.exists());
+    }
+    // The least valid value runs.
+    let o = run(&[
+        "refine",
+        "-g",
+        g,
+        "-l",
+        l,
+        "-o",
+        out,
+        "--backend",
+        "cpu",
+        "--fit-min-points",
+        "1",
+        "--outlier-ratio",
+        "-1",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+}
+
+/// A standard output that cannot be written ends the process with one line and exit 1
+/// (after a `refine` whose files were all written), a closed pipe quietly with 141.
+#[cfg(unix)]
+#[test]
+fn a_full_or_closed_standard_output_ends_quietly_with_the_right_code() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let o_obj = dir.path().join("o.obj");
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let o = linegs()
+        .args(["refine", "--backend", "cpu", "-o"])
+        .arg(&o_obj)
+        .arg("-g")
+        .arg(&g)
+        .arg("-l")
+        .arg(&l)
+        .stdout(full)
+        .output()
+        .unwrap();
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(!e.contains("panicked"), "{e}");
+    assert_eq!(
+        e.lines()
+            .filter(|l| l.starts_with("error:"))
+            .collect::<Vec<_>>(),
+        ["error: cannot write to the standard output: No space left on device (os error 28)"]
+    );
+    assert!(o_obj.is_file());
+    // A reader that has gone: the pipe is closed before `info` writes.
+    let mut child = linegs()
+        .arg("info")
+        .arg(&g)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    assert_eq!(o.status.code(), Some(141), "{}", stderr(&o));
+    assert_eq!(stderr(&o), "");
+}

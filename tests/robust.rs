@@ -316,6 +316,113 @@ fn a_fifo_is_read_once_by_info_and_by_the_readers() {
     writer.join().unwrap();
 }
 
+/// A 3DGS model (with rotations and scales, whose attributes the edge fit reads) from a
+/// pipe: read once, not opened a second time for the attributes.
+#[cfg(unix)]
+#[test]
+fn refine_reads_a_model_from_a_pipe_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = (dir.path().join("g.ply"), dir.path().join("l.txt"));
+    let o = run(&[
+        "synth",
+        "toy",
+        "-o",
+        g.to_str().unwrap(),
+        "--lines-out",
+        l.to_str().unwrap(),
+        "-n",
+        "3000",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let f = dir.path().join("g.fifo");
+    let writer = fifo(&f, std::fs::read(&g).unwrap());
+    let out = dir.path().join("o.obj");
+    let o = run_bounded(&[
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        f.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    writer.join().unwrap();
+    // The same result as from the file.
+    let out2 = dir.path().join("o2.obj");
+    let o = run(&[
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        g.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+        "-o",
+        out2.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(&out).unwrap(), std::fs::read(&out2).unwrap());
+}
+
+/// Inputs beyond the model and the lines get the same checks: a device or a pipe inside a
+/// LIMAP folder, a device as the transform or the manifest, are refused without reading.
+#[cfg(unix)]
+#[test]
+fn folder_members_transforms_and_manifests_are_checked_like_the_main_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let tracks = dir.path().join("finaltracks");
+    std::fs::create_dir(&tracks).unwrap();
+    let track = "0 0 0 1 0 0 \n1 1\nimage_id_list 0 \nline_id_list 7 \nline2d_list\n10.5 20.5 30.5 40.5 \nEND\n";
+    std::fs::write(tracks.join("track_0.txt"), track).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", tracks.join("track_1.txt")).unwrap();
+    let t = tracks.to_str().unwrap();
+    let o = run_bounded(&["info", t]);
+    assert_exit_2(&o, "track_1.txt", "is a device");
+    std::fs::remove_file(tracks.join("track_1.txt")).unwrap();
+    let ok = Command::new("mkfifo")
+        .arg(tracks.join("track_1.txt"))
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    let o = run_bounded(&["info", t]);
+    assert_exit_2(&o, "track_1.txt", "is a pipe, not a file");
+    std::fs::remove_file(tracks.join("track_1.txt")).unwrap();
+    // Two files of one id: refused, not both read with an underflowed warning.
+    std::fs::write(tracks.join("track_1.txt"), track).unwrap();
+    std::fs::write(tracks.join("track_01.txt"), track).unwrap();
+    let o = run_bounded(&["info", t]);
+    assert_exit_2(&o, "track_1.txt", "holds track 1 like `track_01.txt`");
+    assert!(!stderr(&o).contains("18446744073709551615"));
+
+    let (g, l) = scene(dir.path());
+    let out = dir.path().join("o.obj");
+    let o = run_bounded(&[
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        g.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--gaussians-transform",
+        "/dev/zero",
+    ]);
+    assert_exit_2(&o, "/dev/zero", "is a device");
+    let o = run_bounded(&[
+        "batch",
+        "/dev/zero",
+        "-o",
+        dir.path().join("b").to_str().unwrap(),
+    ]);
+    assert_exit_2(&o, "/dev/zero", "is a device");
+    assert!(!out.exists() && !dir.path().join("b").exists());
+}
+
 #[test]
 fn a_ply_with_a_byte_order_mark_is_the_same_model_to_info_and_to_eval() {
     let dir = tempfile::tempdir().unwrap();
@@ -457,6 +564,35 @@ fn no_output_may_replace_an_input_or_another_output() {
     let mut after = snapshot(dir.path());
     after.retain(|(n, _)| n != "in.json");
     assert_eq!(after, before, "every file as it was, nothing added");
+}
+
+/// Every file a run reads is an input: the `--gaussians-transform` too, and the folder of
+/// a LIMAP `finaltracks/` input may not receive an output.
+#[test]
+fn the_transform_and_an_input_folder_are_protected_from_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let t = file(dir.path(), "t.txt", b"1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n");
+    let report = file(dir.path(), "t.json", b"{}");
+    let o_obj = dir.path().join("o.obj");
+    let before = snapshot(dir.path());
+    let o = refine(&g, &l, &[&t, &t], &["-o", "--gaussians-transform"]);
+    assert_exit_2(&o, "t.txt", "-o is the input");
+    let o = refine(
+        &g,
+        &l,
+        &[&o_obj, &report, &report],
+        &["-o", "--report", "--gaussians-transform"],
+    );
+    assert_exit_2(&o, "t.json", "--report is the input");
+    assert_eq!(snapshot(dir.path()), before);
+    let tracks = dir.path().join("finaltracks");
+    std::fs::create_dir(&tracks).unwrap();
+    std::fs::write(tracks.join("track_0.txt"), "").unwrap();
+    let inside = tracks.join("track_1.txt");
+    let o = refine(&g, &tracks, &[&inside], &["-o"]);
+    assert_exit_2(&o, "track_1.txt", "inside the input folder");
+    assert!(!inside.exists());
 }
 
 #[test]
@@ -683,4 +819,92 @@ fn a_segment_flung_to_1000_1000_1000_leaves_the_others_results_alone() {
     let with_far = refined(&lf, "with_far.obj");
     let changed = near.iter().filter(|s| !with_far.contains(s)).count();
     assert!(changed <= 1, "{changed} of {} segments changed", near.len());
+}
+
+// ----------------------------------------------------------------------------- memory
+
+/// `linegs-gpu args` under a virtual memory limit of `kb`.
+#[cfg(unix)]
+fn run_limited(kb: u64, args: &[&str]) -> Output {
+    Command::new("sh")
+        .arg("-c")
+        .arg(format!("ulimit -v {kb} && exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_linegs-gpu"))
+        .args(args)
+        .env("RAYON_NUM_THREADS", "2")
+        .output()
+        .unwrap()
+}
+
+/// Running out of memory is one line naming what did not fit and what to try, exit 1;
+/// not Rust's abort (SIGABRT, "memory allocation of N bytes failed").
+#[cfg(unix)]
+#[test]
+fn out_of_memory_names_what_did_not_fit_and_a_hint() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let png = dir.path().join("r.png");
+    let o = run_limited(
+        700_000,
+        &[
+            "render",
+            "-g",
+            g.to_str().unwrap(),
+            "-l",
+            l.to_str().unwrap(),
+            "-o",
+            png.to_str().unwrap(),
+            "--width",
+            "16384",
+            "--height",
+            "16384",
+        ],
+    );
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert_eq!(
+        e.trim_end(),
+        "error: out of memory: 1024.0 MiB more did not fit while drawing a 16384 x 16384 \
+         picture; give a smaller --width and --height"
+    );
+    assert!(!png.exists());
+}
+
+// ----------------------------------------------------------------------------- results
+
+/// A scene 1e7 from the origin, where the f32 centers collapse the refined segments to
+/// zero length: no file the readers reject is written; the error says why and what to do.
+#[test]
+fn a_result_no_reader_accepts_is_refused_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let off = 1e7;
+    let mut g = String::from("ply\nformat ascii 1.0\nelement vertex 400\nproperty float x\nproperty float y\nproperty float z\nend_header\n");
+    for i in 0..200 {
+        let t = i as f64 / 200.0;
+        g.push_str(&format!(
+            "{} {off} {off}\n{off} {} {off}\n",
+            off + t,
+            off + t
+        ));
+    }
+    let g = file(dir.path(), "far.ply", g.as_bytes());
+    let l = file(
+        dir.path(),
+        "far.txt",
+        format!(
+            "{off} {off} {off} {} {off} {off}\n{off} {off} {off} {off} {} {off}\n",
+            off + 1.0,
+            off + 1.0
+        )
+        .as_bytes(),
+    );
+    let out = dir.path().join("o.obj");
+    let o = refine(&g, &l, &[&out], &["-o"]);
+    assert_exit_2(&o, "", "no segment is left after refinement");
+    let e = stderr(&o);
+    assert!(
+        e.contains("1.000e7 from the origin") && e.contains("recentre"),
+        "{e}"
+    );
+    assert!(!out.exists());
 }

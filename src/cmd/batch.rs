@@ -75,6 +75,13 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
         match st {
             Status::Done { seconds } => println!("[{k}/{mine}] {}: done in {seconds:.2} s", e.name),
             Status::Skipped => println!("[{k}/{mine}] {}: skipped (it has a report)", e.name),
+            Status::Busy => println!(
+                "[{k}/{mine}] {}: skipped (another batch is working on it: {} is locked)",
+                e.name,
+                batch::scene_dir(&a.output, &e.name)
+                    .join(batch::LOCK_NAME)
+                    .display()
+            ),
             Status::Failed(msg) => {
                 println!("[{k}/{mine}] {}: FAILED", e.name);
                 eprintln!("error: {}: {msg}", e.name);

@@ -39,6 +39,10 @@ pub fn run(a: ConvertArgs) -> Result<()> {
         false => outs.output("-o", &a.output, &io::LINE_OUTPUTS),
     };
     outs.check()?;
+    crate::oom::doing(
+        format!("converting {}", a.input.display()),
+        "the input is held in memory whole: free memory or raise the limit (ulimit -v)",
+    );
     if gaussians {
         if let Some(o) = a.min_opacity {
             if !(0.0..=1.0).contains(&o) {

@@ -136,15 +136,34 @@ impl FrameArgs {
     }
 }
 
-/// Reads the scene and prints what loading it found.
-/// An output set whose outputs may not replace the two inputs every command reads.
+impl InputArgs {
+    /// Every file these options read: the model, the lines, the `--gaussians-transform`.
+    pub fn paths(&self) -> Vec<&std::path::Path> {
+        let mut v = vec![self.gaussians.as_path(), self.lines.as_path()];
+        v.extend(self.frame.gaussians_transform.as_deref());
+        v
+    }
+}
+
+/// An output set whose outputs may not replace any file of the inputs every command reads.
 pub fn outputs(a: &InputArgs) -> io::OutputSet {
     let mut outs = io::OutputSet::new();
-    outs.input(&a.gaussians).input(&a.lines);
+    for p in a.paths() {
+        outs.input(p);
+    }
     outs
 }
 
+/// Reads the scene and prints what loading it found.
 pub fn load(a: &InputArgs) -> Result<Scene> {
+    crate::oom::doing(
+        format!(
+            "reading {} and {}",
+            a.gaussians.display(),
+            a.lines.display()
+        ),
+        "the model is held in memory whole: free memory or raise the limit (ulimit -v)",
+    );
     let scene = Scene::load(&a.gaussians, &a.lines, &a.load_options()?)?;
     for w in &scene.warnings {
         eprintln!("warning: {w}");

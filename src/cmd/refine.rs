@@ -37,7 +37,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         report: a.report.clone(),
         compare_ply: a.compare_ply.clone(),
     };
-    outputs.check(&[&a.input.gaussians, &a.input.lines])?;
+    outputs.check(&a.input.paths())?;
     let scene = load(&a.input)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
@@ -45,6 +45,18 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     }
     bar.enable_steady_tick(std::time::Duration::from_millis(120));
     bar.set_message("indexing the Gaussians");
+    crate::oom::doing(
+        format!(
+            "refining {} segments against {} Gaussians",
+            scene.lines.len(),
+            scene.gaussians.len()
+        ),
+        if a.engine.backend == linegs_gpu::engine::select::Backend::Cpu {
+            "free memory or raise the limit (ulimit -v)"
+        } else {
+            "free memory, raise the limit (ulimit -v), or try --backend cpu"
+        },
+    );
     let job = Job {
         check_frames: !a.no_frame_check,
         ..Job::new(a.params, a.engine.backend)

@@ -65,6 +65,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
             metrics: vec![format!("{} segments", af.len())],
         });
     }
+    crate::oom::doing(
+        format!("drawing a {} x {} picture", a.width, a.height),
+        "give a smaller --width and --height",
+    );
     let img = render::render_comparison(&scene.gaussians, &panels, a.width, a.height);
     outs.write(&a.output, |p| img.write_png(p))?;
     if let Some(v) = &a.viewer {

@@ -64,11 +64,12 @@ pub enum SynthKind {
         /// Number of Gaussians.
         #[arg(short = 'n', long, value_name = "N", default_value_t = 100_000)]
         num_gaussians: usize,
-        /// Standard deviation of the noise around the segments (scene units).
-        #[arg(long, default_value_t = 0.004)]
+        /// Standard deviation of the noise around the segments (scene units), finite and
+        /// >= 0.
+        #[arg(long, default_value_t = 0.004, value_parser = linegs_gpu::refine::params::nonnegative)]
         sigma: f64,
-        /// Fraction of the centers spread uniformly in the lines' bounding box.
-        #[arg(long, default_value_t = 0.1)]
+        /// Fraction of the centers spread uniformly in the lines' bounding box, in [0, 1].
+        #[arg(long, default_value_t = 0.1, value_parser = linegs_gpu::refine::params::fraction)]
         background: f64,
         /// Seed of the random placement (same seed, same files).
         #[arg(long, default_value_t = 1)]
@@ -157,11 +158,6 @@ pub fn run(a: SynthArgs) -> Result<()> {
             background,
             seed,
         } => {
-            if !(0.0..=1.0).contains(&background) || sigma.is_nan() || sigma < 0.0 {
-                return Err(input_error(
-                    "--background must be in [0, 1] and --sigma >= 0",
-                ));
-            }
             let mut outs = io::OutputSet::new();
             outs.input(&lines).output("-o", &output, &["ply"]);
             outs.check()?;

@@ -129,6 +129,25 @@ fn read(
     }
 }
 
+/// [`read_gaussians`] and [`super::read_gaussian_attributes`] of one model: a pipe is read
+/// once and both are parsed from memory (a second open of a pipe would wait for a writer
+/// that is gone); a regular file is read twice.
+pub fn read_gaussians_and_attributes(
+    path: &Path,
+    opts: &PlyOptions,
+) -> Result<(GaussianCloud, Option<super::GaussianAttributes>), Error> {
+    match open_input(path)? {
+        Input::Bytes(b) => Ok((
+            read_bytes(path, &b, opts, false)?.0,
+            super::normals::parse_gaussian_attributes(path, &b, opts.min_opacity)?,
+        )),
+        Input::File { .. } => Ok((
+            read(path, opts, false)?.0,
+            super::read_gaussian_attributes(path, opts.min_opacity)?,
+        )),
+    }
+}
+
 /// [`read_gaussians`] on bytes already in memory (any model format); `path` names them
 /// in messages, and its extension tells a `.splat` (which has no magic).
 pub fn parse_gaussian_model(

@@ -22,6 +22,11 @@ pub(crate) enum Input {
 
 /// Opens `path` for reading once (see the module comment).
 pub(crate) fn open_input(path: &Path) -> Result<Input, Error> {
+    open_input_bounded(path, STREAM_LIMIT)
+}
+
+/// [`open_input`] with a pipe read up to `limit` bytes.
+fn open_input_bounded(path: &Path, limit: u64) -> Result<Input, Error> {
     let meta = check_readable(path)?;
     let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
     if meta.is_file() {
@@ -32,7 +37,7 @@ pub(crate) fn open_input(path: &Path) -> Result<Input, Error> {
     }
     // A FIFO: read once, so `info` (which looks at the head, then parses) cannot block on
     // a second open, and bounded, so an endless writer cannot exhaust memory.
-    Ok(Input::Bytes(read_bounded(path, file, STREAM_LIMIT)?))
+    Ok(Input::Bytes(read_bounded(path, file, limit)?))
 }
 
 /// The metadata of `path` if it is a regular file or a FIFO; devices, folders and sockets
@@ -66,6 +71,38 @@ pub(crate) fn check_readable(path: &Path) -> Result<std::fs::Metadata, Error> {
 /// pipes at most [`STREAM_LIMIT`]), for readers outside this module (the mesh sampler).
 pub(crate) fn read_input(path: &Path) -> Result<Vec<u8>, Error> {
     open_input(path)?.into_bytes(path)
+}
+
+/// Reads a small input (a transform, a manifest, a track file) whole: like
+/// [`read_input`], and a regular file longer than `limit` bytes is refused before it is
+/// read, `what` naming the kind of file in the message; with `regular_only`, a pipe is
+/// refused too (a member of an input folder, which a pipe there would hang).
+pub(crate) fn read_small(
+    path: &Path,
+    what: &str,
+    limit: u64,
+    regular_only: bool,
+) -> Result<Vec<u8>, Error> {
+    let meta = check_readable(path)?;
+    if regular_only && !meta.is_file() {
+        return Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: format!("is a pipe, not a file; {what} is read from a regular file"),
+        });
+    }
+    if meta.is_file() && meta.len() > limit {
+        return Err(Error::Unsupported {
+            path: path.to_path_buf(),
+            msg: format!(
+                "{} bytes, more than the {limit} that {what} may have",
+                meta.len()
+            ),
+        });
+    }
+    match open_input_bounded(path, limit)? {
+        Input::Bytes(b) => Ok(b),
+        i => i.into_bytes(path),
+    }
 }
 
 /// Reads all of `r`, refusing a stream longer than `limit` bytes.

@@ -223,7 +223,11 @@ pub(crate) fn parse_alltracks(path: &Path, text: &str) -> Result<Tracks<usize>, 
     Ok((segs, ids, lines))
 }
 
-/// A `finaltracks/` folder: every `track_<id>.txt` in it, by id.
+/// Most bytes of one `track_<id>.txt` (a track is one line and its few supports).
+const TRACK_LIMIT: u64 = 64 << 20;
+
+/// A `finaltracks/` folder: every `track_<id>.txt` in it, by id. Each must be a regular
+/// file (a device or a pipe there is refused, not read), and ids are unique.
 pub(crate) fn read_folder(dir: &Path) -> Result<Tracks<String>, Error> {
     let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, "read", e))?;
     let mut tracks: Vec<(u32, PathBuf)> = Vec::new();
@@ -247,6 +251,16 @@ pub(crate) fn read_folder(dir: &Path) -> Result<Tracks<String>, Error> {
         ));
     }
     tracks.sort();
+    if let Some(w) = tracks.windows(2).find(|w| w[0].0 == w[1].0) {
+        return Err(Error::Unsupported {
+            path: w[1].1.clone(),
+            msg: format!(
+                "holds track {} like `{}`; a LIMAP folder has one track_<id>.txt per id",
+                w[0].0,
+                w[0].1.file_name().unwrap_or_default().to_string_lossy()
+            ),
+        });
+    }
     let mut warnings = Vec::new();
     let (lo, hi) = (tracks[0].0 as usize, tracks[tracks.len() - 1].0 as usize);
     if lo != 0 || hi + 1 != tracks.len() {
@@ -259,7 +273,7 @@ pub(crate) fn read_folder(dir: &Path) -> Result<Tracks<String>, Error> {
     let mut segs = Vec::with_capacity(tracks.len());
     let mut ids = Vec::with_capacity(tracks.len());
     for (id, p) in tracks {
-        let bytes = std::fs::read(&p).map_err(|e| Error::io(&p, "read", e))?;
+        let bytes = super::input::read_small(&p, "a LIMAP track", TRACK_LIMIT, true)?;
         let text = std::str::from_utf8(&bytes)
             .map_err(|_| Error::unknown(&p, "a LIMAP track file is text, and this one is not"))?;
         if text.trim().is_empty() {

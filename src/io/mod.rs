@@ -24,16 +24,18 @@ pub use edges_json::{Curves, POLYLINE_PIECES};
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
     detect_gaussians, is_gaussian_model, parse_gaussian_model, read_gaussians,
-    read_gaussians_with_opacity, GaussianFormat,
+    read_gaussians_and_attributes, read_gaussians_with_opacity, GaussianFormat,
 };
 pub use info::{info, info_with, FileInfo, FileKind};
-pub(crate) use input::read_input;
 pub use input::STREAM_LIMIT;
+pub(crate) use input::{read_input, read_small};
 pub use lines::{
     parse_lines, parse_lines_with, read_lines, read_lines_with, LineFile, LineFormat, LineOptions,
 };
-pub use normals::{read_gaussian_attributes, read_gaussian_normals, GaussianAttributes};
-pub use output::OutputSet;
+pub use normals::{
+    parse_gaussian_attributes, read_gaussian_attributes, read_gaussian_normals, GaussianAttributes,
+};
+pub use output::{same_file, OutputSet};
 pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
 pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};

@@ -2,12 +2,13 @@
 //! `rot_0..3` = w x y z, log scales `scale_0..2`), for the edge fit. Kept apart from the
 //! center reader: it is needed only by `--fit edge`, and it reads three times the data.
 
-use std::fs::File;
+use std::io::Read;
 use std::path::Path;
 
 use super::chunked::{Chunked, CHUNK};
 use super::error::Error;
-use super::ply::{parse_header, Body, PropKind};
+use super::input::{open_input, Input};
+use super::ply::{parse_header, Body, PropKind, BOM};
 
 /// What a 3DGS PLY carries beyond the centers, per Gaussian kept by
 /// [`super::read_gaussians`] with the same `min_opacity`, in the same order.
@@ -41,18 +42,41 @@ pub fn read_gaussian_attributes(
     path: &Path,
     min_opacity: Option<f64>,
 ) -> Result<Option<GaussianAttributes>, Error> {
-    let file = File::open(path).map_err(|e| Error::io(path, "open", e))?;
-    let file_len = file
-        .metadata()
-        .map_err(|e| Error::io(path, "read metadata of", e))?
-        .len();
+    match open_input(path)? {
+        Input::File { file, len } => attributes_from(path, file, len, min_opacity),
+        Input::Bytes(b) => parse_gaussian_attributes(path, &b, min_opacity),
+    }
+}
+
+/// [`read_gaussian_attributes`] of a model already in memory (a pipe's content, read once
+/// for the centers and the attributes both).
+pub fn parse_gaussian_attributes(
+    path: &Path,
+    bytes: &[u8],
+    min_opacity: Option<f64>,
+) -> Result<Option<GaussianAttributes>, Error> {
+    attributes_from(path, bytes, bytes.len() as u64, min_opacity)
+}
+
+fn attributes_from(
+    path: &Path,
+    file: impl Read,
+    file_len: u64,
+    min_opacity: Option<f64>,
+) -> Result<Option<GaussianAttributes>, Error> {
     let mut ch = Chunked::new(file, CHUNK.min(file_len as usize + 1), 0);
     ch.fill().map_err(|e| Error::io(path, "read", e))?;
+    let bom = if ch.available().starts_with(BOM) {
+        ch.consume(BOM.len());
+        BOM.len() as u64
+    } else {
+        0
+    };
     let head = ch.available();
     if !head.starts_with(b"ply") {
         return Ok(None);
     }
-    let header = parse_header(path, head, head.len() as u64 == file_len)?;
+    let header = parse_header(path, head, head.len() as u64 + bom == file_len)?;
     let header_lines = head[..header.len].iter().filter(|&&b| b == b'\n').count();
     ch.consume(header.len);
     let Some(vi) = header.element("vertex") else {

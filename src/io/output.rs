@@ -72,6 +72,21 @@ fn folder(path: &Path) -> &Path {
     }
 }
 
+/// True when `a` and `b` name the same file (another spelling, a symlink or a hard link).
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    FileId::of(a).same(&FileId::of(b))
+}
+
+/// The suffix of a temporary file staged for `path`: its extension (so format-by-extension
+/// writers work), only when short, so that the temporary name (`.linegs-` and six random
+/// characters before it) fits in 255 bytes for every valid final name.
+pub(crate) fn temp_suffix(path: &Path) -> String {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some(e) if !e.is_empty() && e.len() <= 16 => format!(".{e}"),
+        _ => ".tmp".to_string(),
+    }
+}
+
 fn refuse(path: &Path, msg: impl Into<String>) -> Error {
     Error::Output {
         path: path.to_path_buf(),
@@ -184,6 +199,20 @@ impl OutputSet {
                     ),
                 ));
             }
+            let parent = std::fs::canonicalize(dir).ok();
+            if let Some(input) = self
+                .inputs
+                .iter()
+                .find(|i| i.is_dir() && parent.is_some() && std::fs::canonicalize(i).ok() == parent)
+            {
+                return Err(refuse(
+                    path,
+                    format!(
+                        "{option} is inside the input folder `{}`; writing there would change the input",
+                        input.display()
+                    ),
+                ));
+            }
             if let Some((other, p, _)) = seen.iter().find(|(_, _, i)| i.same(&id)) {
                 return Err(refuse(
                     path,
@@ -206,13 +235,9 @@ impl OutputSet {
         path: &Path,
         write: impl FnOnce(&Path) -> Result<(), Error>,
     ) -> Result<(), Error> {
-        let name = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
         let staged = tempfile::Builder::new()
             .prefix(".linegs-")
-            .suffix(&format!(".{name}"))
+            .suffix(&temp_suffix(path))
             .tempfile_in(folder(path))
             .map_err(|e| Error::io(path, "create a temporary file beside", e))?
             .into_temp_path();

@@ -32,7 +32,7 @@ impl GaussianTransform {
 
 /// Reads a transform file (matrix text or nerfstudio JSON, told apart by content).
 pub fn read_transform(path: &Path) -> Result<GaussianTransform, Error> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, "read", e))?;
+    let bytes = super::input::read_small(path, "a transform", 1 << 20, false)?;
     let text = std::str::from_utf8(&bytes)
         .map_err(|_| Error::unknown(path, "a transform is a text matrix or a JSON file"))?;
     if text.trim().is_empty() {

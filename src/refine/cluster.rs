@@ -25,22 +25,36 @@ pub struct Edge {
 /// Similarity `w` of docs/method.md#step-7-cluster. The longer segment is `a` when the
 /// lengths are equal, so callers pass pairs in a fixed order (`i < j`) to get a repeatable value.
 pub fn similarity(a: &Segment, b: &Segment, r_c: f64, fix_distance: bool, min_cos: f64) -> f64 {
-    let (la, lb) = (a.length(), b.length());
-    let (long, short, l_long, l_short) = if la >= lb {
-        (a, b, la, lb)
+    let ends = [(a, a.length(), a.dir()), (b, b.length(), b.dir())];
+    similarity_of(ends, r_c, fix_distance, min_cos, 0.0)
+}
+
+/// [`similarity`] of two segments given with their lengths and directions; 0 as soon as
+/// `dist_w < min_dist_w` (then `w <= dist_w` is below it too), before the `tanh`.
+fn similarity_of(
+    [(a, la, da), (b, lb, db)]: [(&Segment, f64, DVec3); 2],
+    r_c: f64,
+    fix_distance: bool,
+    min_cos: f64,
+    min_dist_w: f64,
+) -> f64 {
+    let (long, short, l_long, l_short, d, ds) = if la >= lb {
+        (a, b, la, lb, da, db)
     } else {
-        (b, a, lb, la)
+        (b, a, lb, la, db, da)
     };
-    let d = long.dir();
-    let cos = d.dot(short.dir()).clamp(-1.0, 1.0).abs();
+    let cos = d.dot(ds).clamp(-1.0, 1.0).abs();
     if cos <= min_cos {
+        return 0.0;
+    }
+    let dist = pair_distance(long, short, d, l_long, fix_distance);
+    let x = dist / r_c;
+    let dist_w = 1.0 / (1.0 + 2.0 * x * x);
+    if dist_w < min_dist_w {
         return 0.0;
     }
     let ratio = l_long / l_short;
     let len_w = (ratio * ratio * cos).tanh();
-    let dist = pair_distance(long, short, d, l_long, fix_distance);
-    let x = dist / r_c;
-    let dist_w = 1.0 / (1.0 + 2.0 * x * x);
     dist_w * len_w
 }
 
@@ -74,16 +88,30 @@ fn distance_bound(r_c: f64, min_weight: f64) -> Option<f64> {
     b.is_finite().then_some(b * (1.0 + 1e-9) + 1e-12)
 }
 
+/// Most edges a segment keeps to the segments it is the longer member of (its
+/// neighbours): the [`MAX_NEIGHBOURS`] most similar (highest `w`, ties to the lower
+/// index). Real line sets have a few to about a hundred (the Line3D++ test set at
+/// r = 0.2: 16 on average, 103 at most); only inputs far denser than the
+/// radius (10^5 short segments on the edges of a unit box) reach it, where all their
+/// edges took quadratic time and memory (10^8 edges, 2.6 GB for 10^5 segments).
+pub const MAX_NEIGHBOURS: usize = 128;
+
 /// Every edge `w >= p.cluster_min_weight` between segments of different input lines,
 /// sorted ascending by `w` (ties in `(i, j)` order, which is what a stable sort of the
-/// all-pairs loop gives).
+/// all-pairs loop gives). With the fixed distance, a segment keeps at most
+/// [`MAX_NEIGHBOURS`] edges to the segments it is the longer of.
 pub fn edges(lines: &LineSet, s: &Settings) -> Vec<Edge> {
     let (r_c, p, fixes) = (s.radius(), s.params(), s.fixes());
     let bound = distance_bound(r_c, p.cluster_min_weight);
     let mut e = match bound {
-        Some(b) if fixes.cluster_distance && lines.len() > 1 => {
-            edges_hashed(lines, r_c, b, p.cluster_min_weight, p.cluster_min_cos)
-        }
+        Some(b) if fixes.cluster_distance && lines.len() > 1 => edges_hashed(
+            lines,
+            r_c,
+            b,
+            p.cluster_min_weight,
+            p.cluster_min_cos,
+            MAX_NEIGHBOURS,
+        ),
         _ => edges_all_pairs(
             lines,
             r_c,
@@ -191,6 +219,33 @@ impl CellGrid {
         }
     }
 
+    /// The cells of the box of segment `[a, b]` (a superset of those it passes through)
+    /// when they are at most `most`, else [`CellGrid::cells`] with radius 0.
+    fn cells_on(&self, a: DVec3, b: DVec3, most: i64, out: &mut Vec<u32>) {
+        let cell = |p: DVec3| {
+            let q = (p - self.origin) / self.h;
+            [q.x, q.y, q.z]
+                .map(|v| v.floor().max(0.0) as i64)
+                .into_iter()
+                .zip(self.dims)
+                .map(|(v, n)| v.min(n - 1))
+                .collect::<Vec<i64>>()
+        };
+        let (lo, hi) = (cell(a.min(b)), cell(a.max(b)));
+        let count: i64 = (0..3).map(|k| hi[k] - lo[k] + 1).product();
+        if count > most {
+            return self.cells(a, b, 0.0, out);
+        }
+        out.clear();
+        for z in lo[2]..=hi[2] {
+            for y in lo[1]..=hi[1] {
+                for x in lo[0]..=hi[0] {
+                    out.push(self.key([x, y, z]));
+                }
+            }
+        }
+    }
+
     /// Index of the cell whose center is the first (`ceil`) or last (`floor`) at or past
     /// `p`, clamped to the grid (no capsule reaches outside it).
     fn center_index(&self, p: DVec3, round: fn(f64) -> f64) -> [i64; 3] {
@@ -229,15 +284,22 @@ fn clip(a: DVec3, b: DVec3, lo: DVec3, hi: DVec3) -> Option<(DVec3, DVec3)> {
 /// `dist` is the distance of an endpoint `q` of `S` to `G`'s infinite line, and `q`
 /// projects within `L_S <= L_G` of `G`'s ends (the other endpoint is inside), so `q` is
 /// within `B` of `G` extended by `L_G` at both ends (`G_ext`). Otherwise `dist` is the 3D
-/// distance from `S` to `G`, so `S` is again within `B` of `G_ext`. Two sets within `B`
-/// of each other both come within `B/2` of the midpoint of their closest points, so the
-/// cell of that midpoint is among the cells of `S`'s `B/2`-capsule and of `G_ext`'s. Each
-/// segment is hashed by its own capsule and queried with its extended one; a pair is
-/// tested from its longer member only, so every edge is found exactly once.
-fn edges_hashed(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64) -> Vec<Edge> {
+/// distance from `S` to `G`, so `S` is again within `B` of `G_ext`: a point of `S` within
+/// `B` of `G_ext` lies in a cell of `G_ext`'s `B`-capsule, and `S` is listed in every cell
+/// it passes through. Each segment is hashed by the cells on it (a few, so a pair is
+/// seen a few times, not tens) and queried with its extended capsule; a pair is tested
+/// from its longer member only, so every edge is found exactly once. Each keeps its
+/// [`MAX_NEIGHBOURS`] most similar edges (`max_neighbours`).
+fn edges_hashed(
+    lines: &LineSet,
+    r_c: f64,
+    bound: f64,
+    min_w: f64,
+    min_cos: f64,
+    max_neighbours: usize,
+) -> Vec<Edge> {
     let segs = &lines.segments;
     let n = segs.len();
-    let half = 0.5 * bound;
     let mut lo = DVec3::splat(f64::INFINITY);
     let mut hi = DVec3::splat(f64::NEG_INFINITY);
     let mut total_len = 0.0;
@@ -253,15 +315,16 @@ fn edges_hashed(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64)
     // Cells near the bound, but no finer than a quarter of the mean length, which keeps
     // the samples per segment bounded.
     let h = bound.max(total_len / n as f64 / 4.0);
-    let margin = DVec3::splat(half + 2.0 * h);
+    let margin = DVec3::splat(bound + 2.0 * h);
     let (lo, hi) = (lo - margin, hi + margin);
     let grid = CellGrid::new(lo, hi, h);
 
-    // Plain capsules, as a counting-sorted table: cell c holds members[start[c]..start[c+1]].
+    // The cells each segment passes through, as a counting-sorted table: cell c holds
+    // members[start[c]..start[c+1]].
     let cells_of: Vec<Vec<u32>> = (0..n)
         .into_par_iter()
         .map_init(Vec::new, |cells, i| {
-            grid.cells(segs[i].p1, segs[i].p2, half, cells);
+            grid.cells_on(segs[i].p1, segs[i].p2, 8, cells);
             cells.clone()
         })
         .collect();
@@ -286,6 +349,7 @@ fn edges_hashed(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64)
     drop(fill);
 
     let lengths: Vec<f64> = segs.iter().map(|s| s.length()).collect();
+    let dirs: Vec<DVec3> = segs.iter().map(|s| s.dir()).collect();
     // Chunks of segments share one scratch mark array (n entries) for deduplication.
     let chunk = (n / (8 * rayon::current_num_threads())).clamp(256, 1 << 14);
     (0..n.div_ceil(chunk))
@@ -295,12 +359,13 @@ fn edges_hashed(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64)
             let (mut cells, mut cands) = (Vec::new(), Vec::new());
             let mut out = Vec::new();
             for g in c * chunk..((c + 1) * chunk).min(n) {
+                let first = out.len();
                 let s = &segs[g];
                 let ext = s.dir() * lengths[g];
                 let Some((a, b)) = clip(s.p1 - ext, s.p2 + ext, lo, hi) else {
                     continue;
                 };
-                grid.cells(a, b, half, &mut cells);
+                grid.cells(a, b, bound, &mut cells);
                 cands.clear();
                 for &cell in &cells {
                     let range = start[cell as usize] as usize..start[cell as usize + 1] as usize;
@@ -322,10 +387,28 @@ fn edges_hashed(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64)
                     if long != g {
                         continue;
                     }
-                    let w = similarity(&segs[i], &segs[j], r_c, true, min_cos);
+                    let w = similarity_of(
+                        [
+                            (&segs[i], lengths[i], dirs[i]),
+                            (&segs[j], lengths[j], dirs[j]),
+                        ],
+                        r_c,
+                        true,
+                        min_cos,
+                        min_w,
+                    );
                     if w >= min_w {
                         out.push(Edge { i, j, w });
                     }
+                }
+                // The most similar first (ties: the lower other index), the rest dropped.
+                let mine = &mut out[first..];
+                if mine.len() > max_neighbours {
+                    let other = |e: &Edge| e.i + e.j - g;
+                    mine.select_nth_unstable_by(max_neighbours, |a, b| {
+                        b.w.total_cmp(&a.w).then(other(a).cmp(&other(b)))
+                    });
+                    out.truncate(first + max_neighbours);
                 }
             }
             out
@@ -767,7 +850,7 @@ mod tests {
             for grouped in [false, true] {
                 let lines = random_lines(n, seed, grouped);
                 let b = distance_bound(r_c, w_min).unwrap();
-                let mut hashed = edges_hashed(&lines, r_c, b, w_min, 0.5);
+                let mut hashed = edges_hashed(&lines, r_c, b, w_min, 0.5, usize::MAX);
                 let mut all = edges_all_pairs(&lines, r_c, true, w_min, 0.5);
                 let order = |a: &Edge, b: &Edge| (a.i, a.j).cmp(&(b.i, b.j));
                 hashed.sort_by(order);
@@ -811,12 +894,94 @@ mod tests {
         // The paper's radii for synthetic and real scenes, and a coarse one.
         for r_c in [0.03, 0.05, 0.2] {
             let b = distance_bound(r_c, 0.4).unwrap();
-            let mut hashed = edges_hashed(&lines, r_c, b, 0.4, 0.5);
+            let mut hashed = edges_hashed(&lines, r_c, b, 0.4, 0.5, usize::MAX);
             hashed.sort_by_key(|e| (e.i, e.j));
             let all = edges_all_pairs(&lines, r_c, true, 0.4, 0.5);
             assert!(all.len() > 100, "{} edges at r_c {r_c}", all.len());
             assert_eq!(hashed, all, "r_c {r_c}");
         }
+    }
+
+    /// The neighbour bound changes nothing on the test scenes (random ones, the real
+    /// Line3D++ set at three radii): the edges are the all-pairs ones.
+    #[test]
+    fn the_neighbour_bound_keeps_every_edge_of_the_test_scenes() {
+        let real = read_obj(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/data/line3dpp/line3dpp_optimized.obj"
+        ));
+        let mut scenes: Vec<(LineSet, f64)> = [0.03, 0.05, 0.2]
+            .into_iter()
+            .map(|r| (real.clone(), r))
+            .collect();
+        for seed in 1..=4 {
+            scenes.push((random_lines(800, seed, true), 0.05));
+        }
+        for (lines, r_c) in scenes {
+            let b = distance_bound(r_c, 0.4).unwrap();
+            let mut bounded = edges_hashed(&lines, r_c, b, 0.4, 0.5, MAX_NEIGHBOURS);
+            bounded.sort_by_key(|e| (e.i, e.j));
+            let all = edges_all_pairs(&lines, r_c, true, 0.4, 0.5);
+            let mut degree = vec![0usize; lines.len()];
+            for e in &all {
+                let (li, lj) = (lines.segments[e.i].length(), lines.segments[e.j].length());
+                degree[if li >= lj { e.i } else { e.j }] += 1;
+            }
+            let most = degree.iter().max().copied().unwrap_or(0);
+            assert!(
+                bounded == all,
+                "r_c {r_c}: {} of {} edges kept, the most neighbours {most}",
+                bounded.len(),
+                all.len()
+            );
+        }
+    }
+
+    /// Past the bound, each segment keeps its most similar edges (ties: the lower other
+    /// index) among those it is the longer member of.
+    #[test]
+    fn a_dense_scene_keeps_the_most_similar_neighbours() {
+        // 3000 short segments on one unit edge: hundreds of neighbours each.
+        let mut r = Lcg(5);
+        let segments: Vec<Segment> = (0..3000)
+            .map(|_| {
+                let t = r.f() * 0.95;
+                let j = r.v() * 0.004;
+                Segment::new(
+                    DVec3::new(t, 0.0, 0.0) + j,
+                    DVec3::new(t + 0.02 + 0.03 * r.f(), 0.0, 0.0) - j,
+                )
+            })
+            .collect();
+        let lines = LineSet::new(segments);
+        let b = distance_bound(0.03, 0.4).unwrap();
+        let k = 8;
+        let bounded = edges_hashed(&lines, 0.03, b, 0.4, 0.5, k);
+        let all = edges_hashed(&lines, 0.03, b, 0.4, 0.5, usize::MAX);
+        assert!(all.len() > 50 * lines.len(), "{} edges", all.len());
+        let long = |e: &Edge| {
+            if lines.segments[e.i].length() >= lines.segments[e.j].length() {
+                e.i
+            } else {
+                e.j
+            }
+        };
+        let mut per: Vec<Vec<Edge>> = vec![Vec::new(); lines.len()];
+        for e in &all {
+            per[long(e)].push(*e);
+        }
+        let mut want: Vec<Edge> = Vec::new();
+        for (g, mut es) in per.into_iter().enumerate() {
+            let other = |e: &Edge| e.i + e.j - g;
+            es.sort_by(|a, b| b.w.total_cmp(&a.w).then(other(a).cmp(&other(b))));
+            es.truncate(k);
+            want.extend(es);
+        }
+        let key = |e: &Edge| (e.i, e.j);
+        want.sort_by_key(key);
+        let mut got = bounded;
+        got.sort_by_key(key);
+        assert_eq!(got, want);
     }
 
     #[test]
@@ -831,7 +996,7 @@ mod tests {
         let all = edges_all_pairs(&lines, 0.03, true, 0.4, 0.5);
         assert_eq!(all.len(), 1);
         let b = distance_bound(0.03, 0.4).unwrap();
-        assert_eq!(edges_hashed(&lines, 0.03, b, 0.4, 0.5), all);
+        assert_eq!(edges_hashed(&lines, 0.03, b, 0.4, 0.5, usize::MAX), all);
     }
 
     #[test]

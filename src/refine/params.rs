@@ -105,14 +105,8 @@ pub fn positive(s: &str) -> Result<f64, String> {
     }
 }
 
-fn finite(s: &str) -> Result<f64, String> {
-    match s.parse::<f64>() {
-        Ok(v) if v.is_finite() => Ok(v),
-        _ => Err(format!("expected a finite number, got `{s}`")),
-    }
-}
-
-fn nonnegative(s: &str) -> Result<f64, String> {
+/// Clap value parser: a finite number >= 0.
+pub fn nonnegative(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
         _ => Err(format!("expected a number >= 0, got `{s}`")),
@@ -126,7 +120,17 @@ fn extend_factor(s: &str) -> Result<f64, String> {
     }
 }
 
-fn fraction(s: &str) -> Result<f64, String> {
+/// Clap value parser: `--outlier-ratio`, in [0, 1] or -1 (a ratio above 1 drops most
+/// segments of any scene, one far above it all of them).
+fn outlier_ratio(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v == -1.0 || (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("expected a number in [0, 1] or -1, got `{s}`")),
+    }
+}
+
+/// Clap value parser: a number in [0, 1].
+pub fn fraction(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
         _ => Err(format!("expected a number in [0, 1], got `{s}`")),
@@ -198,8 +202,9 @@ pub struct Params {
     /// Edge fit: final width of the ridge kernel, in units of r.
     #[arg(long, default_value_t = 0.25, value_parser = positive)]
     pub fit_bandwidth: f64,
-    /// Edge fit: fewest points under the kernel (or per face family) for a move.
-    #[arg(long, default_value_t = 8)]
+    /// Edge fit: fewest points under the kernel (or per face family) for a move; 1 or
+    /// more.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..))]
     pub fit_min_points: u32,
     /// Edge fit: weight each Gaussian by its opacity (PLY `opacity`, after the sigmoid),
     /// so that faint floaters pull less; the fewest-points test still counts points. No
@@ -242,9 +247,9 @@ pub struct Params {
     #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
     pub split_interior: bool,
 
-    /// Outliers: drop segments with density <= ratio x mean density; -1 uses
-    /// max(mean - 2 std, 0).
-    #[arg(long, default_value_t = 0.2, value_parser = finite, allow_hyphen_values = true)]
+    /// Outliers: drop segments with density <= ratio x mean density, a ratio in [0, 1];
+    /// -1 uses max(mean - 2 std, 0).
+    #[arg(long, default_value_t = 0.2, value_parser = outlier_ratio, allow_hyphen_values = true)]
     pub outlier_ratio: f64,
 
     /// Run the collinear merge inside input lines (Line3D++ `.txt` groups).
