@@ -5,8 +5,9 @@
 //! Layout of `OUTDIR`: `<name>/refined.<ext>` and `<name>/report.json` for a finished
 //! scene, `<name>/error.txt` for a failed one; each folder appears whole (built under a
 //! temporary name, then renamed). `summary.csv` and `summary.md` are rewritten from the
-//! folders after every run, so the last shard to finish (or a rerun with
-//! `--skip-existing`) leaves the summary of the whole dataset.
+//! folders after a run (unless `summary` is off, as for concurrent shards), one row per
+//! scene of the manifest with its state (`ok`, `failed: ...`, `pending`), so a summary
+//! says which scenes it saw.
 
 use crate::engine::select::Backend;
 use crate::eval::Metrics;
@@ -264,6 +265,10 @@ pub struct BatchOptions {
     pub skip_existing: bool,
     /// Extension of the refined segments' file (`obj`, `stl`, `ply`, `txt`, `npy`).
     pub format: String,
+    /// Rewrite the summary after the run. Off for concurrent shards (Slurm array tasks),
+    /// whose summaries would each see a different part of the dataset; one later run
+    /// (`--summary-only`) then writes it from every scene's folder.
+    pub summary: bool,
 }
 
 /// What happened to one scene in this run.
@@ -337,7 +342,7 @@ fn commit_dir(
 }
 
 /// Runs this shard's scenes of `m` into `outdir`, calling `on_scene` after each, then
-/// rewrites the summary from every finished scene. A failing scene is recorded
+/// (with `opts.summary`) rewrites the summary from every finished scene. A failing scene is recorded
 /// (`<name>/error.txt`) and does not stop the others.
 pub fn run(
     m: &Manifest,
@@ -377,8 +382,27 @@ pub fn run(
         on_scene(e, &status);
         done.push((e.name.clone(), status));
     }
-    write_summary(m, outdir)?;
+    if opts.summary {
+        write_summary(m, outdir)?;
+    }
     Ok(done)
+}
+
+/// Removes the temporary folders (`.<name>.partial-*`, `.<name>.old-*`) that runs killed
+/// mid-scene left in `outdir`; returns how many. Only safe when no run is writing there.
+pub fn remove_partial_dirs(outdir: &Path) -> Result<usize, RunError> {
+    let entries = std::fs::read_dir(outdir).map_err(|e| io::Error::io(outdir, "read", e))?;
+    let mut n = 0;
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let ours = name.starts_with('.') && (name.contains(".partial-") || name.contains(".old-"));
+        if ours && entry.path().is_dir() {
+            let p = entry.path();
+            std::fs::remove_dir_all(&p).map_err(|e| io::Error::io(&p, "remove", e))?;
+            n += 1;
+        }
+    }
+    Ok(n)
 }
 
 /// What the output folder holds for one scene.
