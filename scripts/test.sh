@@ -2,7 +2,9 @@
 # The project's one test command (README, .ci/run). Installs what the tests need when it
 # is missing — Mesa's software Vulkan driver (lavapipe) when no Vulkan driver at all is
 # present, so the GPU tests really run on a machine without a GPU, and Chromium for the
-# viewer test — then checks formatting and lints and runs every test. Without a Vulkan
+# viewer test — then checks formatting and lints and runs every test: Rust, Python
+# (scripts/test-python.sh) and Slurm (scripts/test-slurm.sh, which installs slurm-wlm
+# and munge when missing). Without a Vulkan
 # adapter the GPU tests fail, unless LINEGS_SKIP_GPU_TESTS=1 (then they print SKIPPED).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -67,9 +69,8 @@ fi
 # off there, so the GPU engine's garbage-filled buffers are switched on by name.
 export LINEGS_GPU_GARBAGE=1
 phase cargo test --release --locked "$@"
-# The Python package (`linegs`): opt in with LINEGS_TEST_PYTHON=1. pyo3's macros enable
-# syn and once_cell features that the main build does not use, so today the binding
-# recompiles most dependencies once more (see README, Python); too slow for every run.
-if [ "${LINEGS_TEST_PYTHON:-0}" = 1 ]; then
-  scripts/test-python.sh
-fi
+# The Python package (`linegs`, docs/python.md): `pip install .` reuses the test build's
+# dependency artefacts (the feature sets are unified), then pytest compares it with the
+# binary. Then scripts/slurm-batch.sh on a one-node Slurm cluster (docs/cluster.md).
+phase scripts/test-python.sh
+phase scripts/test-slurm.sh
