@@ -56,7 +56,8 @@ phase() {
   echo "test.sh: '$*' took $((SECONDS - t)) s"
 }
 phase cargo fmt --check
-phase cargo clippy --all-targets --locked -- -D warnings
+# --workspace: the Python binding too (its dependencies are the same check artefacts).
+phase cargo clippy --workspace --all-targets --locked -- -D warnings
 # The GPU tests start Mesa's drivers inside the test processes, where the binary's private
 # XDG_RUNTIME_DIR (src/main.rs) does not reach: give them one too, or every GPU test prints
 # Wayland's "error: XDG_RUNTIME_DIR is invalid or not set" into a passing run.

@@ -162,7 +162,7 @@ fn scene(
             .flat_map(|(c, _)| c.iter().copied())
             .collect()
     };
-    let normals = attrs.0.map(|b| floats(b)).map(|v| {
+    let normals = attrs.0.map(floats).map(|v| {
         check("normals", v.len() / 3)?;
         Ok::<_, RunError>(
             keep(v, 3)
@@ -252,12 +252,12 @@ fn read_gaussians(
     Ok((b(bytes), normals, max_scale, opacity, cloud.warnings))
 }
 
+/// Segments as bytes, their groups and the reader's warnings.
+type LinesBytes = (Py<PyBytes>, Option<Vec<u32>>, Vec<String>);
+
 /// `(bytes of M x 2 x 3 f64, groups or None, warnings)`.
 #[pyfunction]
-fn read_lines(
-    py: Python<'_>,
-    path: PathBuf,
-) -> PyResult<(Py<PyBytes>, Option<Vec<u32>>, Vec<String>)> {
+fn read_lines(py: Python<'_>, path: PathBuf) -> PyResult<LinesBytes> {
     let f = py.detach(|| io::read_lines(&path)).map_err(io_to_py)?;
     let bytes = segment_bytes(&f.lines.segments);
     Ok((
