@@ -29,13 +29,23 @@ if [ -n "${LINEGS_SUMMARY:-}" ]; then
   exec "$bin" batch "$manifest" -o "$out" --summary-only
 fi
 
+# Not an array job (run by hand, or submitted without an array): all scenes, then the
+# summary, as a plain batch run.
+if [ -z "${SLURM_ARRAY_JOB_ID:-}" ]; then
+  exec "$bin" batch "$manifest" -o "$out" --skip-existing "$@"
+fi
+
 # Once per array, from the first task's first start (a requeued task restarts with
 # SLURM_RESTART_COUNT >= 1): the summary task, after the whole array even if a task failed.
 if [ "${SLURM_ARRAY_TASK_ID:-0}" = "${SLURM_ARRAY_TASK_MIN:-0}" ] &&
-  [ "${SLURM_RESTART_COUNT:-0}" = 0 ] && [ -n "${SLURM_ARRAY_JOB_ID:-}" ]; then
-  sbatch --dependency="afterany:${SLURM_ARRAY_JOB_ID}" --array=0 --cpus-per-task=1 \
+  [ "${SLURM_RESTART_COUNT:-0}" = 0 ]; then
+  if ! sbatch --dependency="afterany:${SLURM_ARRAY_JOB_ID}" --array=0 --cpus-per-task=1 \
     --job-name="${SLURM_JOB_NAME:-linegs}-summary" \
-    --export=ALL,LINEGS_SUMMARY=1 "$0" "$manifest" "$out"
+    --export=ALL,LINEGS_SUMMARY=1 "$0" "$manifest" "$out"; then
+    # the scenes still run; the summary is one command away
+    echo "warning: could not submit the summary task; after the array, run:" \
+      "linegs-gpu batch $manifest -o $out --summary-only" >&2
+  fi
 fi
 
 # The CPUs Slurm gave this task (`--cpus-per-task`): the CPU engine's thread pool.
