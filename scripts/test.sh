@@ -2,7 +2,9 @@
 # The project's one test command (README, .ci/run). Installs what the tests need when it
 # is missing — Mesa's software Vulkan driver (lavapipe) when no Vulkan driver at all is
 # present, so the GPU tests really run on a machine without a GPU, and Chromium for the
-# viewer test — then checks formatting and lints and runs every test. Without a Vulkan
+# viewer test — then checks formatting and lints and runs every test: Rust, Python
+# (scripts/test-python.sh) and Slurm (scripts/test-slurm.sh, which installs slurm-wlm
+# and munge when missing). Without a Vulkan
 # adapter the GPU tests fail, unless LINEGS_SKIP_GPU_TESTS=1 (then they print SKIPPED).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -54,7 +56,8 @@ phase() {
   echo "test.sh: '$*' took $((SECONDS - t)) s"
 }
 phase cargo fmt --check
-phase cargo clippy --all-targets --locked -- -D warnings
+# --workspace: the Python binding too (its dependencies are the same check artefacts).
+phase cargo clippy --workspace --all-targets --locked -- -D warnings
 # The GPU tests start Mesa's drivers inside the test processes, where the binary's private
 # XDG_RUNTIME_DIR (src/main.rs) does not reach: give them one too, or every GPU test prints
 # Wayland's "error: XDG_RUNTIME_DIR is invalid or not set" into a passing run.
@@ -67,9 +70,8 @@ fi
 # off there, so the GPU engine's garbage-filled buffers are switched on by name.
 export LINEGS_GPU_GARBAGE=1
 phase cargo test --release --locked "$@"
-# The Python package (`linegs`): opt in with LINEGS_TEST_PYTHON=1. pyo3's macros enable
-# syn and once_cell features that the main build does not use, so today the binding
-# recompiles most dependencies once more (see README, Python); too slow for every run.
-if [ "${LINEGS_TEST_PYTHON:-0}" = 1 ]; then
-  scripts/test-python.sh
-fi
+# The Python package (`linegs`, docs/python.md): `pip install .` reuses the test build's
+# dependency artefacts (the feature sets are unified), then pytest compares it with the
+# binary. Then scripts/slurm-batch.sh on a one-node Slurm cluster (docs/cluster.md).
+phase scripts/test-python.sh
+phase scripts/test-slurm.sh

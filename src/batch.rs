@@ -8,8 +8,9 @@
 //! with inputs in `./<name>/`) or anything else; each is written atomically, and a lock
 //! file (`<name>/.linegs-batch.lock`, removed afterwards) keeps two runs from working on
 //! one scene at the same time. `summary.csv` and `summary.md` are rewritten from the
-//! folders after every run, so the last shard to finish (or a rerun with
-//! `--skip-existing`) leaves the summary of the whole dataset.
+//! folders after a run (unless `summary` is off, as for concurrent shards), one row per
+//! scene of the manifest with its state (`ok`, `failed: ...`, `pending`), so a summary
+//! says which scenes it saw.
 
 use crate::engine::select::Backend;
 use crate::eval::Metrics;
@@ -296,6 +297,10 @@ pub struct BatchOptions {
     pub format: String,
     /// How the manifest's `gt` edges score the lines.
     pub protocol: crate::eval::gt::Protocol,
+    /// Rewrite the summary after the run. Off for concurrent shards (Slurm array tasks),
+    /// whose summaries would each see a different part of the dataset; one later run
+    /// (`--summary-only`) then writes it from every scene's folder.
+    pub summary: bool,
 }
 
 /// What happened to one scene in this run.
@@ -529,9 +534,9 @@ fn run_locked(e: &Entry, opts: &BatchOptions, outdir: &Path) -> Result<Option<St
 }
 
 /// Runs this shard's scenes of `m` into `outdir`, calling `on_scene` after each, then
-/// rewrites the summary from every finished scene. A failing scene is recorded
-/// (`<name>/error.txt`) and does not stop the others; a scene that another `batch` is
-/// working on at the same time is left to it ([`Status::Busy`]).
+/// (with `opts.summary`) rewrites the summary from every finished scene. A failing scene
+/// is recorded (`<name>/error.txt`) and does not stop the others; a scene that another
+/// `batch` is working on at the same time is left to it ([`Status::Busy`]).
 pub fn run(
     m: &Manifest,
     outdir: &Path,
@@ -554,8 +559,27 @@ pub fn run(
         on_scene(e, &status);
         done.push((e.name.clone(), status));
     }
-    write_summary(m, outdir)?;
+    if opts.summary {
+        write_summary(m, outdir)?;
+    }
     Ok(done)
+}
+
+/// Removes the temporary folders (`.<name>.partial-*`, `.<name>.old-*`) that runs killed
+/// mid-scene left in `outdir`; returns how many. Only safe when no run is writing there.
+pub fn remove_partial_dirs(outdir: &Path) -> Result<usize, RunError> {
+    let entries = std::fs::read_dir(outdir).map_err(|e| io::Error::io(outdir, "read", e))?;
+    let mut n = 0;
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let ours = name.starts_with('.') && (name.contains(".partial-") || name.contains(".old-"));
+        if ours && entry.path().is_dir() {
+            let p = entry.path();
+            std::fs::remove_dir_all(&p).map_err(|e| io::Error::io(&p, "remove", e))?;
+            n += 1;
+        }
+    }
+    Ok(n)
 }
 
 /// What the output folder holds for one scene.

@@ -496,8 +496,9 @@ pub struct Job {
     /// lines).
     pub gt: Option<gt::Reference>,
     /// Check that the lines and the Gaussians share a frame ([`crate::frames`]): `refine`
-    /// stops with [`RunError::FrameMismatch`] when (almost) no segment has a Gaussian center
-    /// within `r`; `evaluate` adds a warning to the report.
+    /// stops with [`RunError::FrameMismatch`] when they are different (almost no segment
+    /// has a Gaussian center within `r`, or most have none and the boxes disagree) and
+    /// adds a warning to the report when they are doubtful; `evaluate` warns in both cases.
     pub check_frames: bool,
 }
 
@@ -608,9 +609,14 @@ impl Job {
             None => (scene, None),
         };
         let mut refiner = self.refiner(scene)?;
-        if let Some(msg) = self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
-            return Err(RunError::FrameMismatch(msg));
-        }
+        let frame_warning =
+            match self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
+                Some((crate::frames::FrameVerdict::Different, msg)) => {
+                    return Err(RunError::FrameMismatch(msg))
+                }
+                Some((_, msg)) => Some(msg),
+                None => None,
+            };
         let mut normals_unused = false;
         if scene.normals.is_some() || scene.opacity.is_some() {
             normals_unused = !refiner.set_attributes(
@@ -648,6 +654,7 @@ impl Job {
             after: Some(g.measure(&out.lines.segments)),
         });
         let mut report = Report::new("refine", scene, &refiner, out.before);
+        report.warnings.extend(frame_warning);
         report.input.n_box = n_box;
         report.stages.extend(out.stages);
         report.after = Some(out.after);
@@ -703,7 +710,7 @@ impl Job {
             after: compare.map(|c| g.measure(&c.segments)),
         });
         let mut report = Report::new("eval", scene, &refiner, before);
-        report.warnings.extend(mismatch);
+        report.warnings.extend(mismatch.map(|(_, msg)| msg));
         report.stages.push(Stage::since(
             "evaluate",
             scene.lines.len() + compare.map_or(0, |c| c.len()),
@@ -717,14 +724,15 @@ impl Job {
         Ok(report)
     }
 
-    /// With `check_frames`, the message when the scene's lines and Gaussians do not share a
-    /// frame (one batch of count queries at `radius`).
+    /// With `check_frames`, the verdict and the message when the scene's lines and
+    /// Gaussians may not share a frame ([`crate::frames`]; one batch of count queries at
+    /// `radius`); `None` when they do.
     fn frame_mismatch(
         &self,
         scene: &Scene,
         refiner: &Refiner,
         radius: f64,
-    ) -> Result<Option<String>, RunError> {
+    ) -> Result<Option<(crate::frames::FrameVerdict, String)>, RunError> {
         if !self.check_frames {
             return Ok(None);
         }
@@ -734,14 +742,16 @@ impl Job {
             radius,
             &scene.gaussians,
         )?;
-        Ok(fc.mismatch().then(|| {
+        let verdict = fc.verdict();
+        Ok((verdict != crate::frames::FrameVerdict::Same).then(|| {
             let name = |p: &Option<String>, what: &str| p.clone().unwrap_or_else(|| what.into());
-            format!(
+            let msg = format!(
                 "{} and {}: {}",
                 name(&scene.input.lines, "the lines"),
                 name(&scene.input.gaussians, "the Gaussians"),
                 fc.message()
-            )
+            );
+            (verdict, msg)
         }))
     }
 

@@ -342,3 +342,58 @@ fn a_scene_locked_by_another_batch_is_left_to_it() {
     assert!(out.join("first/.linegs-batch.lock").exists());
     drop(lock);
 }
+
+#[test]
+fn concurrent_shards_write_no_summary_and_summary_only_writes_the_one_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    let out = dir.path().join("out");
+    let (ms, os) = (m.to_str().unwrap(), out.to_str().unwrap());
+    // a shard that saw only part of the dataset: no summary of that part
+    let o = run(
+        &[
+            "batch",
+            ms,
+            "-o",
+            os,
+            "--shard",
+            "0/2",
+            "--no-summary",
+            "--backend",
+            "cpu",
+        ],
+        &[],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("no summary written"), "{}", stdout(&o));
+    assert!(out.join("first/report.json").is_file());
+    assert!(!out.join("summary.csv").exists() && !out.join("summary.md").exists());
+    // a run killed inside a scene leaves its temporary folder
+    std::fs::create_dir(out.join(".second.partial-Xy12ab")).unwrap();
+    std::fs::write(out.join(".second.partial-Xy12ab/refined.obj"), "v 0 0 0\n").unwrap();
+    // --summary-only runs nothing: it names the scene nobody ran as pending
+    let o = run(&["batch", ms, "-o", os, "--summary-only"], &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("2 of 3 scenes finished"),
+        "{}",
+        stdout(&o)
+    );
+    assert!(stdout(&o).contains("removed 1 folders"), "{}", stdout(&o));
+    assert!(!out.join("second").exists() && !out.join(".second.partial-Xy12ab").exists());
+    let rows = summary_rows(&out);
+    let status: Vec<(&str, &str)> = rows[1..4]
+        .iter()
+        .map(|r| (r[0].as_str(), r[1].as_str()))
+        .collect();
+    assert_eq!(
+        status,
+        [("first", "ok"), ("second", "pending"), ("third", "ok")]
+    );
+    // the two options contradict each other
+    let o = run(
+        &["batch", ms, "-o", os, "--no-summary", "--summary-only"],
+        &[],
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+}

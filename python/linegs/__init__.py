@@ -6,10 +6,15 @@ The Python face of ``linegs-gpu``: the same library entry point as the command l
 dict has the shape of ``linegs-gpu refine --report`` (SPEC 7).
 
 >>> import linegs
->>> g = linegs.read_gaussians("point_cloud.ply")          # (N, 3) float32
+>>> g = linegs.read_gaussians("point_cloud.ply")          # Gaussians: centers + attributes
 >>> lines = linegs.read_lines("Line3D++.obj")             # (M, 2, 3) float64
 >>> refined, report = linegs.refine(g, lines, radius=0.05)
 >>> report["after"]["score"]
+
+``refine`` and ``evaluate`` take the Gaussians as a :class:`Gaussians` (what
+``read_gaussians`` returns: the file's centers and attributes, the command line's answer
+bit for bit), as a path (read the same way), or as a plain ``(N, 3)`` array of centers:
+centers only, so the edge fit and the scale cut (``max_scale``) see no attributes.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from . import _linegs
 from ._linegs import InputError, LinegsError
 
 __all__ = [
+    "Gaussians",
     "InputError",
     "LinegsError",
     "PARAMS",
@@ -49,17 +55,76 @@ def _warn(warnings: Sequence[str]) -> None:
         w.warn(msg, stacklevel=3)
 
 
-def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, strict: bool = False) -> np.ndarray:
-    """The Gaussian centers of a 3DGS model (PLY, SuperSplat, SPZ, .splat): ``(N, 3)``
-    float32.
+class Gaussians:
+    """A 3DGS model as the refinement sees it: ``centers`` ``(N, 3)`` float32 and, where
+    the file has them (a PLY with rotations, scales and opacities, e.g. the standard
+    62-property layout), ``normals`` ``(N, 3)`` (each Gaussian's shortest axis, zero where
+    it is not flat), ``max_scale`` ``(N,)`` (its largest standard deviation, scene units)
+    and ``opacity`` ``(N,)`` (in ``[0, 1]``); ``None`` where it does not.
+
+    ``normals`` and ``max_scale`` come together; every array has one row per center.
+    ``np.asarray(g)`` is the centers.
+    """
+
+    __slots__ = ("centers", "normals", "max_scale", "opacity")
+
+    def __init__(
+        self,
+        centers: Any,
+        normals: Any = None,
+        max_scale: Any = None,
+        opacity: Any = None,
+    ) -> None:
+        self.centers = np.ascontiguousarray(centers, dtype=np.float32)
+        if self.centers.ndim != 2 or self.centers.shape[1] != 3:
+            raise InputError(
+                f"gaussians: expected an (N, 3) array of centers, got shape {self.centers.shape}"
+            )
+        n = len(self.centers)
+
+        def attr(a: Any, shape: Tuple[int, ...], what: str) -> Optional[np.ndarray]:
+            if a is None:
+                return None
+            a = np.ascontiguousarray(a, dtype=np.float32)
+            if a.shape != shape:
+                raise InputError(f"gaussians: {what} has shape {a.shape}, expected {shape}")
+            return a
+
+        self.normals = attr(normals, (n, 3), "normals")
+        self.max_scale = attr(max_scale, (n,), "max_scale")
+        self.opacity = attr(opacity, (n,), "opacity")
+        if (self.normals is None) != (self.max_scale is None):
+            raise InputError("gaussians: normals and max_scale come together (or neither)")
+
+    def __len__(self) -> int:
+        return len(self.centers)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        return self.centers if dtype is None else self.centers.astype(dtype)
+
+    def __repr__(self) -> str:
+        has = [k for k in ("normals", "max_scale", "opacity") if getattr(self, k) is not None]
+        return f"Gaussians({len(self)} centers; attributes: {', '.join(has) or 'none'})"
+
+
+def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, strict: bool = False) -> Gaussians:
+    """A 3DGS model (PLY, SuperSplat, SPZ, .splat) as :class:`Gaussians`: its centers and
+    the attributes the file has, exactly as ``linegs-gpu refine`` reads them.
 
     ``min_opacity`` keeps only Gaussians with ``sigmoid(opacity) >= min_opacity``. Centers
     that are NaN or infinite are skipped with a warning (an error with ``strict=True``).
     Raises :class:`InputError` naming the file and the place for a bad file.
     """
-    data, warnings = _linegs.read_gaussians(os.fspath(path), min_opacity, strict)
+    c, n, s, o, warnings = _linegs.read_gaussians(os.fspath(path), min_opacity, strict)
     _warn(warnings)
-    return np.frombuffer(data, dtype=np.float32).reshape(-1, 3).copy()
+
+    def arr(b: Optional[bytes], k: int) -> Optional[np.ndarray]:
+        if b is None:
+            return None
+        a = np.frombuffer(b, dtype=np.float32).copy()
+        return a.reshape(-1, 3) if k == 3 else a
+
+    return Gaussians(arr(c, 3), arr(n, 3), arr(s, 1), arr(o, 1))
 
 
 def read_lines(path: PathLike, *, groups: bool = False) -> Any:
@@ -85,11 +150,26 @@ def write_lines(path: PathLike, segments: Any) -> None:
     _linegs.write_lines(os.fspath(path), _segments(segments, "segments"))
 
 
-def _points(a: Any) -> bytes:
-    a = np.asarray(a)
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise InputError(f"gaussians: expected an (N, 3) array of centers, got shape {a.shape}")
-    return np.ascontiguousarray(a, dtype=np.float32).tobytes()
+def _gaussians(g: Any) -> Dict[str, Optional[bytes]]:
+    """The Gaussians' arrays for the native half: a :class:`Gaussians`, a path, or an
+    ``(N, 3)`` array of centers (no attributes)."""
+    if isinstance(g, (str, os.PathLike)):
+        g = read_gaussians(g)
+    if not isinstance(g, Gaussians):
+        a = np.asarray(g)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise InputError(f"gaussians: expected an (N, 3) array of centers, got shape {a.shape}")
+        g = Gaussians(a)
+
+    def b(a: Optional[np.ndarray]) -> Optional[bytes]:
+        return None if a is None else np.ascontiguousarray(a, dtype=np.float32).tobytes()
+
+    return dict(
+        gaussians_f32=g.centers.tobytes(),
+        normals_f32=b(g.normals),
+        max_scale_f32=b(g.max_scale),
+        opacity_f32=b(g.opacity),
+    )
 
 
 def _segments(a: Any, what: str) -> bytes:
@@ -134,11 +214,14 @@ def refine(
     radii: Optional[Sequence[float]] = None,
     **params: Any,
 ) -> Tuple[np.ndarray, Dict[str, Any]]:
-    """Refines ``segments`` ``(M, 2, 3)`` against the Gaussian ``(N, 3)`` centers (LineGS:
+    """Refines ``segments`` ``(M, 2, 3)`` against the Gaussians (LineGS:
     translate, outliers, collinear merge, cluster, merge and join, crop) and returns the
     refined ``(K, 2, 3)`` float64 segments and the report dict (``before``/``after``
     metrics, ``stages``, ``params``, ...), the same as ``linegs-gpu refine``.
 
+    ``gaussians``: a :class:`Gaussians` (from :func:`read_gaussians`), a path to the model,
+    or an ``(N, 3)`` array of centers (centers only: the edge fit and the scale cut see no
+    attributes, so the result differs from the command line's on a file that has them).
     ``radius``: the cylinder radius in scene units, or ``"auto"``. ``profile``:
     ``"default"`` (the paper's intent) or ``"reference"`` (the authors' code).
     ``backend``: ``"auto"``, ``"gpu"`` or ``"cpu"``. ``groups``: the input line of each
@@ -152,13 +235,13 @@ def refine(
     args = _args(dict(radius=radius, eval_radius=eval_radius, profile=profile, **params))
     g = None if groups is None else [int(x) for x in np.asarray(groups).ravel()]
     data, report = _linegs.refine(
-        _points(gaussians),
-        _segments(segments, "segments"),
-        g,
-        args,
-        backend,
-        None if gt is None else _segments(gt, "gt"),
-        None if radii is None else [float(r) for r in radii],
+        segments_f64=_segments(segments, "segments"),
+        groups=g,
+        args=args,
+        backend_name=backend,
+        gt_f64=None if gt is None else _segments(gt, "gt"),
+        sweep=None if radii is None else [float(r) for r in radii],
+        **_gaussians(gaussians),
     )
     return np.frombuffer(data, dtype=np.float64).reshape(-1, 2, 3).copy(), json.loads(report)
 
@@ -179,15 +262,16 @@ def evaluate(
     ``eval_radius``, as ``linegs-gpu eval --json``: ``report["before"]`` for
     ``segments``, ``report["after"]`` for ``compare`` (measured on the same working set),
     ``report["ground_truth"]`` against ``gt``, ``report["sweep"]`` at ``radii``.
-    Keywords as for :func:`refine` (``unit_scale``, ``score_lambda``, ``r_l``, ...)."""
+    ``gaussians`` as for :func:`refine`. Keywords as for :func:`refine` (``unit_scale``,
+    ``score_lambda``, ``r_l``, ...)."""
     args = _args(dict(eval_radius=eval_radius, profile=profile, **params))
     report = _linegs.evaluate(
-        _points(gaussians),
-        _segments(segments, "segments"),
-        args,
-        backend,
-        None if compare is None else _segments(compare, "compare"),
-        None if gt is None else _segments(gt, "gt"),
-        None if radii is None else [float(r) for r in radii],
+        segments_f64=_segments(segments, "segments"),
+        args=args,
+        backend_name=backend,
+        compare_f64=None if compare is None else _segments(compare, "compare"),
+        gt_f64=None if gt is None else _segments(gt, "gt"),
+        sweep=None if radii is None else [float(r) for r in radii],
+        **_gaussians(gaussians),
     )
     return json.loads(report)

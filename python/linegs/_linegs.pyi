@@ -11,7 +11,9 @@ class LinegsError(RuntimeError):
     """A failure that is not the input's fault: the GPU, the file system."""
 
 def param_names() -> List[str]: ...
-def read_gaussians(path: str, min_opacity: Optional[float] = None, strict: bool = False) -> Tuple[bytes, List[str]]: ...
+def read_gaussians(
+    path: str, min_opacity: Optional[float] = None, strict: bool = False
+) -> Tuple[bytes, Optional[bytes], Optional[bytes], Optional[bytes], List[str]]: ...
 def read_lines(path: str) -> Tuple[bytes, Optional[List[int]], List[str]]: ...
 def write_lines(path: str, segments_f64: bytes) -> None: ...
 def refine(
@@ -22,6 +24,9 @@ def refine(
     backend_name: str,
     gt_f64: Optional[bytes] = None,
     sweep: Optional[List[float]] = None,
+    normals_f32: Optional[bytes] = None,
+    max_scale_f32: Optional[bytes] = None,
+    opacity_f32: Optional[bytes] = None,
 ) -> Tuple[bytes, str]: ...
 def evaluate(
     gaussians_f32: bytes,
@@ -31,4 +36,7 @@ def evaluate(
     compare_f64: Optional[bytes] = None,
     gt_f64: Optional[bytes] = None,
     sweep: Optional[List[float]] = None,
+    normals_f32: Optional[bytes] = None,
+    max_scale_f32: Optional[bytes] = None,
+    opacity_f32: Optional[bytes] = None,
 ) -> str: ...

@@ -51,6 +51,17 @@ fn points(bytes: &[u8]) -> Vec<[f32; 3]> {
         .collect()
 }
 
+fn floats(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_ne_bytes(c.try_into().expect("4 bytes")))
+        .collect()
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_ne_bytes()).collect()
+}
+
 fn segments(bytes: &[u8]) -> Vec<Segment> {
     bytes
         .chunks_exact(48)
@@ -106,7 +117,19 @@ fn backend(name: &str) -> PyResult<Backend> {
     })
 }
 
-fn scene(gaussians: &[u8], segs: &[u8], groups: Option<Vec<u32>>) -> Result<Scene, RunError> {
+/// The attributes of the Gaussians as the Python half passes them: `(normals N x 3,
+/// max_scale N, opacity N)` as native-endian `f32` bytes, each optional.
+type AttrBytes<'a> = (Option<&'a [u8]>, Option<&'a [u8]>, Option<&'a [u8]>);
+
+/// A scene from arrays; with attributes, as `Scene::load` has them for a file: normals and
+/// max scales only together, each array one entry per center (those of the centers that
+/// `Scene::from_arrays` skips for a NaN or infinite coordinate are dropped with them).
+fn scene(
+    gaussians: &[u8],
+    attrs: AttrBytes<'_>,
+    segs: &[u8],
+    groups: Option<Vec<u32>>,
+) -> Result<Scene, RunError> {
     let segments = segments(segs);
     if let Some(g) = &groups {
         if g.len() != segments.len() {
@@ -117,10 +140,73 @@ fn scene(gaussians: &[u8], segs: &[u8], groups: Option<Vec<u32>>) -> Result<Scen
             )));
         }
     }
-    Scene::from_arrays(points(gaussians), LineSet { segments, groups })
+    let centers = points(gaussians);
+    let finite: Vec<bool> = centers
+        .iter()
+        .map(|c| c.iter().all(|v| v.is_finite()))
+        .collect();
+    let n = centers.len();
+    let check = |what: &str, len: usize| {
+        if len == n {
+            Ok(())
+        } else {
+            Err(RunError::Input(format!(
+                "gaussians: {len} {what} for {n} centers"
+            )))
+        }
+    };
+    let keep = |v: Vec<f32>, k: usize| -> Vec<f32> {
+        v.chunks_exact(k)
+            .zip(&finite)
+            .filter(|(_, f)| **f)
+            .flat_map(|(c, _)| c.iter().copied())
+            .collect()
+    };
+    let normals = attrs.0.map(floats).map(|v| {
+        check("normals", v.len() / 3)?;
+        Ok::<_, RunError>(
+            keep(v, 3)
+                .chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect::<Vec<[f32; 3]>>(),
+        )
+    });
+    let max_scale = attrs.1.map(|b| {
+        let v = floats(b);
+        check("max scales", v.len())?;
+        Ok::<_, RunError>(keep(v, 1))
+    });
+    let opacity = attrs.2.map(|b| {
+        let v = floats(b);
+        check("opacities", v.len())?;
+        Ok::<_, RunError>(keep(v, 1))
+    });
+    let normals = normals.transpose()?;
+    let max_scale = max_scale.transpose()?;
+    let opacity = opacity.transpose()?;
+    if normals.is_some() != max_scale.is_some() {
+        return Err(RunError::Input(
+            "gaussians: normals and max scales come together (both read from the rotations and scales)".into(),
+        ));
+    }
+    let mut s = Scene::from_arrays(centers, LineSet { segments, groups })?;
+    s.normals = normals;
+    s.max_scale = max_scale;
+    s.opacity = opacity;
+    Ok(s)
 }
 
-/// `(bytes of N x 3 f32, warnings)`.
+/// The centers and attributes of a model, as bytes.
+type GaussianBytes = (
+    Py<PyBytes>,
+    Option<Py<PyBytes>>,
+    Option<Py<PyBytes>>,
+    Option<Py<PyBytes>>,
+    Vec<String>,
+);
+
+/// `(centers N x 3 f32, normals N x 3 f32 or None, max_scale N f32 or None, opacity N f32
+/// or None, warnings)`: what `Scene::load` reads from the file for `refine` (no transform).
 #[pyfunction]
 #[pyo3(signature = (path, min_opacity = None, strict = false))]
 fn read_gaussians(
@@ -128,14 +214,20 @@ fn read_gaussians(
     path: PathBuf,
     min_opacity: Option<f64>,
     strict: bool,
-) -> PyResult<(Py<PyBytes>, Vec<String>)> {
+) -> PyResult<GaussianBytes> {
     let opts = LoadOptions {
         min_opacity,
         strict,
         ..LoadOptions::default()
     };
-    let cloud = py
-        .detach(|| pipeline::read_gaussians(&path, &opts))
+    let (cloud, attrs) = py
+        .detach(|| {
+            let cloud = pipeline::read_gaussians(&path, &opts)?;
+            // as Scene::load: attributes only where they line up with the centers
+            let attrs = io::read_gaussian_attributes(&path, opts.min_opacity)?
+                .filter(|a| a.normals.len() == cloud.centers.len());
+            Ok::<_, RunError>((cloud, attrs))
+        })
         .map_err(to_py)?;
     let bytes: Vec<u8> = cloud
         .centers
@@ -143,15 +235,29 @@ fn read_gaussians(
         .flatten()
         .flat_map(|x| x.to_ne_bytes())
         .collect();
-    Ok((PyBytes::new(py, &bytes).unbind(), cloud.warnings))
+    let b = |v: Vec<u8>| PyBytes::new(py, &v).unbind();
+    let (normals, max_scale, opacity) = match attrs {
+        Some(a) => (
+            Some(b(a
+                .normals
+                .iter()
+                .flatten()
+                .flat_map(|x| x.to_ne_bytes())
+                .collect())),
+            Some(b(f32_bytes(&a.max_scale))),
+            a.opacity.map(|o| b(f32_bytes(&o))),
+        ),
+        None => (None, None, None),
+    };
+    Ok((b(bytes), normals, max_scale, opacity, cloud.warnings))
 }
+
+/// Segments as bytes, their groups and the reader's warnings.
+type LinesBytes = (Py<PyBytes>, Option<Vec<u32>>, Vec<String>);
 
 /// `(bytes of M x 2 x 3 f64, groups or None, warnings)`.
 #[pyfunction]
-fn read_lines(
-    py: Python<'_>,
-    path: PathBuf,
-) -> PyResult<(Py<PyBytes>, Option<Vec<u32>>, Vec<String>)> {
+fn read_lines(py: Python<'_>, path: PathBuf) -> PyResult<LinesBytes> {
     let f = py.detach(|| io::read_lines(&path)).map_err(io_to_py)?;
     let bytes = segment_bytes(&f.lines.segments);
     Ok((
@@ -191,7 +297,7 @@ fn exact_gt(segs: &[Segment]) -> linegs_gpu::eval::gt::Reference {
 
 /// `(bytes of K x 2 x 3 f64, report JSON)`.
 #[pyfunction]
-#[pyo3(signature = (gaussians_f32, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None))]
+#[pyo3(signature = (gaussians_f32, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None))]
 #[allow(clippy::too_many_arguments)]
 fn refine(
     py: Python<'_>,
@@ -202,6 +308,9 @@ fn refine(
     backend_name: &str,
     gt_f64: Option<&[u8]>,
     sweep: Option<Vec<f64>>,
+    normals_f32: Option<&[u8]>,
+    max_scale_f32: Option<&[u8]>,
+    opacity_f32: Option<&[u8]>,
 ) -> PyResult<(Py<PyBytes>, String)> {
     let job = Job {
         sweep,
@@ -210,7 +319,8 @@ fn refine(
     };
     let (bytes, report) = py
         .detach(|| {
-            let s = scene(gaussians_f32, segments_f64, groups)?;
+            let attrs = (normals_f32, max_scale_f32, opacity_f32);
+            let s = scene(gaussians_f32, attrs, segments_f64, groups)?;
             let out = job.refine(&s, |_| {})?;
             Ok::<_, RunError>((segment_bytes(&out.lines.segments), out.report.to_json()))
         })
@@ -220,7 +330,7 @@ fn refine(
 
 /// The report JSON of `eval` (before: the segments; after: `compare`).
 #[pyfunction]
-#[pyo3(signature = (gaussians_f32, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None))]
+#[pyo3(signature = (gaussians_f32, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None))]
 #[allow(clippy::too_many_arguments)]
 fn evaluate(
     py: Python<'_>,
@@ -231,6 +341,9 @@ fn evaluate(
     compare_f64: Option<&[u8]>,
     gt_f64: Option<&[u8]>,
     sweep: Option<Vec<f64>>,
+    normals_f32: Option<&[u8]>,
+    max_scale_f32: Option<&[u8]>,
+    opacity_f32: Option<&[u8]>,
 ) -> PyResult<String> {
     let job = Job {
         sweep,
@@ -238,7 +351,8 @@ fn evaluate(
         ..Job::new(params(args)?, backend(backend_name)?)
     };
     py.detach(|| {
-        let s = scene(gaussians_f32, segments_f64, None)?;
+        let attrs = (normals_f32, max_scale_f32, opacity_f32);
+        let s = scene(gaussians_f32, attrs, segments_f64, None)?;
         let compare = compare_f64.map(|c| LineSet::new(segments(c)));
         Ok::<_, RunError>(job.evaluate(&s, compare.as_ref())?.to_json())
     })

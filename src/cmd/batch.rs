@@ -12,8 +12,8 @@ use std::path::PathBuf;
   chair,chair/point_cloud.ply,chair/Line3D++.txt,,0.05,
   abc_00000006,abc/6/gaussians.ply,abc/6/lines.obj,abc/6/gt.txt,0.01,0.02
 
-Slurm: `sbatch --array=0-3 ...` with `linegs-gpu batch m.csv -o out` in each task runs a
-quarter of the scenes each; rerun with --skip-existing afterwards to fill in the summary.")]
+Slurm: scripts/slurm-batch.sh (docs/cluster.md). Concurrent shards run with --no-summary;
+one `linegs-gpu batch m.csv -o out --summary-only` after them writes the summary.")]
 pub struct BatchArgs {
     /// The manifest: a CSV with a header `name,gaussians,lines` and optionally `gt`,
     /// `radius`, `eval_radius` (a scene's values override the options), one scene a row.
@@ -26,6 +26,14 @@ pub struct BatchArgs {
     /// Leave the scenes that already have a report (resume an interrupted run).
     #[arg(long)]
     pub skip_existing: bool,
+    /// Do not write summary.csv/summary.md (for shards that run at the same time, whose
+    /// summaries would each see only part of the dataset).
+    #[arg(long, conflicts_with = "summary_only")]
+    pub no_summary: bool,
+    /// Run no scene: write summary.csv/summary.md from the scenes' folders (after the
+    /// shards), and remove the temporary folders that killed runs left behind.
+    #[arg(long)]
+    pub summary_only: bool,
     /// Run every n-th scene starting at the i-th (0-based), e.g. `1/4`. Default: from
     /// SLURM_ARRAY_TASK_ID / SLURM_ARRAY_TASK_COUNT (minus SLURM_ARRAY_TASK_MIN) when
     /// they are set, else all scenes.
@@ -53,6 +61,22 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
             .unwrap_or_default(),
     };
     let m = Manifest::read(&a.manifest)?;
+    if a.summary_only {
+        let removed = batch::remove_partial_dirs(&a.output)?;
+        let s = batch::write_summary(&m, &a.output)?;
+        println!(
+            "wrote {} and summary.md: {} of {} scenes finished{}",
+            a.output.join("summary.csv").display(),
+            s.finished,
+            s.rows.len(),
+            if removed > 0 {
+                format!("; removed {removed} folders of killed runs")
+            } else {
+                String::new()
+            }
+        );
+        return Ok(());
+    }
     let mine = (0..m.entries.len()).filter(|&i| shard.includes(i)).count();
     println!(
         "{}: {} scenes, shard {}/{} runs {mine}",
@@ -68,6 +92,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
         skip_existing: a.skip_existing,
         format: a.format.trim_start_matches('.').to_string(),
         protocol: a.protocol,
+        summary: !a.no_summary,
     };
     let mut k = 0;
     let results = batch::run(&m, &a.output, &opts, |e, st| {
@@ -91,13 +116,17 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
             println!("  {}", batch::scene_dir(&a.output, &e.name).display());
         }
     })?;
-    let s = batch::summarize(&m, &a.output);
-    println!(
-        "wrote {} and summary.md: {} of {} scenes finished",
-        a.output.join("summary.csv").display(),
-        s.finished,
-        s.rows.len()
-    );
+    if a.no_summary {
+        println!("no summary written (--no-summary)");
+    } else {
+        let s = batch::summarize(&m, &a.output);
+        println!(
+            "wrote {} and summary.md: {} of {} scenes finished",
+            a.output.join("summary.csv").display(),
+            s.finished,
+            s.rows.len()
+        );
+    }
     let failed = results
         .iter()
         .filter(|(_, st)| matches!(st, Status::Failed(_)))

@@ -100,8 +100,9 @@ impl InputArgs {
 #[derive(Args, Debug, Clone, Default)]
 pub struct FrameArgs {
     /// Map the Gaussians into the lines' frame first: a 4x4 matrix as text (row-major,
-    /// applied as given) or nerfstudio's `dataparser_transforms.json` (inverted, so a
-    /// splatfacto/gsplat model goes back to the COLMAP frame of the lines).
+    /// applied as given), nerfstudio's `dataparser_transforms.json` (inverted, so a
+    /// splatfacto/gsplat model goes back to the COLMAP frame of the lines) or an
+    /// EMAP/EdgeGaussians (SDFStudio) `meta_data.json` (its `worldtogt`, applied as given).
     #[arg(long, value_name = "FILE")]
     pub gaussians_transform: Option<PathBuf>,
     /// Bezier curves of EMAP/EdgeGaussians edge files: `skip` them (with a warning) or

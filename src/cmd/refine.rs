@@ -95,10 +95,11 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             metrics_table(&[("before", &r.before), ("after", after)])
         );
     }
+    // The report's warnings: the frame check's, the steps', the scale cut's.
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
+    }
     if let Some(steps) = &r.refine {
-        for w in &steps.warnings {
-            eprintln!("warning: {w}");
-        }
         if let Some(sh) = &steps.shifts {
             println!(
                 "step 4 (--fit {}) moved {} of {} segments: median {:.3} r, 90th percentile {:.3} r",

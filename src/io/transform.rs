@@ -2,7 +2,10 @@
 //! of the lines. Two kinds of file: a 4x4 matrix as text (row-major, 16 numbers; `#`
 //! comments; a 3x4 `[R | t]` is completed with `0 0 0 1`), which is applied as given, or a
 //! nerfstudio `dataparser_transforms.json` (`{"transform": 3x4, "scale": s}`), which says
-//! how nerfstudio moved the COLMAP frame (`p_ns = s * (T p)`) and is therefore inverted.
+//! how nerfstudio moved the COLMAP frame (`p_ns = s * (T p)`) and is therefore inverted, or
+//! an SDFStudio-format `meta_data.json` as EMAP and EdgeGaussians read it (`"worldtogt"`:
+//! 4x4, from the normalized frame the model was trained in to the ground truth's frame),
+//! which is applied as given.
 
 use std::path::Path;
 
@@ -129,6 +132,40 @@ fn matrix_text(path: &Path, text: &str) -> Result<GaussianTransform, Error> {
     })
 }
 
+/// The numbers of a JSON matrix (3 or 4 rows of 4), row by row.
+fn json_rows(path: &Path, key: &str, t: &serde_json::Value) -> Result<Vec<f64>, Error> {
+    let bad = |msg: String| Error::parse(path, Position::Line(1), msg);
+    let rows = t
+        .as_array()
+        .ok_or_else(|| bad(format!("`{key}` is not a list of rows")))?;
+    let mut v = Vec::new();
+    for (r, row) in rows.iter().enumerate() {
+        let row = row
+            .as_array()
+            .ok_or_else(|| bad(format!("`{key}` row {r} is not a list")))?;
+        if row.len() != 4 {
+            return Err(bad(format!(
+                "`{key}` row {r} has {} numbers, expected 4",
+                row.len()
+            )));
+        }
+        for x in row {
+            let x = x
+                .as_f64()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| bad(format!("`{key}` row {r} holds `{x}`, not a finite number")))?;
+            v.push(x);
+        }
+    }
+    if v.len() != 12 && v.len() != 16 {
+        return Err(bad(format!(
+            "`{key}` has {} rows; expected 3 (a 3x4 [R | t]) or 4 (a 4x4 matrix)",
+            rows.len()
+        )));
+    }
+    Ok(v)
+}
+
 fn nerfstudio(path: &Path, text: &str) -> Result<GaussianTransform, Error> {
     let json: serde_json::Value = serde_json::from_str(text).map_err(|e| {
         Error::parse(
@@ -141,41 +178,25 @@ fn nerfstudio(path: &Path, text: &str) -> Result<GaussianTransform, Error> {
         )
     })?;
     let bad = |msg: String| Error::parse(path, Position::Line(1), msg);
+    if json.get("transform").is_none() {
+        if let Some(w) = json.get("worldtogt") {
+            let v = json_rows(path, "worldtogt", w)?;
+            return Ok(GaussianTransform {
+                matrix: rows_to_matrix(path, &v, Position::Line(1))?,
+                describe: format!(
+                    "{}: `worldtogt` of an SDFStudio meta_data.json (EMAP, EdgeGaussians), applied as given: normalized frame to the ground truth's",
+                    path.display()
+                ),
+            });
+        }
+    }
     let Some(t) = json.get("transform") else {
         return Err(Error::missing(
             path,
-            "a JSON transform needs a `transform` matrix (nerfstudio's dataparser_transforms.json has `transform` and `scale`)",
+            "a JSON transform needs a `transform` matrix (nerfstudio's dataparser_transforms.json has `transform` and `scale`) or a `worldtogt` matrix (SDFStudio's meta_data.json, as EMAP and EdgeGaussians use)",
         ));
     };
-    let rows = t
-        .as_array()
-        .ok_or_else(|| bad("`transform` is not a list of rows".into()))?;
-    let mut v = Vec::new();
-    for (r, row) in rows.iter().enumerate() {
-        let row = row
-            .as_array()
-            .ok_or_else(|| bad(format!("`transform` row {r} is not a list")))?;
-        if row.len() != 4 {
-            return Err(bad(format!(
-                "`transform` row {r} has {} numbers, expected 4",
-                row.len()
-            )));
-        }
-        for x in row {
-            let x = x.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
-                bad(format!(
-                    "`transform` row {r} holds `{x}`, not a finite number"
-                ))
-            })?;
-            v.push(x);
-        }
-    }
-    if v.len() != 12 && v.len() != 16 {
-        return Err(bad(format!(
-            "`transform` has {} rows; nerfstudio writes 3 (a 3x4 [R | t])",
-            rows.len()
-        )));
-    }
+    let v = json_rows(path, "transform", t)?;
     let scale = match json.get("scale") {
         None => 1.0,
         Some(s) => s
@@ -233,6 +254,34 @@ mod tests {
         for k in 0..3 {
             assert!((c[0][k] as f64 - colmap[k]).abs() < 1e-6, "{:?}", c[0]);
         }
+    }
+
+    #[test]
+    fn sdfstudio_meta_data_worldtogt_is_applied_as_given() {
+        // EMAP's meta_data.json: worldtogt = inverse of "to the unit cube" (scale 0.25
+        // about center (10, 20, 30)), with the frames and the scene box around it.
+        let (_d, p) = write(
+            "meta_data.json",
+            r#"{"camera_model": "OPENCV", "height": 400, "width": 400,
+                "worldtogt": [[4, 0, 0, 10], [0, 4, 0, 20], [0, 0, 4, 30], [0, 0, 0, 1]],
+                "scene_box": {"aabb": [[-1, -1, -1], [1, 1, 1]]}, "frames": []}"#,
+        );
+        let t = read_transform(&p).unwrap();
+        let mut c = [[0.5f32, -0.25, 1.0]];
+        t.apply(&mut c);
+        assert_eq!(c[0], [12.0, 19.0, 34.0]);
+        assert!(t.describe.contains("worldtogt"), "{}", t.describe);
+        let (_d, p) = write(
+            "meta_data.json",
+            r#"{"worldtogt": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]}"#,
+        );
+        assert!(read_transform(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("projective"));
+        let (_d, p) = write("meta_data.json", r#"{"worldtogt": [[1, 0, 0], [0, 1, 0]]}"#);
+        let e = read_transform(&p).unwrap_err().to_string();
+        assert!(e.contains("`worldtogt` row 0 has 3 numbers"), "{e}");
     }
 
     #[test]
