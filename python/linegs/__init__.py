@@ -59,14 +59,16 @@ class Gaussians:
     """A 3DGS model as the refinement sees it: ``centers`` ``(N, 3)`` float32 and, where
     the file has them (a PLY with rotations, scales and opacities, e.g. the standard
     62-property layout), ``normals`` ``(N, 3)`` (each Gaussian's shortest axis, zero where
-    it is not flat), ``max_scale`` ``(N,)`` (its largest standard deviation, scene units)
-    and ``opacity`` ``(N,)`` (in ``[0, 1]``); ``None`` where it does not.
+    it is not flat), ``max_scale`` ``(N,)`` (its largest standard deviation, scene units),
+    ``opacity`` ``(N,)`` (in ``[0, 1]``) and ``min_scale`` ``(N,)`` (its smallest standard
+    deviation: a flat Gaussian's thickness, which the edge fit's move gate reads); ``None``
+    where it does not.
 
     ``normals`` and ``max_scale`` come together; every array has one row per center.
     ``np.asarray(g)`` is the centers.
     """
 
-    __slots__ = ("centers", "normals", "max_scale", "opacity")
+    __slots__ = ("centers", "normals", "max_scale", "opacity", "min_scale")
 
     def __init__(
         self,
@@ -74,6 +76,7 @@ class Gaussians:
         normals: Any = None,
         max_scale: Any = None,
         opacity: Any = None,
+        min_scale: Any = None,
     ) -> None:
         self.centers = np.ascontiguousarray(centers, dtype=np.float32)
         if self.centers.ndim != 2 or self.centers.shape[1] != 3:
@@ -93,6 +96,7 @@ class Gaussians:
         self.normals = attr(normals, (n, 3), "normals")
         self.max_scale = attr(max_scale, (n,), "max_scale")
         self.opacity = attr(opacity, (n,), "opacity")
+        self.min_scale = attr(min_scale, (n,), "min_scale")
         if (self.normals is None) != (self.max_scale is None):
             raise InputError("gaussians: normals and max_scale come together (or neither)")
 
@@ -103,7 +107,7 @@ class Gaussians:
         return self.centers if dtype is None else self.centers.astype(dtype)
 
     def __repr__(self) -> str:
-        has = [k for k in ("normals", "max_scale", "opacity") if getattr(self, k) is not None]
+        has = [k for k in ("normals", "max_scale", "opacity", "min_scale") if getattr(self, k) is not None]
         return f"Gaussians({len(self)} centers; attributes: {', '.join(has) or 'none'})"
 
 
@@ -115,7 +119,7 @@ def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, stric
     that are NaN or infinite are skipped with a warning (an error with ``strict=True``).
     Raises :class:`InputError` naming the file and the place for a bad file.
     """
-    c, n, s, o, warnings = _linegs.read_gaussians(os.fspath(path), min_opacity, strict)
+    c, n, s, o, m, warnings = _linegs.read_gaussians(os.fspath(path), min_opacity, strict)
     _warn(warnings)
 
     def arr(b: Optional[bytes], k: int) -> Optional[np.ndarray]:
@@ -124,7 +128,7 @@ def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, stric
         a = np.frombuffer(b, dtype=np.float32).copy()
         return a.reshape(-1, 3) if k == 3 else a
 
-    return Gaussians(arr(c, 3), arr(n, 3), arr(s, 1), arr(o, 1))
+    return Gaussians(arr(c, 3), arr(n, 3), arr(s, 1), arr(o, 1), arr(m, 1))
 
 
 def read_lines(path: PathLike, *, groups: bool = False) -> Any:
@@ -169,6 +173,7 @@ def _gaussians(g: Any) -> Dict[str, Optional[bytes]]:
         normals_f32=b(g.normals),
         max_scale_f32=b(g.max_scale),
         opacity_f32=b(g.opacity),
+        min_scale_f32=b(g.min_scale),
     )
 
 

@@ -118,8 +118,13 @@ fn backend(name: &str) -> PyResult<Backend> {
 }
 
 /// The attributes of the Gaussians as the Python half passes them: `(normals N x 3,
-/// max_scale N, opacity N)` as native-endian `f32` bytes, each optional.
-type AttrBytes<'a> = (Option<&'a [u8]>, Option<&'a [u8]>, Option<&'a [u8]>);
+/// max_scale N, opacity N, min_scale N)` as native-endian `f32` bytes, each optional.
+type AttrBytes<'a> = (
+    Option<&'a [u8]>,
+    Option<&'a [u8]>,
+    Option<&'a [u8]>,
+    Option<&'a [u8]>,
+);
 
 /// A scene from arrays; with attributes, as `Scene::load` has them for a file: normals and
 /// max scales only together, each array one entry per center (those of the centers that
@@ -181,8 +186,14 @@ fn scene(
         check("opacities", v.len())?;
         Ok::<_, RunError>(keep(v, 1))
     });
+    let min_scale = attrs.3.map(|b| {
+        let v = floats(b);
+        check("min scales", v.len())?;
+        Ok::<_, RunError>(keep(v, 1))
+    });
     let normals = normals.transpose()?;
     let max_scale = max_scale.transpose()?;
+    let min_scale = min_scale.transpose()?;
     let opacity = opacity.transpose()?;
     if normals.is_some() != max_scale.is_some() {
         return Err(RunError::Input(
@@ -192,6 +203,7 @@ fn scene(
     let mut s = Scene::from_arrays(centers, LineSet { segments, groups })?;
     s.normals = normals;
     s.max_scale = max_scale;
+    s.min_scale = min_scale;
     s.opacity = opacity;
     Ok(s)
 }
@@ -202,11 +214,13 @@ type GaussianBytes = (
     Option<Py<PyBytes>>,
     Option<Py<PyBytes>>,
     Option<Py<PyBytes>>,
+    Option<Py<PyBytes>>,
     Vec<String>,
 );
 
 /// `(centers N x 3 f32, normals N x 3 f32 or None, max_scale N f32 or None, opacity N f32
-/// or None, warnings)`: what `Scene::load` reads from the file for `refine` (no transform).
+/// or None, min_scale N f32 or None, warnings)`: what `Scene::load` reads from the file
+/// for `refine` (no transform).
 #[pyfunction]
 #[pyo3(signature = (path, min_opacity = None, strict = false))]
 fn read_gaussians(
@@ -236,7 +250,7 @@ fn read_gaussians(
         .flat_map(|x| x.to_ne_bytes())
         .collect();
     let b = |v: Vec<u8>| PyBytes::new(py, &v).unbind();
-    let (normals, max_scale, opacity) = match attrs {
+    let (normals, max_scale, opacity, min_scale) = match attrs {
         Some(a) => (
             Some(b(a
                 .normals
@@ -246,10 +260,18 @@ fn read_gaussians(
                 .collect())),
             Some(b(f32_bytes(&a.max_scale))),
             a.opacity.map(|o| b(f32_bytes(&o))),
+            Some(b(f32_bytes(&a.min_scale))),
         ),
-        None => (None, None, None),
+        None => (None, None, None, None),
     };
-    Ok((b(bytes), normals, max_scale, opacity, cloud.warnings))
+    Ok((
+        b(bytes),
+        normals,
+        max_scale,
+        opacity,
+        min_scale,
+        cloud.warnings,
+    ))
 }
 
 /// Segments as bytes, their groups and the reader's warnings.
@@ -297,7 +319,7 @@ fn exact_gt(segs: &[Segment]) -> linegs_gpu::eval::gt::Reference {
 
 /// `(bytes of K x 2 x 3 f64, report JSON)`.
 #[pyfunction]
-#[pyo3(signature = (gaussians_f32, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None))]
+#[pyo3(signature = (gaussians_f32, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None, min_scale_f32 = None))]
 #[allow(clippy::too_many_arguments)]
 fn refine(
     py: Python<'_>,
@@ -311,6 +333,7 @@ fn refine(
     normals_f32: Option<&[u8]>,
     max_scale_f32: Option<&[u8]>,
     opacity_f32: Option<&[u8]>,
+    min_scale_f32: Option<&[u8]>,
 ) -> PyResult<(Py<PyBytes>, String)> {
     let job = Job {
         sweep,
@@ -319,7 +342,7 @@ fn refine(
     };
     let (bytes, report) = py
         .detach(|| {
-            let attrs = (normals_f32, max_scale_f32, opacity_f32);
+            let attrs = (normals_f32, max_scale_f32, opacity_f32, min_scale_f32);
             let s = scene(gaussians_f32, attrs, segments_f64, groups)?;
             let out = job.refine(&s, |_| {})?;
             Ok::<_, RunError>((segment_bytes(&out.lines.segments), out.report.to_json()))
@@ -330,7 +353,7 @@ fn refine(
 
 /// The report JSON of `eval` (before: the segments; after: `compare`).
 #[pyfunction]
-#[pyo3(signature = (gaussians_f32, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None))]
+#[pyo3(signature = (gaussians_f32, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None, min_scale_f32 = None))]
 #[allow(clippy::too_many_arguments)]
 fn evaluate(
     py: Python<'_>,
@@ -344,6 +367,7 @@ fn evaluate(
     normals_f32: Option<&[u8]>,
     max_scale_f32: Option<&[u8]>,
     opacity_f32: Option<&[u8]>,
+    min_scale_f32: Option<&[u8]>,
 ) -> PyResult<String> {
     let job = Job {
         sweep,
@@ -351,7 +375,7 @@ fn evaluate(
         ..Job::new(params(args)?, backend(backend_name)?)
     };
     py.detach(|| {
-        let attrs = (normals_f32, max_scale_f32, opacity_f32);
+        let attrs = (normals_f32, max_scale_f32, opacity_f32, min_scale_f32);
         let s = scene(gaussians_f32, attrs, segments_f64, None)?;
         let compare = compare_f64.map(|c| LineSet::new(segments(c)));
         Ok::<_, RunError>(job.evaluate(&s, compare.as_ref())?.to_json())
