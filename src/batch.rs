@@ -940,6 +940,34 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_papers_mean_leaves_out_an_object_whose_lines_give_no_sample() {
+        use crate::eval::gt::{GtMetrics, GtScore, Protocol};
+        let m = |acc: Option<f64>, f: f64| GtMetrics {
+            protocol: Protocol::Emap,
+            step: 0.005,
+            predicted_samples: usize::from(acc.is_some()),
+            gt_samples: 10,
+            accuracy: acc,
+            completeness: acc.map(|a| 2.0 * a),
+            scores: vec![GtScore {
+                threshold: 0.005,
+                precision: f,
+                recall: f,
+                f_score: f,
+            }],
+            closest: acc,
+        };
+        let (with, without, other) = (m(Some(0.004), 0.8), m(None, 0.0), m(Some(0.002), 0.6));
+        let (label, n, acc, comp, scores) = gt_row("input lines", &[&with, &without, &other]);
+        assert_eq!((label.as_str(), n), ("input lines", 2));
+        assert!((acc.unwrap() - 0.003).abs() < 1e-15);
+        assert!((comp.unwrap() - 0.006).abs() < 1e-15);
+        assert!((scores[0][2] - 0.7).abs() < 1e-15, "{scores:?}");
+        // No object with samples: no mean at all.
+        assert_eq!(gt_row("refined", &[&without]).2, None);
+    }
+
+    #[test]
     fn csv_fields_trim_and_unquote() {
         assert_eq!(csv_fields("a, b ,c").unwrap(), ["a", "b", "c"]);
         assert_eq!(

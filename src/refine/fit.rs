@@ -372,6 +372,26 @@ pub fn steps(queries: &[Query], members: &[Vec<Member>], ask: &FitAsk<'_>) -> Ve
         .collect()
 }
 
+/// The members' axial positions and cross-section offsets in the frame `(e1, e2)`, and
+/// their weights (opacities with `--fit-opacity-weight`, else 1).
+fn cross_section(
+    members: &[Member],
+    (e1, e2): (DVec3, DVec3),
+    attrs: &Attributes,
+    p: &Params,
+) -> (Vec<(f64, DVec2)>, Vec<f64>) {
+    let pts = members
+        .iter()
+        .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
+        .collect();
+    let pw = if p.fit_opacity_weight {
+        members.iter().map(|m| attrs.weight(m.id)).collect()
+    } else {
+        vec![1.0; members.len()]
+    };
+    (pts, pw)
+}
+
 /// One segment's next position from its members, or `None` (stay).
 fn step(
     s: &Segment,
@@ -382,17 +402,8 @@ fn step(
 ) -> (Option<LineFit>, How) {
     let d = s.dir();
     let (e1, e2) = basis(d);
-    let pts: Vec<(f64, DVec2)> = members
-        .iter()
-        .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
-        .collect();
+    let (pts, pw) = cross_section(members, (e1, e2), attrs, p);
     let min_points = p.fit_min_points as usize;
-    // Per-point weights: opacities with --fit-opacity-weight, else 1.
-    let pw: Vec<f64> = if p.fit_opacity_weight {
-        members.iter().map(|m| attrs.weight(m.id)).collect()
-    } else {
-        vec![1.0; members.len()]
-    };
     if let Some(ns) = &attrs.normals {
         // Normals across the line (a face through the edge): |n·d| < sin 30°; a Gaussian
         // with no normal (zero) is left out.
@@ -722,15 +733,7 @@ pub fn gate(
                 let s = &fitted.segments[i];
                 let d = s.dir();
                 let (e1, e2) = basis(d);
-                let pts: Vec<(f64, DVec2)> = m
-                    .iter()
-                    .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
-                    .collect();
-                let pw: Vec<f64> = if p.fit_opacity_weight {
-                    m.iter().map(|m| attrs.weight(m.id)).collect()
-                } else {
-                    vec![1.0; m.len()]
-                };
+                let (pts, pw) = cross_section(m, (e1, e2), attrs, p);
                 match fitted.how[i] {
                     How::Corner => {
                         let ids: Vec<u32> = m.iter().map(|m| m.id).collect();
