@@ -167,12 +167,12 @@ job=$(LINEGS_GPU=$bin sbatch --parsable --array=0-2 --cpus-per-task=1 \
 job=${job%%;*}
 echo "test-slurm: submitted array job $job"
 
-# The task of scene b reads the FIFO: it is inside the scene (its folder under a temporary
-# name exists) until the FIFO has a writer. Put the real file in its place, then requeue
-# the task: Slurm kills it mid-scene, and the restarted task must finish the scene.
+# The task of scene b reads the FIFO: it is inside the scene (holding the scene's lock,
+# out/b/.linegs-batch.lock) until the FIFO has a writer. Put the real file in its place,
+# then requeue the task: Slurm kills it mid-scene, and the restarted task must finish it.
 t0=$SECONDS
 until [ "$(squeue -h -j "${job}_1" -o %T 2>/dev/null)" = RUNNING ] &&
-  compgen -G "$w/out/.b.partial-*" >/dev/null; do
+  [ -e "$w/out/b/.linegs-batch.lock" ]; do
   [ $((SECONDS - t0)) -gt 90 ] && fail "the task of scene b did not start scene b in 90 s"
   sleep 0.5
 done
