@@ -40,6 +40,21 @@ pub fn poisson_cdf(n: u64, lambda: f64) -> f64 {
     sum.min(1.0)
 }
 
+/// Whether `P(X <= n) <= alpha` for `X ~ Poisson(lambda)`. Below the mean the Chernoff
+/// bound `exp(-lambda) (e lambda / n)^n` decides most cases at once (it bounds the
+/// probability from above); the exact sum, [`poisson_cdf`], decides the rest, whose
+/// means are small, so a dense model's large counts cost no long sum.
+pub fn poisson_at_most(n: u64, lambda: f64, alpha: f64) -> bool {
+    let k = n as f64;
+    if k > 0.0 && k < lambda {
+        let log_bound = -lambda + k * (1.0 + (lambda / k).ln());
+        if log_bound <= alpha.ln() {
+            return true;
+        }
+    }
+    poisson_cdf(n, lambda) <= alpha
+}
+
 pub fn crop(
     engine: &dyn Engine,
     segments: &[Segment],
@@ -72,8 +87,8 @@ pub fn crop(
             // average, and so few (or fewer) come by chance at most CROP_CHANCE of the
             // time. A sparse model's end window expects a point or two, and its
             // emptiness says nothing; a dense model's says as much as before.
-            let beyond_chance = !fixes.crop_chance || poisson_cdf(n_end, dm * e) <= CROP_CHANCE;
-            if de < p.crop_ratio * dm && beyond_chance {
+            let sparse = de < p.crop_ratio * dm;
+            if sparse && (!fixes.crop_chance || poisson_at_most(n_end, dm * e, CROP_CHANCE)) {
                 let (a, b) = if first { (0.0, 0.5 * l) } else { (0.5 * l, l) };
                 searches.push(Search {
                     seg: i,
@@ -311,7 +326,7 @@ fn extend(
 
 #[cfg(test)]
 mod tests {
-    use super::poisson_cdf;
+    use super::{poisson_at_most, poisson_cdf};
 
     #[test]
     fn poisson_cdf_matches_the_closed_forms() {
@@ -330,5 +345,20 @@ mod tests {
         assert_eq!(poisson_cdf(0, f64::NAN), 1.0);
         // A dense model's count far below its mean underflows to 0, not NaN.
         assert_eq!(poisson_cdf(5, 5000.0), 0.0);
+    }
+
+    #[test]
+    fn the_bounded_test_decides_as_the_exact_sum() {
+        for lambda in [0.3, 1.2, 5.0, 20.0, 33.0, 80.0, 400.0] {
+            for n in 0..(2.0 * lambda) as u64 + 3 {
+                assert_eq!(
+                    poisson_at_most(n, lambda, 0.01),
+                    poisson_cdf(n, lambda) <= 0.01,
+                    "n {n} lambda {lambda}"
+                );
+            }
+        }
+        // A huge count far below its mean: decided by the bound, no sum of 10^6 terms.
+        assert!(poisson_at_most(1_000_000, 3_000_000.0, 0.01));
     }
 }

@@ -592,9 +592,10 @@ struct CornerInput<'a> {
 
 /// The corner test: both faces' splats form slabs no thicker than the kernel `h` (each
 /// half-width [`GATE_SLAB_SIGMAS`] times the robust deviation of their offsets along the
-/// face's normal combined with the splats' median thickness), and an end of the input line (`ends`, offsets in the fitted line's frame)
-/// lies outside one of them. A line inside both slabs is as consistent with the faces as
-/// their intersection is: the splats cannot place the edge more finely than their slabs.
+/// face's normal combined with the splats' median thickness), and an end of the input
+/// line (`ends`, offsets in the fitted line's frame) lies outside one of them. A line
+/// inside both slabs is as consistent with the faces as their intersection is: the splats
+/// cannot place the edge more finely than their slabs.
 fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> GateVerdict {
     let CornerInput {
         pts,
