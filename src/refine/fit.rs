@@ -567,15 +567,6 @@ fn median_sigma(v: &mut [f64]) -> (f64, f64) {
     (m, 1.4826 * median(&mut dev))
 }
 
-/// What the gate concluded about one fitted segment.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct GateVerdict {
-    /// The move stands.
-    pub keep_move: bool,
-    /// Corner: the thicker slab's half-width; ridge: the face splats' share.
-    pub measure: f64,
-}
-
 /// What [`gate_corner`] reads of one fitted segment: its members (cross-section offsets,
 /// weights, working-set ids), the model's normals and thicknesses, the fitted line's
 /// cross-section frame and the input line's ends in it.
@@ -596,7 +587,7 @@ struct CornerInput<'a> {
 /// line (`ends`, offsets in the fitted line's frame) lies outside one of them. A line
 /// inside both slabs is as consistent with the faces as their intersection is: the splats
 /// cannot place the edge more finely than their slabs.
-fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> GateVerdict {
+fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> bool {
     let CornerInput {
         pts,
         pw,
@@ -619,13 +610,9 @@ fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> GateVe
             n2.push(across.normalize());
         }
     }
-    let no = GateVerdict {
-        keep_move: false,
-        measure: f64::INFINITY,
-    };
     let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
     let Some(fam) = families(&n2, &sub_w, min_points) else {
-        return no;
+        return false;
     };
     let mut thickest: f64 = 0.0;
     let mut outside = false;
@@ -644,15 +631,12 @@ fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> GateVe
         thickest = thickest.max(half);
         outside |= ends.iter().any(|e| (n.dot(*e) - c).abs() > half);
     }
-    GateVerdict {
-        keep_move: thickest <= h && outside,
-        measure: thickest,
-    }
+    thickest <= h && outside
 }
 
 /// The ridge test: around the fitted line (mean shift with the kernel `h` from it), less
 /// than [`GATE_FACE_SHARE`] of the kernel weight comes from flat Gaussians (`flat`).
-fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> GateVerdict {
+fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> bool {
     let kernel = |c: DVec2, p: &(f64, DVec2), w: f64| {
         w * (-(p.1 - c).length_squared() / (2.0 * h * h)).exp()
     };
@@ -683,11 +667,7 @@ fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> GateVe
         .filter(|(_, f)| **f)
         .map(|((p, w), _)| kernel(c, p, *w))
         .sum();
-    let share = if sw > 0.0 { faces / sw } else { 1.0 };
-    GateVerdict {
-        keep_move: share < GATE_FACE_SHARE,
-        measure: share,
-    }
+    sw > 0.0 && faces / sw < GATE_FACE_SHARE
 }
 
 /// The move gate (`--fit-gate`): each segment the edge fit moved (`fitted`, from `input`)
@@ -704,6 +684,10 @@ pub fn gate(
     r: f64,
     p: &Params,
 ) -> Result<usize, EngineError> {
+    // Without normals every ridge stands and there is no corner: nothing to ask.
+    let Some(ns) = attrs.normals.as_deref() else {
+        return Ok(0);
+    };
     let moved: Vec<usize> = (0..input.len())
         .filter(|&i| {
             fitted.segments[i] != input[i]
@@ -711,10 +695,6 @@ pub fn gate(
                 && fitted.segments[i].is_valid()
         })
         .collect();
-    // Without normals every ridge stands and there is no corner: nothing to ask.
-    let Some(ns) = attrs.normals.as_deref() else {
-        return Ok(0);
-    };
     if moved.is_empty() {
         return Ok(0);
     }
@@ -725,7 +705,7 @@ pub fn gate(
     let members = engine.members(&queries)?;
     let h = p.fit_bandwidth * r;
     let min_points = p.fit_min_points.max(1) as usize;
-    let verdicts: Vec<GateVerdict> = {
+    let stands: Vec<bool> = {
         use rayon::prelude::*;
         moved
             .par_iter()
@@ -765,8 +745,8 @@ pub fn gate(
             .collect()
     };
     let mut undone = 0;
-    for (&i, v) in moved.iter().zip(&verdicts) {
-        if !v.keep_move {
+    for (&i, &stand) in moved.iter().zip(&stands) {
+        if !stand {
             fitted.segments[i] = input[i];
             fitted.how[i] = How::Kept;
             undone += 1;
