@@ -99,6 +99,17 @@ pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianClo
     Ok(io::read_gaussians(path, &ply_options(opts)?)?)
 }
 
+/// The model's centers and, where the file has them and they line up with the centers
+/// (one per center kept), its attributes: what `refine` reads, a pipe read once.
+pub fn read_gaussians_and_attributes(
+    path: &Path,
+    opts: &LoadOptions,
+) -> Result<(io::GaussianCloud, Option<io::GaussianAttributes>), RunError> {
+    let (cloud, attrs) = io::read_gaussians_and_attributes(path, &ply_options(opts)?)?;
+    let attrs = attrs.filter(|a| a.normals.len() == cloud.centers.len());
+    Ok((cloud, attrs))
+}
+
 fn ply_options(opts: &LoadOptions) -> Result<PlyOptions, RunError> {
     if let Some(o) = opts.min_opacity {
         if !(0.0..=1.0).contains(&o) {
@@ -147,8 +158,7 @@ impl Scene {
         let t = Instant::now();
         // Normals for the edge fit (PLY with rotations and scales). A frame transform
         // would have to turn them too: with one, the edge fit uses the centers only.
-        let (mut cloud, attrs) = io::read_gaussians_and_attributes(gaussians, &ply_options(opts)?)?;
-        let attrs = attrs.filter(|a| a.normals.len() == cloud.centers.len());
+        let (mut cloud, attrs) = read_gaussians_and_attributes(gaussians, opts)?;
         let (normals, max_scale, min_scale, opacity) = match attrs {
             // Opacities do not depend on the frame; normals would have to turn and scales
             // to scale with it: with a transform only the opacities are used.

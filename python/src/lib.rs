@@ -235,13 +235,7 @@ fn read_gaussians(
         ..LoadOptions::default()
     };
     let (cloud, attrs) = py
-        .detach(|| {
-            let cloud = pipeline::read_gaussians(&path, &opts)?;
-            // as Scene::load: attributes only where they line up with the centers
-            let attrs = io::read_gaussian_attributes(&path, opts.min_opacity)?
-                .filter(|a| a.normals.len() == cloud.centers.len());
-            Ok::<_, RunError>((cloud, attrs))
-        })
+        .detach(|| pipeline::read_gaussians_and_attributes(&path, &opts))
         .map_err(to_py)?;
     let bytes: Vec<u8> = cloud
         .centers
