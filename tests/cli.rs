@@ -922,16 +922,26 @@ fn a_full_or_closed_standard_output_ends_quietly_with_the_right_code() {
         ["error: cannot write to the standard output: No space left on device (os error 28)"]
     );
     assert!(o_obj.is_file());
-    // A reader that has gone: the pipe is closed before `info` writes.
-    let mut child = linegs()
+    // A reader that has gone: the pipe's read end is closed before `info` starts, so its
+    // first write fails whatever the timing (closing it after the spawn raced the write
+    // into the pipe's buffer).
+    let mut fds = [0; 2];
+    // SAFETY: pipe writes two new descriptors into `fds`, each owned once below.
+    assert_eq!(unsafe { libc::pipe(fds.as_mut_ptr()) }, 0);
+    let (read_end, write_end) = unsafe {
+        use std::os::fd::FromRawFd;
+        (
+            std::os::fd::OwnedFd::from_raw_fd(fds[0]),
+            std::os::fd::OwnedFd::from_raw_fd(fds[1]),
+        )
+    };
+    drop(read_end);
+    let o = linegs()
         .arg("info")
         .arg(&g)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
+        .stdout(std::process::Stdio::from(write_end))
+        .output()
         .unwrap();
-    drop(child.stdout.take());
-    let o = child.wait_with_output().unwrap();
     assert_eq!(o.status.code(), Some(141), "{}", stderr(&o));
     assert_eq!(stderr(&o), "");
 }
