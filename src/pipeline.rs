@@ -296,6 +296,9 @@ pub struct Refiner {
     stages: Vec<Stage>,
     /// Per-Gaussian attributes of the working set for the edge fit (none by default).
     attrs: refine::fit::Attributes,
+    /// The engine and attributes of the Gaussians that place lines, when they are not
+    /// this refiner's (`--max-scale`): see [`refine::run_steps_noted`].
+    placement: Option<Box<Refiner>>,
 }
 
 impl Refiner {
@@ -338,6 +341,7 @@ impl Refiner {
             notes,
             stages,
             attrs: refine::fit::Attributes::default(),
+            placement: None,
         })
     }
 
@@ -438,6 +442,26 @@ impl Refiner {
         }
     }
 
+    /// Gives `scene`'s attributes (normals, opacity, thickness) to the edge fit; `true`
+    /// when the model had some that did not line up with its centers (they are not used).
+    pub fn set_scene_attributes(&mut self, scene: &Scene) -> bool {
+        let mut unused = false;
+        if scene.normals.is_some() || scene.opacity.is_some() {
+            let (g, l) = (&scene.gaussians, &scene.lines.segments);
+            unused = !self.set_attributes(g, scene.normals.as_deref(), scene.opacity.as_deref(), l);
+            if let Some(th) = &scene.min_scale {
+                unused |= !self.set_thickness(g, th, l);
+            }
+        }
+        unused
+    }
+
+    /// Lets `placer` (built over a subset of this refiner's Gaussians, with the same
+    /// settings, and given its attributes) answer the steps that place lines.
+    pub fn set_placement(&mut self, placer: Refiner) {
+        self.placement = Some(Box::new(placer));
+    }
+
     /// Before-evaluation, the steps of docs/method.md#the-refinement-steps and
     /// after-evaluation, calling `on_stage` after each stage.
     pub fn refine(
@@ -461,10 +485,11 @@ impl Refiner {
         let t = Instant::now();
         let before = self.evaluate(&lines.segments)?;
         push(Stage::since("evaluate_before", lines.len(), t), &mut stages);
+        let place = self.placement.as_deref().unwrap_or(self);
         let (refined, steps) = refine::run_steps_noted(
             self.engine(),
+            (place.engine(), &place.attrs),
             lines,
-            &self.attrs,
             &self.settings,
             |name, n, t| push(Stage::since(name, n, t), &mut stages),
         )?;
@@ -612,12 +637,13 @@ impl Job {
     /// (docs/formats.md#the-report).
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
         let t = Instant::now();
-        let whole = scene;
         let cut = self.scale_cut(scene)?;
-        let (scene, cut_note) = match &cut {
+        let (placing, cut_note) = match &cut {
             Some((s, n)) => (s, Some(n.clone())),
             None => (scene, None),
         };
+        // The whole model witnesses the lines (outliers, merges, crop, gaps, the metrics
+        // as `eval` measures them); the scale cut's Gaussians place them (the edge fit).
         let mut refiner = self.refiner(scene)?;
         let frame_warning =
             match self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
@@ -627,38 +653,18 @@ impl Job {
                 Some((_, msg)) => Some(msg),
                 None => None,
             };
-        let mut normals_unused = false;
-        if scene.normals.is_some() || scene.opacity.is_some() {
-            normals_unused = !refiner.set_attributes(
-                &scene.gaussians,
-                scene.normals.as_deref(),
-                scene.opacity.as_deref(),
-                &scene.lines.segments,
-            );
-            if let Some(th) = &scene.min_scale {
-                normals_unused |=
-                    !refiner.set_thickness(&scene.gaussians, th, &scene.lines.segments);
-            }
-        }
-        let mut out = refiner.refine(&scene.lines, on_stage)?;
-        let mut n_box = refiner.n_box();
-        // The scale cut serves the steps; the metrics are the whole model's, as `eval`
-        // measures them (one more grid over the uncut working set).
-        let measured = match &cut_note {
+        let normals_unused = match &cut_note {
             Some(Ok(n)) if *n > 0 => {
-                let m = self.refiner(whole)?;
-                out.before = m.evaluate(&whole.lines.segments)?;
-                out.after = m.evaluate(&out.lines.segments)?;
-                n_box = m.n_box();
-                Some(m)
+                let mut placer = self.refiner(placing)?;
+                let unused = placer.set_scene_attributes(placing);
+                refiner.set_placement(placer);
+                unused
             }
-            _ => None,
+            _ => refiner.set_scene_attributes(scene),
         };
-        let sweep = self.sweep_of(
-            measured.as_ref().unwrap_or(&refiner),
-            &scene.lines.segments,
-            Some(&out.lines.segments),
-        )?;
+        let out = refiner.refine(&scene.lines, on_stage)?;
+        let n_box = refiner.n_box();
+        let sweep = self.sweep_of(&refiner, &scene.lines.segments, Some(&out.lines.segments))?;
         let ground_truth = self.gt.as_ref().map(|g| GroundTruth {
             before: g.measure(&scene.lines.segments),
             after: Some(g.measure(&out.lines.segments)),

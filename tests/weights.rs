@@ -114,6 +114,48 @@ fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
     assert_eq!(Params::reference().max_scale(), 0.0);
 }
 
+/// A sharp edge drawn by small Gaussians on the x axis, and a second true edge 10 r away
+/// (on the line y = 10 r) that the model holds only as wide Gaussians (a thin feature of a
+/// coarse model, splats wider than the cylinder along it); a line on each.
+fn witnessed_by_wide_scene() -> Scene {
+    let mut rng = Lcg(23);
+    let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let thin = seg([0.0, 10.0 * R, 0.0], [1.0, 10.0 * R, 0.0]);
+    let mut pts = edge_points(&edge, 2000, 0.03 * R, &mut rng);
+    let mut scales = vec![(0.1 * R) as f32; pts.len()];
+    // Wide Gaussians' centers spread over 0.5 r around the thin edge.
+    pts.extend(edge_points(&thin, 600, 0.5 * R, &mut rng));
+    scales.resize(pts.len(), (2.0 * R) as f32);
+    let lines = vec![edge, thin];
+    let mut scene = Scene::from_arrays(pts, LineSet::new(lines)).unwrap();
+    scene.max_scale = Some(scales);
+    scene
+}
+
+#[test]
+fn wide_gaussians_witness_a_line_that_they_do_not_place() {
+    let scene = witnessed_by_wide_scene();
+    let params = Params::default().with_radius(R).params().clone();
+    let out = Job::new(params.clone(), Backend::Cpu)
+        .refine(&scene, |_| {})
+        .unwrap();
+    assert_eq!(out.report.refine.as_ref().unwrap().scale_cut, Some(600));
+    // Left out of the placing steps only: the thin edge's line has no small Gaussian in
+    // its cylinder, yet the outlier step (which sees the whole model) keeps it, where it
+    // was.
+    assert_eq!(out.lines.len(), 2, "{:?}", out.lines.segments);
+    let thin = out
+        .lines
+        .segments
+        .iter()
+        .find(|s| s.p1.y > 5.0 * R)
+        .expect("the thin edge's line");
+    assert!(
+        (thin.p1.y - 10.0 * R).abs() < 1e-9 && (thin.p2.y - 10.0 * R).abs() < 1e-9,
+        "{thin:?}"
+    );
+}
+
 #[test]
 fn the_scale_cut_is_a_warning_when_the_model_has_no_scales_or_all_are_wide() {
     let (mut scene, _) = wide_band_scene();
@@ -198,8 +240,14 @@ fn a_segment_on_a_curve_is_measured_bent_and_dropped_and_a_straight_edge_kept() 
         ..Params::default()
     }
     .with_radius(R);
-    let (out, notes) =
-        run_steps_noted(&e, &input, &Attributes::default(), &drop, |_, _, _| {}).unwrap();
+    let (out, notes) = run_steps_noted(
+        &e,
+        (&e, &Attributes::default()),
+        &input,
+        &drop,
+        |_, _, _| {},
+    )
+    .unwrap();
     assert_eq!(notes.curved_dropped, Some(1));
     assert_eq!(out.len(), 1);
     assert!(
@@ -213,7 +261,7 @@ fn a_segment_on_a_curve_is_measured_bent_and_dropped_and_a_straight_edge_kept() 
     }
     .with_radius(R);
     let (out, notes) =
-        run_steps_noted(&e, &input, &Attributes::default(), &off, |_, _, _| {}).unwrap();
+        run_steps_noted(&e, (&e, &Attributes::default()), &input, &off, |_, _, _| {}).unwrap();
     assert_eq!(notes.curved_dropped, None);
     assert_eq!(out.len(), 2);
 }

@@ -116,17 +116,25 @@ pub fn run_steps(
     s: &Settings,
     stage: impl FnMut(&str, usize, Instant),
 ) -> Result<LineSet, EngineError> {
-    Ok(run_steps_noted(engine, input, &fit::Attributes::default(), s, stage)?.0)
+    let none = fit::Attributes::default();
+    Ok(run_steps_noted(engine, (engine, &none), input, s, stage)?.0)
 }
 
-/// [`run_steps`] with the Gaussians' attributes (normals for the edge fit) and the notes.
+/// [`run_steps`] with the notes, and the Gaussians that place lines apart from those that
+/// witness them: `place` (an engine and its Gaussians' attributes: normals, thickness,
+/// opacity) answers the steps that move a line onto the Gaussians (the edge fit, its
+/// gate, the straightness test), `engine` every step that asks whether Gaussians are
+/// there (outliers, merge and join, crop, gaps). The two differ under `--max-scale`:
+/// a Gaussian wider than the cylinder cannot place a line within r, but it is evidence
+/// that a surface is there.
 pub fn run_steps_noted(
     engine: &dyn Engine,
+    place: (&dyn Engine, &fit::Attributes),
     input: &LineSet,
-    attrs: &fit::Attributes,
     s: &Settings,
     mut stage: impl FnMut(&str, usize, Instant),
 ) -> Result<(LineSet, StepNotes), EngineError> {
+    let (place, attrs) = place;
     let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let mut lines = input.clone();
     if fixes.order_endpoints {
@@ -165,12 +173,12 @@ pub fn run_steps_noted(
 
     let t = Instant::now();
     let moved = match fixes.fit {
-        Fit::Paper => translate::translate(engine, &lines.segments, r, p.translate_keep)?,
+        Fit::Paper => translate::translate(place, &lines.segments, r, p.translate_keep)?,
         Fit::None => lines.segments.clone(),
         Fit::Edge => {
-            let mut f = fit::fit_edges(engine, &lines.segments, attrs, r, p)?;
+            let mut f = fit::fit_edges(place, &lines.segments, attrs, r, p)?;
             if p.fit_gate {
-                fit::gate(engine, &lines.segments, &mut f, attrs, r, p)?;
+                fit::gate(place, &lines.segments, &mut f, attrs, r, p)?;
             }
             notes.fit_iterations = f.iterations;
             let count = |h| f.how.iter().filter(|&&x| x == h).count();
@@ -200,7 +208,7 @@ pub fn run_steps_noted(
     stage("translate", lines.len(), t);
 
     let t = Instant::now();
-    let o = outliers::outliers(engine, &lines.segments, r, p.outlier_ratio)?;
+    let o = outliers::outliers(engine, &lines.segments, r, p.outlier_ratio())?;
     lines = lines.select(&o.kept);
     note_len("outliers", &lines.segments, &mut notes);
     stage("outliers", lines.len(), t);
@@ -241,7 +249,7 @@ pub fn run_steps_noted(
 
     if p.max_sagitta > 0.0 {
         let t = Instant::now();
-        let st = straight::straightness(engine, &lines.segments, attrs, r, p)?;
+        let st = straight::straightness(place, &lines.segments, attrs, r, p)?;
         let kept: Vec<usize> = (0..lines.len())
             .filter(|&i| st[i].is_none_or(|sag| sag <= p.max_sagitta))
             .collect();

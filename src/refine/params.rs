@@ -218,10 +218,11 @@ pub struct Params {
     /// fitted move stands.
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set, value_name = "BOOL")]
     pub fit_gate: bool,
-    /// Leave out of refinement every Gaussian whose largest standard deviation
-    /// (`exp(max scale_i)`) exceeds this x r: a Gaussian wider than the cylinder cannot
-    /// place a line within r (large ones are surfaces and floaters). Needs a 3DGS PLY
-    /// with scales; 0: keep all. The metrics (before/after) are still the whole model's.
+    /// Leave out of the steps that place lines (the edge fit, its gate, the straightness
+    /// test) every Gaussian whose largest standard deviation (`exp(max scale_i)`) exceeds
+    /// this x r: a Gaussian wider than the cylinder cannot place a line within r. The
+    /// steps that ask whether Gaussians are there (outliers, merges, crop, gaps) and the
+    /// metrics see the whole model. Needs a 3DGS PLY with scales; 0: keep all.
     /// Default: the profile's (1 for default, 0 for reference).
     #[arg(long, value_parser = nonnegative)]
     pub max_scale: Option<f64>,
@@ -248,9 +249,10 @@ pub struct Params {
     pub split_interior: bool,
 
     /// Outliers: drop segments with density <= ratio x mean density, a ratio in [0, 1];
-    /// -1 uses max(mean - 2 std, 0).
-    #[arg(long, default_value_t = 0.2, value_parser = outlier_ratio, allow_hyphen_values = true)]
-    pub outlier_ratio: f64,
+    /// -1 uses max(mean - 2 std, 0). `default` profile: 0.1 (a trained model's density
+    /// varies tenfold between its faces and its thin features); `reference`: 0.2.
+    #[arg(long, value_parser = outlier_ratio, allow_hyphen_values = true)]
+    pub outlier_ratio: Option<f64>,
 
     /// Run the collinear merge inside input lines (Line3D++ `.txt` groups).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
@@ -396,7 +398,7 @@ impl Default for Params {
             max_scale: None,
             max_sagitta: 0.0,
             split_gaps: None,
-            outlier_ratio: 0.2,
+            outlier_ratio: None,
             collinear_merge: true,
             cluster_min_weight: 0.4,
             cluster_c: 1.5,
@@ -567,6 +569,15 @@ impl Params {
         self.max_scale.unwrap_or(match self.profile {
             Profile::Default => 1.0,
             Profile::Reference => 0.0,
+        })
+    }
+
+    /// `--outlier-ratio` in effect: the user's, else the profile's (0.1 for default, 0.2,
+    /// the paper's, for reference).
+    pub fn outlier_ratio(&self) -> f64 {
+        self.outlier_ratio.unwrap_or(match self.profile {
+            Profile::Default => 0.1,
+            Profile::Reference => 0.2,
         })
     }
 
