@@ -3,7 +3,6 @@
 //! native-endian bytes (`f32` Gaussians, `f64` segments) that the Python half converts
 //! with numpy; every computation runs with the GIL released.
 
-use clap::{Args, CommandFactory as _, FromArgMatches};
 use linegs_gpu::engine::select::Backend;
 use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::io;
@@ -84,37 +83,24 @@ fn segment_bytes(segs: &[Segment]) -> Vec<u8> {
     out
 }
 
-/// The long names of every parameter (`translate_keep`, ...), as `refine` accepts them.
+/// The names of every parameter (`translate_keep`, ...), as `refine` accepts them.
 #[pyfunction]
 fn param_names() -> Vec<String> {
-    Params::augment_args(clap::Command::new("refine"))
-        .get_arguments()
-        .filter_map(|a| a.get_long().map(|l| l.replace('-', "_")))
-        .collect()
+    Params::NAMES.iter().map(|n| n.to_string()).collect()
 }
 
-/// Parameters from command-line style arguments (`["--radius", "0.05", ...]`), with the
-/// command line's checks and messages.
-fn params(args: Vec<String>) -> PyResult<Params> {
-    #[derive(clap::Parser)]
-    #[command(name = "linegs", no_binary_name = true)]
-    struct P {
-        #[command(flatten)]
-        params: Params,
+/// Parameters from `(name, value)` pairs (`[("radius", "0.05"), ...]`) over the defaults,
+/// with the command line's checks ([`Params::set`]).
+fn params(args: Vec<(String, String)>) -> PyResult<Params> {
+    let mut p = Params::default();
+    for (name, value) in &args {
+        p.set(name, value).map_err(InputError::new_err)?;
     }
-    let m = P::command().try_get_matches_from(args).map_err(|e| {
-        let text = e.render().to_string();
-        let first = text.lines().next().unwrap_or("invalid parameters");
-        InputError::new_err(first.trim_start_matches("error: ").to_string())
-    })?;
-    let p = P::from_arg_matches(&m).map_err(|e| InputError::new_err(e.to_string()))?;
-    Ok(p.params)
+    Ok(p)
 }
 
 fn backend(name: &str) -> PyResult<Backend> {
-    <Backend as clap::ValueEnum>::from_str(name, true).map_err(|_| {
-        InputError::new_err(format!("backend `{name}`: expected `auto`, `gpu` or `cpu`"))
-    })
+    name.parse().map_err(InputError::new_err)
 }
 
 /// The attributes of the Gaussians as the Python half passes them: `(normals N x 3,
@@ -320,7 +306,7 @@ fn refine(
     gaussians_f32: &[u8],
     segments_f64: &[u8],
     groups: Option<Vec<u32>>,
-    args: Vec<String>,
+    args: Vec<(String, String)>,
     backend_name: &str,
     gt_f64: Option<&[u8]>,
     sweep: Option<Vec<f64>>,
@@ -353,7 +339,7 @@ fn evaluate(
     py: Python<'_>,
     gaussians_f32: &[u8],
     segments_f64: &[u8],
-    args: Vec<String>,
+    args: Vec<(String, String)>,
     backend_name: &str,
     compare_f64: Option<&[u8]>,
     gt_f64: Option<&[u8]>,

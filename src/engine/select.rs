@@ -8,17 +8,7 @@ use crate::index::Grid;
 use std::sync::Arc;
 
 /// Which engine to use.
-#[derive(
-    Clone,
-    Copy,
-    Debug,
-    Default,
-    PartialEq,
-    Eq,
-    clap::ValueEnum,
-    serde::Serialize,
-    serde::Deserialize,
-)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Backend {
     /// A hardware GPU adapter when one exists, else the CPU engine (software adapters
@@ -38,6 +28,17 @@ impl Backend {
             Backend::Gpu => "gpu",
             Backend::Cpu => "cpu",
         }
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = String;
+    /// `auto`, `gpu` or `cpu`, in any case.
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Backend::Auto, Backend::Gpu, Backend::Cpu]
+            .into_iter()
+            .find(|b| b.as_str().eq_ignore_ascii_case(s))
+            .ok_or_else(|| format!("backend `{s}`: expected `auto`, `gpu` or `cpu`"))
     }
 }
 
@@ -267,13 +268,14 @@ mod tests {
     }
 
     #[test]
-    fn backend_names_round_trip_through_serde_and_clap() {
-        use clap::ValueEnum;
+    fn backend_names_round_trip_through_serde_and_text() {
         for b in [Backend::Auto, Backend::Gpu, Backend::Cpu] {
             let json = serde_json::to_string(&b).unwrap();
             assert_eq!(json, format!("\"{}\"", b.as_str()));
             assert_eq!(serde_json::from_str::<Backend>(&json).unwrap(), b);
-            assert_eq!(Backend::from_str(b.as_str(), false).unwrap(), b);
+            assert_eq!(b.as_str().parse::<Backend>().unwrap(), b);
+            assert_eq!(b.as_str().to_uppercase().parse::<Backend>().unwrap(), b);
         }
+        assert!("tpu".parse::<Backend>().unwrap_err().contains("`tpu`"));
     }
 }
