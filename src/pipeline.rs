@@ -12,6 +12,7 @@
 //!    (docs/formats.md#the-report) — the same shape for refine, eval and demo.
 
 use crate::engine::dedup::Dedup;
+use crate::engine::gpu::GpuSetup;
 use crate::engine::select::{prepare, Backend};
 use crate::engine::{Engine, EngineError};
 use crate::eval::{self, gt, Metrics};
@@ -300,15 +301,27 @@ pub struct Refiner {
 
 impl Refiner {
     /// Working set of the box of `segments` (docs/method.md#geometry), settings resolved
-    /// over it, grid, and the engine of `backend`.
+    /// over it, grid, and the engine of `backend` (a GPU engine opened the default way,
+    /// [`GpuSetup::default`]).
     pub fn new(
         gaussians: &[[f32; 3]],
         segments: &[Segment],
         params: &Params,
         backend: Backend,
     ) -> Result<Refiner, RunError> {
+        Refiner::with_setup(gaussians, segments, params, backend, &GpuSetup::default())
+    }
+
+    /// [`Refiner::new`] with a GPU engine opened as `gpu` says.
+    pub fn with_setup(
+        gaussians: &[[f32; 3]],
+        segments: &[Segment],
+        params: &Params,
+        backend: Backend,
+        gpu: &GpuSetup,
+    ) -> Result<Refiner, RunError> {
         // The device opens (and its kernels compile) while the grid is built.
-        let pending = prepare(backend);
+        let pending = prepare(backend, gpu);
         Refiner::with_engine(gaussians, segments, params, |grid| pending.finish(grid))
     }
 
@@ -500,6 +513,9 @@ pub struct Refined {
 pub struct Job {
     pub params: Params,
     pub backend: Backend,
+    /// How the GPU engine opens (adapter, options): the commands read it from their
+    /// environment; the default is [`GpuSetup::default`].
+    pub gpu: GpuSetup,
     /// The paper's radius sweep: metrics at each of these radii, before and after.
     pub sweep: Option<Vec<f64>>,
     /// Ground-truth edges and the protocol of the ABC-NEF metrics (same frame as the
@@ -534,11 +550,12 @@ impl Job {
 
     /// The engine for `scene`, built once.
     pub fn refiner(&self, scene: &Scene) -> Result<Refiner, RunError> {
-        Refiner::new(
+        Refiner::with_setup(
             &scene.gaussians,
             &scene.lines.segments,
             &self.params,
             self.backend,
+            &self.gpu,
         )
     }
 

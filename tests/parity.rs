@@ -782,9 +782,9 @@ fn a_point_store_computed_for_another_grid_is_not_uploaded() {
     let (a, b) = (random_scene(20_000, 71), random_scene(20_000, 72));
     let qs = random_queries(300, 73, 0.04);
     let (ga, gb) = (Arc::new(grid_of(&a, 0.03)), Arc::new(grid_of(&b, 0.03)));
-    let open = || match GpuDevice::open_default(GpuOptions::default()) {
+    let open = || match GpuDevice::open_setup(&common::gpu_setup(GpuOptions::default())) {
         Ok(d) => Some(d),
-        Err(EngineError::NoAdapter(_)) if linegs_gpu::engine::gpu::skip_gpu_tests() => None,
+        Err(EngineError::NoAdapter(_)) if common::skip_gpu_tests() => None,
         Err(e) => panic!("GPU engine failed to start: {e}"),
     };
     let Some(device) = open() else {

@@ -3,6 +3,7 @@
 //! native-endian bytes (`f32` Gaussians, `f64` segments) that the Python half converts
 //! with numpy; every computation runs with the GIL released.
 
+use linegs_gpu::engine::gpu::GpuSetup;
 use linegs_gpu::engine::select::Backend;
 use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::io;
@@ -101,6 +102,15 @@ fn params(args: Vec<(String, String)>) -> PyResult<Params> {
 
 fn backend(name: &str) -> PyResult<Backend> {
     name.parse().map_err(InputError::new_err)
+}
+
+/// A job on `backend_name` whose GPU engine opens as the command line's would: the
+/// process environment read as `linegs-gpu` reads it (docs/architecture.md#environment).
+fn job(args: Vec<(String, String)>, backend_name: &str) -> PyResult<Job> {
+    Ok(Job {
+        gpu: GpuSetup::from_vars(|k| std::env::var(k).ok()),
+        ..Job::new(params(args)?, backend(backend_name)?)
+    })
 }
 
 /// The attributes of the Gaussians as the Python half passes them: `(normals N x 3,
@@ -318,7 +328,7 @@ fn refine(
     let job = Job {
         sweep,
         gt: gt_f64.map(|g| exact_gt(&segments(g))),
-        ..Job::new(params(args)?, backend(backend_name)?)
+        ..job(args, backend_name)?
     };
     let (bytes, report) = py
         .detach(|| {
@@ -352,7 +362,7 @@ fn evaluate(
     let job = Job {
         sweep,
         gt: gt_f64.map(|g| exact_gt(&segments(g))),
-        ..Job::new(params(args)?, backend(backend_name)?)
+        ..job(args, backend_name)?
     };
     py.detach(|| {
         let attrs = (normals_f32, max_scale_f32, opacity_f32, min_scale_f32);

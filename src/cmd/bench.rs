@@ -3,7 +3,7 @@ use super::params::{BackendArg, ProfileArg};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::mem;
-use linegs_gpu::pipeline::{Job, Scene, Stage};
+use linegs_gpu::pipeline::{Scene, Stage};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 use serde::Serialize;
@@ -95,7 +95,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
             let synth_seconds = t.elapsed().as_secs_f64();
             let mut runs = Vec::new();
             for &b in &a.backend {
-                let job = Job::new(params.clone(), b.into());
+                let job = super::env::job(params.clone(), b.into());
                 let mut best: Option<RunTiming> = None;
                 for _ in 0..a.repeat {
                     mem::reset_peak_rss();

@@ -4,6 +4,7 @@ pub mod batch;
 pub mod bench;
 pub mod convert;
 pub mod demo;
+pub mod env;
 pub mod eval;
 pub mod info;
 pub mod params;

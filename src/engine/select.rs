@@ -2,7 +2,7 @@
 //! answers the queries.
 
 use super::cpu::CpuEngine;
-use super::gpu::{GpuDevice, GpuEngine, GpuOptions, PointStore};
+use super::gpu::{GpuDevice, GpuEngine, GpuSetup, PointStore};
 use super::{Engine, EngineError};
 use crate::index::Grid;
 use std::sync::Arc;
@@ -48,13 +48,15 @@ impl std::fmt::Display for Backend {
     }
 }
 
-/// The engine for `backend` over `grid`, with the messages the user should see: for
-/// `auto`, which adapter it picked, or why it chose the CPU engine.
+/// The engine for `backend` over `grid` (a GPU engine opened as `gpu` says), with the
+/// messages the user should see: for `auto`, which adapter it picked, or why it chose the
+/// CPU engine.
 pub fn make_engine(
     backend: Backend,
+    gpu: &GpuSetup,
     grid: Arc<Grid>,
 ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
-    prepare(backend).finish(grid)
+    prepare(backend, gpu).finish(grid)
 }
 
 /// The engine of a backend in the making ([`prepare`]).
@@ -66,17 +68,20 @@ pub struct Pending {
 /// Starts making the engine of `backend`: for `gpu` and `auto` the adapter is picked and
 /// opened and the kernels compiled on a thread of their own, which needs no Gaussians, so
 /// that it runs while the caller builds the grid; [`Pending::finish`] uploads the grid.
-pub fn prepare(backend: Backend) -> Pending {
+/// `gpu` says how: for `auto` its options on the hardware adapter found (its adapter name
+/// is not consulted), for `gpu` its adapter and options.
+pub fn prepare(backend: Backend, gpu: &GpuSetup) -> Pending {
+    let gpu = gpu.clone();
     let open = move || match backend {
         Backend::Auto => {
             let adapters = crate::engine::gpu::enumerate_adapters();
             let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
             match auto_pick(&infos) {
-                Pick::Hardware(i) => GpuDevice::open(&adapters[i], GpuOptions::for_commands()),
+                Pick::Hardware(i) => GpuDevice::open(&adapters[i], gpu.options),
                 Pick::None(why) | Pick::SoftwareOnly(why) => Err(EngineError::NoAdapter(why)),
             }
         }
-        _ => GpuDevice::open_default(GpuOptions::for_commands()),
+        _ => GpuDevice::open_setup(&gpu),
     };
     Pending {
         backend,
@@ -262,7 +267,7 @@ mod tests {
 
     #[test]
     fn cpu_is_always_the_cpu_engine() {
-        let (e, notes) = make_engine(Backend::Cpu, grid()).unwrap();
+        let (e, notes) = make_engine(Backend::Cpu, &GpuSetup::default(), grid()).unwrap();
         assert_eq!(e.backend(), "cpu");
         assert!(notes.is_empty());
     }

@@ -163,17 +163,39 @@ pub fn cpu_engine(
     linegs_gpu::engine::cpu::CpuEngine::new(std::sync::Arc::new(grid))
 }
 
-/// The GPU engine. Without an adapter this fails the test, unless the environment opts
-/// out with `LINEGS_SKIP_GPU_TESTS=1`: then `None`, and the skip is printed (`cargo test`
-/// shows it with the test's output, and in the summary of a failing run).
+/// `LINEGS_SKIP_GPU_TESTS=1`: GPU tests on a machine without an adapter skip (with a
+/// notice) instead of failing.
+pub fn skip_gpu_tests() -> bool {
+    std::env::var("LINEGS_SKIP_GPU_TESTS").is_ok_and(|v| v == "1")
+}
+
+/// The GPU setup of the tests' environment, as the commands read theirs: the adapter of
+/// `WGPU_ADAPTER_NAME`, new buffers filled with garbage where `LINEGS_GPU_GARBAGE` is set
+/// (scripts/test.sh sets it), and `opts` otherwise.
+pub fn gpu_setup(opts: linegs_gpu::engine::gpu::GpuOptions) -> linegs_gpu::engine::gpu::GpuSetup {
+    let env = linegs_gpu::engine::gpu::GpuSetup::from_vars(|k| std::env::var(k).ok());
+    linegs_gpu::engine::gpu::GpuSetup {
+        adapter_name: env.adapter_name,
+        options: linegs_gpu::engine::gpu::GpuOptions {
+            fill_garbage: opts.fill_garbage || env.options.fill_garbage,
+            ..opts
+        },
+    }
+}
+
+/// The GPU engine with `opts` in the tests' environment ([`gpu_setup`]). Without an
+/// adapter this fails the test, unless the environment opts out with
+/// `LINEGS_SKIP_GPU_TESTS=1`: then `None`, and the skip is printed (`cargo test` shows it
+/// with the test's output, and in the summary of a failing run).
 pub fn gpu_engine(
     grid: std::sync::Arc<Grid>,
     opts: linegs_gpu::engine::gpu::GpuOptions,
 ) -> Option<linegs_gpu::engine::gpu::GpuEngine> {
-    match linegs_gpu::engine::gpu::GpuEngine::with_options(grid, opts) {
+    let opened = linegs_gpu::engine::gpu::GpuDevice::open_setup(&gpu_setup(opts));
+    match opened.and_then(|d| d.engine(grid)) {
         Ok(e) => Some(e),
         Err(linegs_gpu::engine::EngineError::NoAdapter(why)) => {
-            if linegs_gpu::engine::gpu::skip_gpu_tests() {
+            if skip_gpu_tests() {
                 // println! is captured per test; eprintln! reaches the terminal at once.
                 eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({why})");
                 println!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({why})");
