@@ -211,7 +211,7 @@ fn points_within_float_rounding_of_a_boundary_are_decided_like_the_cpu() {
     let d = seg.dir();
     let n = d.cross(DVec3::Z).normalize();
     let mut pts = random_scene(20_000, 42);
-    let mut rng = Lcg(7);
+    let mut rng = TestRng::new(7);
     for i in 0..400 {
         let s = if i % 2 == 0 { 1.0 } else { -1.0 } * 1e-7 * (1.0 + rng.f());
         let p = match i % 3 {
@@ -248,7 +248,7 @@ fn points_on_cylinder_boundaries() {
 /// 100,000 points in one grid cell on one segment: a query with more members than the
 /// 65,535 loop iterations after which lavapipe silently stops an invocation.
 fn dense_cell() -> (Vec<[f32; 3]>, Segment) {
-    let mut r = Lcg(5);
+    let mut r = TestRng::new(5);
     let pts: Vec<[f32; 3]> = (0..100_000)
         .map(|i| {
             let x = 0.1 + 0.8 * (i as f64 + 0.5) / 100_000.0;
@@ -587,7 +587,7 @@ fn repeated_runs_are_identical_and_the_points_are_uploaded_once() {
 /// Points along four ridges (spread 0.1 r across), a uniform background, and segments
 /// near the ridges (offset up to 0.4 r, slightly turned) plus random ones.
 fn ridge_scene(r: f64) -> (Vec<[f32; 3]>, Vec<Query>) {
-    let mut g = Lcg(77);
+    let mut g = TestRng::new(77);
     let mut pts = Vec::new();
     let mut qs = Vec::new();
     for _ in 0..4 {

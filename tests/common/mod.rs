@@ -6,17 +6,21 @@ use linegs_gpu::engine::{CylStats, Query};
 use linegs_gpu::geom::{p64, Aabb, Cylinder, Segment};
 use linegs_gpu::index::Grid;
 
-/// Deterministic LCG so the tests need no RNG crate.
-pub struct Lcg(pub u64);
+use linegs_gpu::synth::Rng;
 
-impl Lcg {
-    pub fn f(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 11) as f64) / ((1u64 << 53) as f64)
+/// The tests' random numbers: the library's generator ([`Rng`], xoshiro256** seeded
+/// through SplitMix64), with the two draws the tests take.
+pub struct TestRng(Rng);
+
+impl TestRng {
+    pub fn new(seed: u64) -> TestRng {
+        TestRng(Rng::new(seed))
     }
+    /// Uniform in `[0, 1)`.
+    pub fn f(&mut self) -> f64 {
+        self.0.uniform()
+    }
+    /// Uniform in the unit cube.
     pub fn v(&mut self) -> DVec3 {
         DVec3::new(self.f(), self.f(), self.f())
     }
@@ -32,7 +36,7 @@ pub fn grid_of(points: &[[f32; 3]], cell: f64) -> Grid {
 
 /// Random centers in the unit cube, denser along a few lines like a trained 3DGS model.
 pub fn random_scene(n: usize, seed: u64) -> Vec<[f32; 3]> {
-    let mut r = Lcg(seed);
+    let mut r = TestRng::new(seed);
     let lines: Vec<(DVec3, DVec3)> = (0..6).map(|_| (r.v(), r.v())).collect();
     (0..n)
         .map(|i| {
@@ -48,7 +52,7 @@ pub fn random_scene(n: usize, seed: u64) -> Vec<[f32; 3]> {
 }
 
 pub fn random_queries(n: usize, seed: u64, r: f64) -> Vec<Query> {
-    let mut g = Lcg(seed);
+    let mut g = TestRng::new(seed);
     (0..n)
         .map(|_| {
             let a = g.v() * 1.2 - 0.1;
@@ -132,7 +136,7 @@ pub fn boundary_scene() -> (Vec<[f32; 3]>, Vec<Query>) {
 
 /// `n` centers along `seg` (uniform) with isotropic normal noise `sigma` — a dense edge
 /// of a trained 3DGS model.
-pub fn edge_points(seg: &Segment, n: usize, sigma: f64, rng: &mut Lcg) -> Vec<[f32; 3]> {
+pub fn edge_points(seg: &Segment, n: usize, sigma: f64, rng: &mut TestRng) -> Vec<[f32; 3]> {
     (0..n)
         .map(|_| {
             let mut g = || {
