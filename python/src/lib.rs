@@ -105,7 +105,7 @@ fn backend(name: &str) -> PyResult<Backend> {
 }
 
 /// A job on `backend_name` whose GPU engine opens as the command line's would: the
-/// process environment read as `linegs-gpu` reads it (docs/architecture.md#environment).
+/// process environment read as `linegs-gpu` reads it (docs/troubleshooting.md#environment).
 fn job(args: Vec<(String, String)>, backend_name: &str) -> PyResult<Job> {
     Ok(Job {
         gpu: GpuSetup::from_vars(|k| std::env::var(k).ok()),

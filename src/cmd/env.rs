@@ -1,6 +1,6 @@
 //! The environment, read here and nowhere in the library: the variables that choose and
 //! tune the GPU engine become a [`GpuSetup`] value that the commands pass down
-//! (docs/architecture.md#environment lists every variable).
+//! (docs/troubleshooting.md#environment lists every variable).
 
 use linegs_gpu::engine::gpu::GpuSetup;
 use linegs_gpu::engine::select::Backend;

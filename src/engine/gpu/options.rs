@@ -125,7 +125,7 @@ impl Default for GpuSetup {
 
 impl GpuSetup {
     /// The default setup with the variables that `var` looks up applied (the commands
-    /// pass the process environment; the table is in docs/architecture.md#environment):
+    /// pass the process environment; the table is in docs/troubleshooting.md#environment):
     /// - `WGPU_ADAPTER_NAME`: [`GpuSetup::adapter_name`];
     /// - `LINEGS_GPU_SMALL_BATCH=N`: [`GpuOptions::small_batch`] (0 sends every batch to
     ///   the device; not a number: the default [`SMALL_BATCH`]);
