@@ -290,6 +290,8 @@ pub struct BatchOptions {
     /// Parameters of every scene; a manifest's `radius` and `eval_radius` override them.
     pub params: Params,
     pub backend: Backend,
+    /// How the GPU engine opens (the commands' environment).
+    pub gpu: crate::engine::gpu::GpuSetup,
     pub shard: Shard,
     /// Leave scenes that already have a report alone.
     pub skip_existing: bool,
@@ -367,6 +369,7 @@ fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError>
     };
     let job = Job {
         gt,
+        gpu: opts.gpu.clone(),
         ..Job::new(entry_params(e, &opts.params), opts.backend)
     };
     let mut out = job.refine(&scene, |_| {})?;

@@ -384,23 +384,22 @@ fn t_interval(p: f64, d: f64, slab: (f64, f64), ts: (f64, f64)) -> Option<(f64, 
 mod tests {
     use super::*;
     use crate::geom::Cylinder;
+    use crate::synth::Rng;
 
-    fn lcg(seed: &mut u64) -> f64 {
-        *seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((*seed >> 11) as f64) / ((1u64 << 53) as f64)
+    /// Uniform in `[0, 1)` from the library's generator.
+    fn uni(rng: &mut Rng) -> f64 {
+        rng.uniform()
     }
 
     #[test]
     fn counting_sort_keeps_every_point_in_its_cell() {
-        let mut s = 7u64;
+        let mut s = Rng::new(7);
         let pts: Vec<[f32; 3]> = (0..5000)
             .map(|_| {
                 [
-                    lcg(&mut s) as f32,
-                    lcg(&mut s) as f32 * 2.0,
-                    lcg(&mut s) as f32,
+                    uni(&mut s) as f32,
+                    uni(&mut s) as f32 * 2.0,
+                    uni(&mut s) as f32,
                 ]
             })
             .collect();
@@ -423,9 +422,9 @@ mod tests {
 
     #[test]
     fn rows_cover_every_point_inside_the_cylinder() {
-        let mut s = 11u64;
+        let mut s = Rng::new(11);
         let pts: Vec<[f32; 3]> = (0..20000)
-            .map(|_| [lcg(&mut s) as f32, lcg(&mut s) as f32, lcg(&mut s) as f32])
+            .map(|_| [uni(&mut s) as f32, uni(&mut s) as f32, uni(&mut s) as f32])
             .collect();
         let mut b = Aabb::empty();
         for p in &pts {
@@ -433,10 +432,10 @@ mod tests {
         }
         let g = Grid::build(&pts, b, 0.05);
         for _ in 0..300 {
-            let a = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 1.4 - 0.2;
-            let c = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 1.4 - 0.2;
+            let a = DVec3::new(uni(&mut s), uni(&mut s), uni(&mut s)) * 1.4 - 0.2;
+            let c = DVec3::new(uni(&mut s), uni(&mut s), uni(&mut s)) * 1.4 - 0.2;
             let seg = Segment::new(a, c);
-            let r = 0.01 + 0.1 * lcg(&mut s);
+            let r = 0.01 + 0.1 * uni(&mut s);
             let cyl = Cylinder::new(&seg, r);
             let mut visited = vec![false; pts.len()];
             let mut touched = 0usize;
@@ -507,14 +506,14 @@ mod tests {
     #[test]
     fn a_far_flung_endpoint_and_floaters_cost_no_more_than_near_segments() {
         // A unit scene with 20,000 points, 30 segments in it, and a few floaters far away.
-        let mut s = 5u64;
+        let mut s = Rng::new(5);
         let mut pts: Vec<[f32; 3]> = (0..20000)
-            .map(|_| [lcg(&mut s) as f32, lcg(&mut s) as f32, lcg(&mut s) as f32])
+            .map(|_| [uni(&mut s) as f32, uni(&mut s) as f32, uni(&mut s) as f32])
             .collect();
         let near: Vec<Segment> = (0..30)
             .map(|_| {
-                let a = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s));
-                let b = DVec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s));
+                let a = DVec3::new(uni(&mut s), uni(&mut s), uni(&mut s));
+                let b = DVec3::new(uni(&mut s), uni(&mut s), uni(&mut s));
                 Segment::new(a, b)
             })
             .collect();

@@ -18,7 +18,7 @@ use std::sync::Arc;
 
 /// Each of `distinct` queries asked 1 to ~10 times, interleaved, with per-query k.
 fn copied_batch(distinct: &[Query], n: usize, seed: u64) -> (Vec<Query>, Vec<u64>) {
-    let mut g = Lcg(seed);
+    let mut g = TestRng::new(seed);
     let mut q = Vec::with_capacity(n);
     let mut k = Vec::with_capacity(n);
     for _ in 0..n {
@@ -83,7 +83,7 @@ fn gpu_engine_answers_are_unchanged_by_dedup() {
 /// Three edges, each seen as three noisy segments; every segment copied 20 times in a
 /// shuffled order, and a sparse outlier copied 5 times.
 fn copied_scene() -> (Vec<[f32; 3]>, LineSet) {
-    let mut rng = Lcg(9);
+    let mut rng = TestRng::new(9);
     let edges = [
         seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
         seg([0.0, 0.0, 0.0], [0.0, 0.8, 0.1]),
@@ -100,7 +100,7 @@ fn copied_scene() -> (Vec<[f32; 3]>, LineSet) {
     let mut distinct = Vec::new();
     for e in &edges {
         for _ in 0..3 {
-            let n = |r: &mut Lcg| (r.v() - 0.5) * 0.02;
+            let n = |r: &mut TestRng| (r.v() - 0.5) * 0.02;
             let a = e.p1 + n(&mut rng) + (e.p2 - e.p1) * 0.1 * rng.f();
             let b = e.p2 + n(&mut rng) - (e.p2 - e.p1) * 0.1 * rng.f();
             distinct.push(Segment::new(a, b));

@@ -11,7 +11,7 @@ use linegs_gpu::refine::{self, crop, Fit, Params};
 const R: f64 = 0.03;
 
 /// Three edges of a square: (0,0,0)-(1,0,0) and the two sides meeting it at its corners.
-fn u_shape(rng: &mut Lcg) -> Vec<[f32; 3]> {
+fn u_shape(rng: &mut TestRng) -> Vec<[f32; 3]> {
     let mut pts = Vec::new();
     for e in [
         seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
@@ -25,7 +25,7 @@ fn u_shape(rng: &mut Lcg) -> Vec<[f32; 3]> {
 
 #[test]
 fn a_short_segment_on_a_long_edge_is_extended_to_its_corners_and_not_past() {
-    let mut rng = Lcg(21);
+    let mut rng = TestRng::new(21);
     let pts = u_shape(&mut rng);
     let short = seg([0.4, 0.0, 0.0], [0.6, 0.0, 0.0]);
     let e = cpu_engine(&pts, &[short, seg([0.0, 1.0, 0.0], [1.0, 1.0, 0.0])], R);
@@ -48,7 +48,7 @@ fn a_short_segment_on_a_long_edge_is_extended_to_its_corners_and_not_past() {
 
 #[test]
 fn an_extension_is_bounded_by_its_limit() {
-    let mut rng = Lcg(22);
+    let mut rng = TestRng::new(22);
     let pts = u_shape(&mut rng);
     let short = seg([0.4, 0.0, 0.0], [0.6, 0.0, 0.0]);
     let e = cpu_engine(&pts, &[short, seg([0.0, 1.0, 0.0], [1.0, 1.0, 0.0])], R);
@@ -75,7 +75,7 @@ fn covered(edge: &Segment, out: &[Segment], tol: f64) -> f64 {
 
 #[test]
 fn a_turned_segment_on_a_true_edge_is_kept_whole() {
-    let mut rng = Lcg(23);
+    let mut rng = TestRng::new(23);
     let pts = u_shape(&mut rng);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     // One end on the edge, the other 0.9 r off it: the published step moves it by the

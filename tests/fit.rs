@@ -23,7 +23,7 @@ fn edge_params() -> Params {
 
 /// Flat Gaussians on the faces z = 0 (y in [0, 1.5 r]) and y = 0 (z in [0, 1.5 r]) meeting
 /// at the x axis, with their normals (the shortest axis).
-fn l_shape(n: usize, rng: &mut Lcg) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+fn l_shape(n: usize, rng: &mut TestRng) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let mut pts = Vec::new();
     let mut normals = Vec::new();
     for i in 0..n {
@@ -43,7 +43,7 @@ fn l_shape(n: usize, rng: &mut Lcg) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
 
 #[test]
 fn two_face_families_give_the_corner_not_the_centroid() {
-    let mut rng = Lcg(11);
+    let mut rng = TestRng::new(11);
     let (pts, normals) = l_shape(6000, &mut rng);
     let input = seg([0.0, 0.3 * R, 0.3 * R], [1.0, 0.3 * R, 0.3 * R]);
     let e = cpu_engine(&pts, &[input], R);
@@ -65,7 +65,7 @@ fn two_face_families_give_the_corner_not_the_centroid() {
 
 #[test]
 fn an_edge_nine_tenths_of_r_away_is_reached() {
-    let mut rng = Lcg(12);
+    let mut rng = TestRng::new(12);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 4000, 0.004, &mut rng);
     let input = seg([0.0, 0.9 * R, 0.0], [1.0, 0.9 * R, 0.0]);
@@ -85,7 +85,7 @@ fn an_edge_nine_tenths_of_r_away_is_reached() {
 
 #[test]
 fn a_slightly_turned_edge_is_turned_onto_its_ridge() {
-    let mut rng = Lcg(13);
+    let mut rng = TestRng::new(13);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 4000, 0.004, &mut rng);
     // 0.6 r off at one end, -0.6 r at the other: about 2 degrees.
@@ -100,7 +100,7 @@ fn a_slightly_turned_edge_is_turned_onto_its_ridge() {
 
 #[test]
 fn a_neighbouring_edge_does_not_capture_the_line() {
-    let mut rng = Lcg(14);
+    let mut rng = TestRng::new(14);
     let own = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let other = seg([0.0, 0.8 * R, 0.0], [1.0, 0.8 * R, 0.0]);
     let mut pts = edge_points(&own, 3000, 0.003, &mut rng);
@@ -113,7 +113,7 @@ fn a_neighbouring_edge_does_not_capture_the_line() {
 
 #[test]
 fn a_segment_with_no_gaussians_stays_and_says_so() {
-    let mut rng = Lcg(15);
+    let mut rng = TestRng::new(15);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 500, 0.004, &mut rng);
     let lonely = seg([0.0, 0.5, 0.5], [1.0, 0.5, 0.5]);
@@ -127,7 +127,7 @@ fn a_segment_with_no_gaussians_stays_and_says_so() {
 fn a_short_segment_keeps_its_direction_and_the_fit_does_not_amplify_rounding() {
     // A stub 0.6 r long, turned 2 degrees off a ridge 0.2 r wide: its points are no longer
     // than they are wide, so the fit moves it onto the ridge without turning it.
-    let mut rng = Lcg(14);
+    let mut rng = TestRng::new(14);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 20_000, 0.2 * R, &mut rng);
     let tilt = (2f64).to_radians().tan() * 0.6 * R;
@@ -183,7 +183,7 @@ fn fit_and_gate(
 
 /// Face splats (their normals and a thickness of 0.02 r) on z = 0 and y = 0, from `near`
 /// to `far` off the x axis: none closer to the edge than `near`.
-fn faces(n: usize, near: f64, far: f64, rng: &mut Lcg) -> (Vec<[f32; 3]>, Attributes) {
+fn faces(n: usize, near: f64, far: f64, rng: &mut TestRng) -> (Vec<[f32; 3]>, Attributes) {
     let mut pts = Vec::new();
     let mut normals = Vec::new();
     for i in 0..n {
@@ -209,7 +209,7 @@ fn faces(n: usize, near: f64, far: f64, rng: &mut Lcg) -> (Vec<[f32; 3]>, Attrib
 
 #[test]
 fn the_gate_lets_two_thin_faces_place_their_corner_though_no_center_is_near_it() {
-    let mut rng = Lcg(21);
+    let mut rng = TestRng::new(21);
     // No center within r/2 of the edge: the faces stop short of it, as trained splats do.
     let (pts, attrs) = faces(8000, 0.5 * R, 2.0 * R, &mut rng);
     let input = seg([0.0, 0.35 * R, 0.35 * R], [1.0, 0.35 * R, 0.35 * R]);
@@ -221,7 +221,7 @@ fn the_gate_lets_two_thin_faces_place_their_corner_though_no_center_is_near_it()
 
 #[test]
 fn the_gate_keeps_a_line_already_inside_both_faces_slabs() {
-    let mut rng = Lcg(22);
+    let mut rng = TestRng::new(22);
     let (pts, attrs) = faces(8000, 0.5 * R, 2.0 * R, &mut rng);
     // 0.005 r off the corner: inside both slabs (half-width 3 x 0.02 r).
     let input = seg([0.0, 0.005 * R, 0.005 * R], [1.0, 0.005 * R, 0.005 * R]);
@@ -233,7 +233,7 @@ fn the_gate_keeps_a_line_already_inside_both_faces_slabs() {
 
 #[test]
 fn the_gate_keeps_a_line_over_a_one_sided_shell_of_splats() {
-    let mut rng = Lcg(23);
+    let mut rng = TestRng::new(23);
     // One face only (z = 0, y in [-2 r, 2 r]): no corner, and the centers' densest line
     // is a line on the face, not an edge.
     let mut pts = Vec::new();
@@ -262,7 +262,7 @@ fn the_gate_keeps_a_line_over_a_one_sided_shell_of_splats() {
 
 #[test]
 fn the_gate_lets_a_ridge_of_small_round_gaussians_be_reached() {
-    let mut rng = Lcg(24);
+    let mut rng = TestRng::new(24);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 4000, 0.004, &mut rng);
     // Round Gaussians: no normal (zero), as a flat-splat test leaves them.

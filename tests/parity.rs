@@ -211,7 +211,7 @@ fn points_within_float_rounding_of_a_boundary_are_decided_like_the_cpu() {
     let d = seg.dir();
     let n = d.cross(DVec3::Z).normalize();
     let mut pts = random_scene(20_000, 42);
-    let mut rng = Lcg(7);
+    let mut rng = TestRng::new(7);
     for i in 0..400 {
         let s = if i % 2 == 0 { 1.0 } else { -1.0 } * 1e-7 * (1.0 + rng.f());
         let p = match i % 3 {
@@ -248,7 +248,7 @@ fn points_on_cylinder_boundaries() {
 /// 100,000 points in one grid cell on one segment: a query with more members than the
 /// 65,535 loop iterations after which lavapipe silently stops an invocation.
 fn dense_cell() -> (Vec<[f32; 3]>, Segment) {
-    let mut r = Lcg(5);
+    let mut r = TestRng::new(5);
     let pts: Vec<[f32; 3]> = (0..100_000)
         .map(|i| {
             let x = 0.1 + 0.8 * (i as f64 + 0.5) / 100_000.0;
@@ -587,7 +587,7 @@ fn repeated_runs_are_identical_and_the_points_are_uploaded_once() {
 /// Points along four ridges (spread 0.1 r across), a uniform background, and segments
 /// near the ridges (offset up to 0.4 r, slightly turned) plus random ones.
 fn ridge_scene(r: f64) -> (Vec<[f32; 3]>, Vec<Query>) {
-    let mut g = Lcg(77);
+    let mut g = TestRng::new(77);
     let mut pts = Vec::new();
     let mut qs = Vec::new();
     for _ in 0..4 {
@@ -782,9 +782,9 @@ fn a_point_store_computed_for_another_grid_is_not_uploaded() {
     let (a, b) = (random_scene(20_000, 71), random_scene(20_000, 72));
     let qs = random_queries(300, 73, 0.04);
     let (ga, gb) = (Arc::new(grid_of(&a, 0.03)), Arc::new(grid_of(&b, 0.03)));
-    let open = || match GpuDevice::open_default(GpuOptions::default()) {
+    let open = || match GpuDevice::open_setup(&common::gpu_setup(GpuOptions::default())) {
         Ok(d) => Some(d),
-        Err(EngineError::NoAdapter(_)) if linegs_gpu::engine::gpu::skip_gpu_tests() => None,
+        Err(EngineError::NoAdapter(_)) if common::skip_gpu_tests() => None,
         Err(e) => panic!("GPU engine failed to start: {e}"),
     };
     let Some(device) = open() else {

@@ -9,7 +9,7 @@ const R: f64 = 0.03;
 
 #[test]
 fn an_offset_edge_is_pulled_back_onto_its_gaussians() {
-    let mut rng = Lcg(1);
+    let mut rng = TestRng::new(1);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 3000, 0.004, &mut rng);
     for offset in [0.5 * R, 0.7 * R] {
@@ -27,7 +27,7 @@ fn an_offset_edge_is_pulled_back_onto_its_gaussians() {
 
 #[test]
 fn a_segment_with_no_gaussians_stays_where_it_is() {
-    let mut rng = Lcg(2);
+    let mut rng = TestRng::new(2);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 500, 0.004, &mut rng);
     let lonely = seg([0.0, 0.5, 0.5], [1.0, 0.5, 0.5]);
@@ -38,7 +38,7 @@ fn a_segment_with_no_gaussians_stays_where_it_is() {
 
 #[test]
 fn a_planted_outlier_is_dropped() {
-    let mut rng = Lcg(3);
+    let mut rng = TestRng::new(3);
     let edges = [
         seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
         seg([0.0, 0.0, 0.0], [0.0, 1.0, 0.0]),
@@ -67,7 +67,7 @@ fn a_planted_outlier_is_dropped() {
 
 #[test]
 fn an_overextended_edge_is_cropped_back_to_its_dense_part() {
-    let mut rng = Lcg(4);
+    let mut rng = TestRng::new(4);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 4000, 0.004, &mut rng);
     // overextended by 0.3 at P1 and by 0.15 at P2
@@ -99,7 +99,7 @@ fn an_overextended_edge_is_cropped_back_to_its_dense_part() {
 
 #[test]
 fn a_segment_dense_to_its_ends_is_not_cropped() {
-    let mut rng = Lcg(5);
+    let mut rng = TestRng::new(5);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let pts = edge_points(&edge, 4000, 0.004, &mut rng);
     let input = seg([0.01, 0.0, 0.0], [0.99, 0.0, 0.0]);

@@ -23,7 +23,11 @@ fn refine(pair: &str, params: Params, backend: Backend) -> (Scene, Outcome) {
         &LoadOptions::default(),
     )
     .unwrap();
-    let out = Job::new(params, backend).refine(&scene, |_| {}).unwrap();
+    let job = Job {
+        gpu: common::gpu_setup(linegs_gpu::engine::gpu::GpuOptions::for_commands()),
+        ..Job::new(params, backend)
+    };
+    let out = job.refine(&scene, |_| {}).unwrap();
     (scene, out)
 }
 
@@ -115,7 +119,7 @@ fn without_the_gate_the_fit_moves_the_lines_off_the_edges() {
 
 #[test]
 fn the_gate_decides_alike_on_both_engines() {
-    if linegs_gpu::engine::gpu::skip_gpu_tests() {
+    if common::skip_gpu_tests() {
         println!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1)");
         return;
     }

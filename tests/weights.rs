@@ -23,7 +23,7 @@ fn mid_off_axis(s: &Segment) -> f64 {
 
 #[test]
 fn opacity_weighting_keeps_the_line_on_the_opaque_edge_not_on_faint_floaters() {
-    let mut rng = Lcg(21);
+    let mut rng = TestRng::new(21);
     // An opaque edge on the x axis and three times as many faint floaters 0.45 r beside it.
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let faint = seg([0.0, 0.45 * R, 0.0], [1.0, 0.45 * R, 0.0]);
@@ -60,7 +60,7 @@ fn opacity_weighting_keeps_the_line_on_the_opaque_edge_not_on_faint_floaters() {
 /// An edge of small Gaussians on the x axis, a denser band of wide ones (a blurry surface)
 /// 0.5 r beside it, and the input line between them.
 fn wide_band_scene() -> (Scene, usize) {
-    let mut rng = Lcg(22);
+    let mut rng = TestRng::new(22);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let band = seg([0.0, 0.5 * R, 0.0], [1.0, 0.5 * R, 0.0]);
     let mut pts = edge_points(&edge, 2000, 0.03 * R, &mut rng);
@@ -118,7 +118,7 @@ fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
 /// (on the line y = 10 r) that the model holds only as wide Gaussians (a thin feature of a
 /// coarse model, splats wider than the cylinder along it); a line on each.
 fn witnessed_by_wide_scene() -> Scene {
-    let mut rng = Lcg(23);
+    let mut rng = TestRng::new(23);
     let edge = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
     let thin = seg([0.0, 10.0 * R, 0.0], [1.0, 10.0 * R, 0.0]);
     let mut pts = edge_points(&edge, 2000, 0.03 * R, &mut rng);
@@ -199,7 +199,7 @@ fn the_scale_cut_is_a_warning_when_the_model_has_no_scales_or_all_are_wide() {
 
 /// Gaussians along an arc in the plane z = 0 whose chord from (0, 0) to (1, 0) has
 /// sagitta `sag` (bulging to +y), moved by `shift` along y, with noise.
-fn arc_points(sag: f64, shift: f64, n: usize, rng: &mut Lcg) -> Vec<[f32; 3]> {
+fn arc_points(sag: f64, shift: f64, n: usize, rng: &mut TestRng) -> Vec<[f32; 3]> {
     // radius of the circle through the chord's ends and the apex
     let rad = (0.25 + sag * sag) / (2.0 * sag);
     let centre = DVec3::new(0.5, sag - rad, 0.0);
@@ -216,7 +216,7 @@ fn arc_points(sag: f64, shift: f64, n: usize, rng: &mut Lcg) -> Vec<[f32; 3]> {
 
 #[test]
 fn a_segment_on_a_curve_is_measured_bent_and_dropped_and_a_straight_edge_kept() {
-    let mut rng = Lcg(23);
+    let mut rng = TestRng::new(23);
     // An arc of sagitta 0.8 r and, 10 r away, a straight edge; each with its segment, the
     // arc's placed halfway between its chord and its apex (the whole arc in the cylinder).
     let sag = 0.8 * R;

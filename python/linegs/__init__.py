@@ -201,8 +201,7 @@ def _args(params: Dict[str, Any]) -> list:
             v = "true" if v else "false"
         elif isinstance(v, float):
             v = repr(v)
-        # `--name=value`, so that a negative number is a value, not a flag
-        out.append(f"--{k.replace('_', '-')}={v}")
+        out.append((k, str(v)))
     return out
 
 

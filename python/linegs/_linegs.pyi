@@ -20,7 +20,7 @@ def refine(
     gaussians_f32: bytes,
     segments_f64: bytes,
     groups: Optional[List[int]],
-    args: List[str],
+    args: List[Tuple[str, str]],
     backend_name: str,
     gt_f64: Optional[bytes] = None,
     sweep: Optional[List[float]] = None,
@@ -32,7 +32,7 @@ def refine(
 def evaluate(
     gaussians_f32: bytes,
     segments_f64: bytes,
-    args: List[str],
+    args: List[Tuple[str, str]],
     backend_name: str,
     compare_f64: Optional[bytes] = None,
     gt_f64: Optional[bytes] = None,

@@ -3,7 +3,7 @@
 //! native-endian bytes (`f32` Gaussians, `f64` segments) that the Python half converts
 //! with numpy; every computation runs with the GIL released.
 
-use clap::{Args, CommandFactory as _, FromArgMatches};
+use linegs_gpu::engine::gpu::GpuSetup;
 use linegs_gpu::engine::select::Backend;
 use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::io;
@@ -84,36 +84,32 @@ fn segment_bytes(segs: &[Segment]) -> Vec<u8> {
     out
 }
 
-/// The long names of every parameter (`translate_keep`, ...), as `refine` accepts them.
+/// The names of every parameter (`translate_keep`, ...), as `refine` accepts them.
 #[pyfunction]
 fn param_names() -> Vec<String> {
-    Params::augment_args(clap::Command::new("refine"))
-        .get_arguments()
-        .filter_map(|a| a.get_long().map(|l| l.replace('-', "_")))
-        .collect()
+    Params::NAMES.iter().map(|n| n.to_string()).collect()
 }
 
-/// Parameters from command-line style arguments (`["--radius", "0.05", ...]`), with the
-/// command line's checks and messages.
-fn params(args: Vec<String>) -> PyResult<Params> {
-    #[derive(clap::Parser)]
-    #[command(name = "linegs", no_binary_name = true)]
-    struct P {
-        #[command(flatten)]
-        params: Params,
+/// Parameters from `(name, value)` pairs (`[("radius", "0.05"), ...]`) over the defaults,
+/// with the command line's checks ([`Params::set`]).
+fn params(args: Vec<(String, String)>) -> PyResult<Params> {
+    let mut p = Params::default();
+    for (name, value) in &args {
+        p.set(name, value).map_err(InputError::new_err)?;
     }
-    let m = P::command().try_get_matches_from(args).map_err(|e| {
-        let text = e.render().to_string();
-        let first = text.lines().next().unwrap_or("invalid parameters");
-        InputError::new_err(first.trim_start_matches("error: ").to_string())
-    })?;
-    let p = P::from_arg_matches(&m).map_err(|e| InputError::new_err(e.to_string()))?;
-    Ok(p.params)
+    Ok(p)
 }
 
 fn backend(name: &str) -> PyResult<Backend> {
-    <Backend as clap::ValueEnum>::from_str(name, true).map_err(|_| {
-        InputError::new_err(format!("backend `{name}`: expected `auto`, `gpu` or `cpu`"))
+    name.parse().map_err(InputError::new_err)
+}
+
+/// A job on `backend_name` whose GPU engine opens as the command line's would: the
+/// process environment read as `linegs-gpu` reads it (docs/troubleshooting.md#environment).
+fn job(args: Vec<(String, String)>, backend_name: &str) -> PyResult<Job> {
+    Ok(Job {
+        gpu: GpuSetup::from_vars(|k| std::env::var(k).ok()),
+        ..Job::new(params(args)?, backend(backend_name)?)
     })
 }
 
@@ -320,7 +316,7 @@ fn refine(
     gaussians_f32: &[u8],
     segments_f64: &[u8],
     groups: Option<Vec<u32>>,
-    args: Vec<String>,
+    args: Vec<(String, String)>,
     backend_name: &str,
     gt_f64: Option<&[u8]>,
     sweep: Option<Vec<f64>>,
@@ -332,7 +328,7 @@ fn refine(
     let job = Job {
         sweep,
         gt: gt_f64.map(|g| exact_gt(&segments(g))),
-        ..Job::new(params(args)?, backend(backend_name)?)
+        ..job(args, backend_name)?
     };
     let (bytes, report) = py
         .detach(|| {
@@ -353,7 +349,7 @@ fn evaluate(
     py: Python<'_>,
     gaussians_f32: &[u8],
     segments_f64: &[u8],
-    args: Vec<String>,
+    args: Vec<(String, String)>,
     backend_name: &str,
     compare_f64: Option<&[u8]>,
     gt_f64: Option<&[u8]>,
@@ -366,7 +362,7 @@ fn evaluate(
     let job = Job {
         sweep,
         gt: gt_f64.map(|g| exact_gt(&segments(g))),
-        ..Job::new(params(args)?, backend(backend_name)?)
+        ..job(args, backend_name)?
     };
     py.detach(|| {
         let attrs = (normals_f32, max_scale_f32, opacity_f32, min_scale_f32);

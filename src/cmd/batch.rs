@@ -1,9 +1,8 @@
 use super::input_error;
+use super::params::{BackendArg, ParamsArgs, ProtocolArg};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::batch::{self, BatchOptions, Manifest, Shard, Status};
-use linegs_gpu::engine::select::Backend;
-use linegs_gpu::refine::Params;
 use std::path::PathBuf;
 
 #[derive(Args, Debug)]
@@ -44,13 +43,13 @@ pub struct BatchArgs {
     pub format: String,
     /// How the manifest's `gt` edges score the lines: `exact` (every sample, `<=`
     /// thresholds) or `emap` (the published ABC-NEF tables' rules; see `eval --help`).
-    #[arg(long, value_enum, default_value_t = linegs_gpu::eval::gt::Protocol::Exact)]
-    pub protocol: linegs_gpu::eval::gt::Protocol,
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Exact)]
+    pub protocol: ProtocolArg,
     /// Which engine answers the cylinder queries: `auto`, `gpu` or `cpu`.
-    #[arg(long, value_enum, default_value_t = Backend::Auto)]
-    pub backend: Backend,
+    #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
+    pub backend: BackendArg,
     #[command(flatten)]
-    pub params: Params,
+    pub params: ParamsArgs,
 }
 
 pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
@@ -86,12 +85,13 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
         shard.count
     );
     let opts = BatchOptions {
-        params: a.params,
-        backend: a.backend,
+        params: a.params.into(),
+        backend: a.backend.into(),
+        gpu: super::env::gpu_setup().clone(),
         shard,
         skip_existing: a.skip_existing,
         format: a.format.trim_start_matches('.').to_string(),
-        protocol: a.protocol,
+        protocol: a.protocol.into(),
         summary: !a.no_summary,
     };
     let mut k = 0;

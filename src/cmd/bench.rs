@@ -1,9 +1,9 @@
 use super::input_error;
+use super::params::{BackendArg, ProfileArg};
 use anyhow::Result;
 use clap::Args;
-use linegs_gpu::engine::select::Backend;
 use linegs_gpu::mem;
-use linegs_gpu::pipeline::{Job, Scene, Stage};
+use linegs_gpu::pipeline::{Scene, Stage};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 use serde::Serialize;
@@ -32,10 +32,10 @@ pub struct BenchArgs {
     /// Engines to time (a comma list of `cpu`, `gpu`, `auto`), in one run so that their
     /// ratio is fair on a noisy machine.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu,gpu")]
-    pub backend: Vec<Backend>,
+    pub backend: Vec<BackendArg>,
     /// Refinement profile.
-    #[arg(long, value_enum, default_value_t = linegs_gpu::refine::Profile::Default)]
-    pub profile: linegs_gpu::refine::Profile,
+    #[arg(long, value_enum, default_value_t = ProfileArg::Default)]
+    pub profile: ProfileArg,
     /// Repetitions per case; the fastest total is kept.
     #[arg(long, default_value_t = 1)]
     pub repeat: usize,
@@ -83,7 +83,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
         ));
     }
     let params = Params {
-        profile: a.profile,
+        profile: a.profile.into(),
         ..Params::default()
     };
     let mut cases = Vec::new();
@@ -95,7 +95,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
             let synth_seconds = t.elapsed().as_secs_f64();
             let mut runs = Vec::new();
             for &b in &a.backend {
-                let job = Job::new(params.clone(), b);
+                let job = super::env::job(params.clone(), b.into());
                 let mut best: Option<RunTiming> = None;
                 for _ in 0..a.repeat {
                     mem::reset_peak_rss();
@@ -156,7 +156,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
                 "tool": "linegs-gpu",
                 "command": "bench",
                 "threads": rayon::current_num_threads(),
-                "profile": a.profile,
+                "profile": linegs_gpu::refine::Profile::from(a.profile),
                 "cases": cases,
             }))?
         );

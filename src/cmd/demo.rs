@@ -82,7 +82,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
             edges: gt::GtEdges::from_segments(&toy_gt),
             protocol: gt::Protocol::Exact,
         }),
-        ..Job::new(Params::default(), a.engine.backend)
+        ..super::env::job(Params::default(), a.engine.backend.into())
     };
     let mut out = job.refine(&input, |_| {})?;
     print_engine(&out.report, verbose);

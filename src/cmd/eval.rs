@@ -1,3 +1,4 @@
+use super::params::{EvalParamsArgs, ProfileArg, ProtocolArg};
 use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
@@ -6,7 +7,7 @@ use linegs_gpu::eval::gt::{GtMetrics, Protocol, Reference};
 use linegs_gpu::eval::Metrics;
 use linegs_gpu::io;
 use linegs_gpu::pipeline::Job;
-use linegs_gpu::refine::{EvalParams, Params, Profile};
+use linegs_gpu::refine::Params;
 use linegs_gpu::render;
 use std::path::PathBuf;
 
@@ -25,11 +26,11 @@ pub struct EvalArgs {
     #[command(flatten)]
     pub engine: BackendArgs,
     #[command(flatten)]
-    pub eval: EvalParams,
+    pub eval: EvalParamsArgs,
     /// Profile whose R_L convention applies when --r-l is not given (default: paper's
     /// equation; reference: the authors' ln N_box).
-    #[arg(long, value_enum, default_value_t = Profile::Default)]
-    pub profile: Profile,
+    #[arg(long, value_enum, default_value_t = ProfileArg::Default)]
+    pub profile: ProfileArg,
     /// A second segment set measured beside the first (e.g. the refined lines), on the
     /// same working set (the box of the first set).
     #[arg(long, value_name = "FILE")]
@@ -66,8 +67,8 @@ pub struct EvalArgs {
     /// GT sampled at 0.005 in the ABC model's own units, floor(L / 0.005) samples per
     /// segment, predicted samples averaged per voxel of a 256^3 grid over [-1, 1]^3,
     /// strict thresholds; accuracy and completeness printed in mm (x 1000).
-    #[arg(long, value_enum, default_value_t = Protocol::Exact)]
-    pub protocol: Protocol,
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Exact)]
+    pub protocol: ProtocolArg,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -102,11 +103,12 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
     };
     let job = Job {
         params: Params {
-            profile: a.profile,
-            eval: a.eval.clone(),
+            profile: a.profile.into(),
+            eval: a.eval.clone().into(),
             ..Params::default()
         },
-        backend: a.engine.backend,
+        backend: a.engine.backend.into(),
+        gpu: super::env::gpu_setup().clone(),
         sweep: a.radii.clone(),
         gt: ground_truth(&a)?,
         check_frames: true,
@@ -255,7 +257,7 @@ fn ground_truth(a: &EvalArgs) -> Result<Option<Reference>> {
     };
     Ok(Some(Reference {
         edges,
-        protocol: a.protocol,
+        protocol: a.protocol.into(),
     }))
 }
 

@@ -4,19 +4,21 @@ pub mod batch;
 pub mod bench;
 pub mod convert;
 pub mod demo;
+pub mod env;
 pub mod eval;
 pub mod info;
+pub mod params;
 pub mod refine;
 pub mod render;
 pub mod synth;
 
 use anyhow::Result;
 use clap::Args;
-use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::Metrics;
 use linegs_gpu::io;
 use linegs_gpu::pipeline::{LoadOptions, RunError, Scene};
 use linegs_gpu::report::Report;
+use params::{BackendArg, CurvesArg};
 use std::path::PathBuf;
 
 /// Marks an error as the user's input being wrong (exit code 2).
@@ -80,8 +82,8 @@ pub struct BackendArgs {
     /// Which engine answers the cylinder queries: `auto` (a hardware GPU adapter when
     /// there is one, else the CPU engine), `gpu` (any adapter, software ones such as
     /// lavapipe included) or `cpu`.
-    #[arg(long, value_enum, default_value_t = Backend::Auto)]
-    pub backend: Backend,
+    #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
+    pub backend: BackendArg,
 }
 
 impl InputArgs {
@@ -97,7 +99,7 @@ impl InputArgs {
 }
 
 /// How the Gaussians are brought into the lines' frame, and what to do with curves.
-#[derive(Args, Debug, Clone, Default)]
+#[derive(Args, Debug, Clone)]
 pub struct FrameArgs {
     /// Map the Gaussians into the lines' frame first: a 4x4 matrix as text (row-major,
     /// applied as given), nerfstudio's `dataparser_transforms.json` (inverted, so a
@@ -107,14 +109,14 @@ pub struct FrameArgs {
     pub gaussians_transform: Option<PathBuf>,
     /// Bezier curves of EMAP/EdgeGaussians edge files: `skip` them (with a warning) or
     /// sample each as a `polyline` of 16 segments.
-    #[arg(long, value_enum, default_value_t = io::Curves::Skip)]
-    pub curves: io::Curves,
+    #[arg(long, value_enum, default_value_t = CurvesArg::Skip)]
+    pub curves: CurvesArg,
 }
 
 impl FrameArgs {
     pub fn line_options(&self) -> io::LineOptions {
         io::LineOptions {
-            curves: self.curves,
+            curves: self.curves.into(),
         }
     }
 

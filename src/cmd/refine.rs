@@ -1,9 +1,9 @@
+use super::params::{BackendArg, ParamsArgs};
 use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use linegs_gpu::pipeline::{Job, Outputs, RunError};
-use linegs_gpu::refine::Params;
 use std::path::PathBuf;
 
 #[derive(Args, Debug)]
@@ -28,7 +28,7 @@ pub struct RefineArgs {
     #[arg(long)]
     pub no_frame_check: bool,
     #[command(flatten)]
-    pub params: Params,
+    pub params: ParamsArgs,
 }
 
 pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
@@ -51,7 +51,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             scene.lines.len(),
             scene.gaussians.len()
         ),
-        if a.engine.backend == linegs_gpu::engine::select::Backend::Cpu {
+        if a.engine.backend == BackendArg::Cpu {
             "free memory or raise the limit (ulimit -v)"
         } else {
             "free memory, raise the limit (ulimit -v), or try --backend cpu"
@@ -59,7 +59,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     );
     let job = Job {
         check_frames: !a.no_frame_check,
-        ..Job::new(a.params, a.engine.backend)
+        ..super::env::job(a.params.into(), a.engine.backend.into())
     };
     let refined = job.refine(&scene, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));

@@ -2,23 +2,13 @@
 //! answers the queries.
 
 use super::cpu::CpuEngine;
-use super::gpu::{GpuDevice, GpuEngine, GpuOptions, PointStore};
+use super::gpu::{GpuDevice, GpuEngine, GpuSetup, PointStore};
 use super::{Engine, EngineError};
 use crate::index::Grid;
 use std::sync::Arc;
 
 /// Which engine to use.
-#[derive(
-    Clone,
-    Copy,
-    Debug,
-    Default,
-    PartialEq,
-    Eq,
-    clap::ValueEnum,
-    serde::Serialize,
-    serde::Deserialize,
-)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Backend {
     /// A hardware GPU adapter when one exists, else the CPU engine (software adapters
@@ -41,19 +31,32 @@ impl Backend {
     }
 }
 
+impl std::str::FromStr for Backend {
+    type Err = String;
+    /// `auto`, `gpu` or `cpu`, in any case.
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Backend::Auto, Backend::Gpu, Backend::Cpu]
+            .into_iter()
+            .find(|b| b.as_str().eq_ignore_ascii_case(s))
+            .ok_or_else(|| format!("backend `{s}`: expected `auto`, `gpu` or `cpu`"))
+    }
+}
+
 impl std::fmt::Display for Backend {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.as_str())
     }
 }
 
-/// The engine for `backend` over `grid`, with the messages the user should see: for
-/// `auto`, which adapter it picked, or why it chose the CPU engine.
+/// The engine for `backend` over `grid` (a GPU engine opened as `gpu` says), with the
+/// messages the user should see: for `auto`, which adapter it picked, or why it chose the
+/// CPU engine.
 pub fn make_engine(
     backend: Backend,
+    gpu: &GpuSetup,
     grid: Arc<Grid>,
 ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
-    prepare(backend).finish(grid)
+    prepare(backend, gpu).finish(grid)
 }
 
 /// The engine of a backend in the making ([`prepare`]).
@@ -65,17 +68,20 @@ pub struct Pending {
 /// Starts making the engine of `backend`: for `gpu` and `auto` the adapter is picked and
 /// opened and the kernels compiled on a thread of their own, which needs no Gaussians, so
 /// that it runs while the caller builds the grid; [`Pending::finish`] uploads the grid.
-pub fn prepare(backend: Backend) -> Pending {
+/// `gpu` says how: for `auto` its options on the hardware adapter found (its adapter name
+/// is not consulted), for `gpu` its adapter and options.
+pub fn prepare(backend: Backend, gpu: &GpuSetup) -> Pending {
+    let gpu = gpu.clone();
     let open = move || match backend {
         Backend::Auto => {
             let adapters = crate::engine::gpu::enumerate_adapters();
             let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
             match auto_pick(&infos) {
-                Pick::Hardware(i) => GpuDevice::open(&adapters[i], GpuOptions::for_commands()),
+                Pick::Hardware(i) => GpuDevice::open(&adapters[i], gpu.options),
                 Pick::None(why) | Pick::SoftwareOnly(why) => Err(EngineError::NoAdapter(why)),
             }
         }
-        _ => GpuDevice::open_default(GpuOptions::for_commands()),
+        _ => GpuDevice::open_setup(&gpu),
     };
     Pending {
         backend,
@@ -261,19 +267,20 @@ mod tests {
 
     #[test]
     fn cpu_is_always_the_cpu_engine() {
-        let (e, notes) = make_engine(Backend::Cpu, grid()).unwrap();
+        let (e, notes) = make_engine(Backend::Cpu, &GpuSetup::default(), grid()).unwrap();
         assert_eq!(e.backend(), "cpu");
         assert!(notes.is_empty());
     }
 
     #[test]
-    fn backend_names_round_trip_through_serde_and_clap() {
-        use clap::ValueEnum;
+    fn backend_names_round_trip_through_serde_and_text() {
         for b in [Backend::Auto, Backend::Gpu, Backend::Cpu] {
             let json = serde_json::to_string(&b).unwrap();
             assert_eq!(json, format!("\"{}\"", b.as_str()));
             assert_eq!(serde_json::from_str::<Backend>(&json).unwrap(), b);
-            assert_eq!(Backend::from_str(b.as_str(), false).unwrap(), b);
+            assert_eq!(b.as_str().parse::<Backend>().unwrap(), b);
+            assert_eq!(b.as_str().to_uppercase().parse::<Backend>().unwrap(), b);
         }
+        assert!("tpu".parse::<Backend>().unwrap_err().contains("`tpu`"));
     }
 }

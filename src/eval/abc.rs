@@ -232,40 +232,15 @@ pub fn read_features(path: &Path) -> Result<Vec<Curve>, Error> {
     parse_features(&read_text(path)?, path)
 }
 
-/// The `v x y z` vertices of an OBJ mesh, in file order.
+/// The `v x y z` vertices of an OBJ mesh, in file order (io's OBJ reader).
 pub fn read_obj_vertices(path: &Path) -> Result<Vec<DVec3>, Error> {
     let text = read_text(path)?;
-    let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let mut it = line.split_whitespace();
-        if it.next() != Some("v") {
-            continue;
-        }
-        let mut c = [0.0f64; 3];
-        for (k, slot) in c.iter_mut().enumerate() {
-            let pos = Position::LineValue {
-                line: i + 1,
-                value: k + 1,
-            };
-            let t = it
-                .next()
-                .ok_or_else(|| Error::parse(path, pos.clone(), "a vertex needs 3 coordinates"))?;
-            *slot = t
-                .parse::<f64>()
-                .ok()
-                .filter(|x| x.is_finite())
-                .ok_or_else(|| Error::parse(path, pos, format!("`{t}` is not a finite number")))?;
-        }
-        out.push(DVec3::from_array(c));
-    }
-    if out.is_empty() {
-        return Err(Error::parse(
-            path,
-            Position::Line(1),
-            "the mesh has no `v` vertex",
-        ));
-    }
-    Ok(out)
+    let obj = crate::io::obj::parse(path, &text, "vertex coordinate")?;
+    Ok(obj
+        .vertices
+        .into_iter()
+        .map(|(_, p)| DVec3::from_array(p))
+        .collect())
 }
 
 /// The map from an ABC model's units to the unit-cube frame: `p * scale + offset`.

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 
 /// How predictions are scored against the ground truth.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Protocol {
     /// Both sets sampled every 0.005 (both ends included), every sample scored, `<=`
@@ -510,11 +510,8 @@ mod tests {
 
     #[test]
     fn nearest_matches_brute_force() {
-        let mut s = 3u64;
-        let mut f = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1);
-            (s >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rng = crate::synth::Rng::new(3);
+        let mut f = || rng.uniform();
         let a: Vec<DVec3> = (0..500).map(|_| DVec3::new(f(), f(), f())).collect();
         let b: Vec<DVec3> = (0..300).map(|_| DVec3::new(f(), f(), f()) * 0.3).collect();
         let d = nearest_distances(&a, &b);

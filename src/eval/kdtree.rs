@@ -147,13 +147,8 @@ mod tests {
     use super::*;
 
     fn cloud(n: usize, seed: u64, scale: f64) -> Vec<DVec3> {
-        let mut s = seed;
-        let mut f = || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rng = crate::synth::Rng::new(seed);
+        let mut f = || rng.uniform();
         (0..n).map(|_| DVec3::new(f(), f(), f()) * scale).collect()
     }
 

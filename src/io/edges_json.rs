@@ -14,7 +14,7 @@ use super::error::{Error, Position};
 pub const POLYLINE_PIECES: usize = 16;
 
 /// What to do with the Bézier curves of an edge file.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Curves {
     /// Count them and leave them out, with a warning.
     #[default]

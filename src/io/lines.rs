@@ -272,7 +272,7 @@ fn binary_stl_count(bytes: &[u8]) -> Option<u32> {
 }
 
 /// Text rows without comments and blanks: (1-based line, content).
-fn data_rows(text: &str) -> impl Iterator<Item = (usize, &str)> {
+pub(super) fn data_rows(text: &str) -> impl Iterator<Item = (usize, &str)> {
     text.lines().enumerate().filter_map(|(i, l)| {
         let l = l.split('#').next().unwrap_or("").trim();
         (!l.is_empty()).then_some((i + 1, l))
@@ -367,7 +367,7 @@ fn looks_like_line3dpp(row: &str) -> bool {
         && toks[1 + 6 * n].parse::<usize>().is_ok()
 }
 
-fn number(path: &Path, tok: &str, line: usize, value: usize) -> Result<f64, Error> {
+pub(super) fn number(path: &Path, tok: &str, line: usize, value: usize) -> Result<f64, Error> {
     tok.parse::<f64>().map_err(|_| {
         Error::parse(
             path,
@@ -486,52 +486,27 @@ fn parse_line3dpp(path: &Path, text: &str) -> Result<Parsed, Error> {
 }
 
 fn parse_obj(path: &Path, text: &str) -> Result<Parsed, Error> {
-    // (line, point) per vertex; l records as (line, indices), indices still unresolved.
-    let mut verts: Vec<(usize, [f64; 3])> = Vec::new();
-    let mut records: Vec<(usize, Vec<i64>)> = Vec::new();
+    let obj = super::obj::parse(path, text, "line coordinate")?;
+    let verts = obj.vertices;
+    let faces = obj.faces.len();
+    let no_records = obj.polylines.is_empty();
+    // The first broken `l` record, if any; else the records' indices, still unresolved.
     let mut broken: Option<(usize, String)> = None;
-    let mut faces = 0usize;
-    for (line, row) in data_rows(text) {
-        let mut toks = row.split_whitespace();
-        match toks.next() {
-            Some("v") => {
-                let mut c = [0.0; 3];
-                for (k, slot) in c.iter_mut().enumerate() {
-                    let Some(t) = toks.next() else {
-                        return Err(Error::parse(
-                            path,
-                            Position::Line(line),
-                            format!("`v` record with {k} coordinates, expected 3"),
-                        ));
-                    };
-                    *slot = coord(path, t, line, k + 2)?;
-                }
-                verts.push((line, c));
+    let mut records: Vec<(usize, Vec<i64>)> = Vec::new();
+    for e in obj.polylines {
+        match e.indices {
+            Err(what) => {
+                broken.get_or_insert((e.line, what));
             }
-            Some("l") => {
-                let mut idx = Vec::new();
-                for t in toks {
-                    // `l 3/7 4/8` carries texture indices after the slash.
-                    let head = t.split('/').next().unwrap_or("");
-                    match head.parse::<i64>() {
-                        Ok(i) if i != 0 => idx.push(i),
-                        _ => {
-                            broken.get_or_insert((line, format!("`{t}` is not a vertex index")));
-                        }
-                    }
-                }
-                if idx.len() < 2 {
-                    broken.get_or_insert((line, "an `l` record needs two vertex indices".into()));
-                }
-                records.push((line, idx));
+            Ok(idx) if idx.len() < 2 => {
+                broken.get_or_insert((e.line, "an `l` record needs two vertex indices".into()));
             }
-            Some("f") => faces += 1,
-            _ => {}
+            Ok(idx) => records.push((e.line, idx)),
         }
     }
     let mut p = Parsed::new(Origin::Records(""));
     let mut lines = Vec::new();
-    if broken.is_none() && !records.is_empty() {
+    if broken.is_none() && !no_records {
         // Resolve 1-based and negative (relative to the end) indices; any miss is "broken".
         let nv = verts.len() as i64;
         'records: for (line, idx) in &records {
@@ -555,8 +530,8 @@ fn parse_obj(path: &Path, text: &str) -> Result<Parsed, Error> {
             }
         }
     }
-    if broken.is_some() || records.is_empty() {
-        if records.is_empty() && faces > 0 {
+    if broken.is_some() || no_records {
+        if no_records && faces > 0 {
             return Err(Error::unknown(
                 path,
                 format!("the OBJ has {faces} faces and no `l` records: a mesh, not line segments"),

@@ -12,6 +12,7 @@ mod limap;
 mod lines;
 mod normals;
 mod npy;
+pub mod obj;
 mod output;
 mod ply;
 mod ply_compressed;

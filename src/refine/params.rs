@@ -1,14 +1,15 @@
-//! Every threshold of docs/method.md#the-refinement-steps with its default, in one struct
-//! that the CLI derives from and the JSON report serializes.
+//! Every threshold of docs/method.md#the-refinement-steps with its default, in one plain
+//! struct that the JSON report serializes. The command line's options mirror it
+//! (`src/cmd/params.rs`); callers without a command line build it directly or by name
+//! ([`Params::set`]).
 
-use clap::{Args, ValueEnum};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
 
 /// `reference` reproduces the authors' published code (quirks included); `default`
 /// follows the paper's intent with every **[fix]** of docs/method.md#profiles on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum Profile {
     #[default]
@@ -17,7 +18,7 @@ pub enum Profile {
 }
 
 /// Where step 4 moves each line (`--fit`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Fit {
     /// The published step: the mean offset of the nearest `translate_keep` of the points.
@@ -42,7 +43,7 @@ impl Fit {
 }
 
 /// Denominator of `R_L` (docs/method.md#evaluation).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum RlMode {
     /// `sum L / ln(sum N(s))`, the paper's equation.
@@ -97,7 +98,7 @@ impl fmt::Display for RadiusArg {
     }
 }
 
-/// Clap value parser: a finite number above 0 (also for `eval --radii`).
+/// Value parser: a finite number above 0 (also for `eval --radii`).
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
@@ -105,7 +106,7 @@ pub fn positive(s: &str) -> Result<f64, String> {
     }
 }
 
-/// Clap value parser: a finite number >= 0.
+/// Value parser: a finite number >= 0.
 pub fn nonnegative(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
@@ -113,23 +114,24 @@ pub fn nonnegative(s: &str) -> Result<f64, String> {
     }
 }
 
-fn extend_factor(s: &str) -> Result<f64, String> {
+/// Value parser: `--crop-extend`, a number in [0, 10].
+pub fn extend_factor(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..=10.0).contains(&v) => Ok(v),
         _ => Err(format!("expected a number in [0, 10], got `{s}`")),
     }
 }
 
-/// Clap value parser: `--outlier-ratio`, in [0, 1] or -1 (a ratio above 1 drops most
+/// Value parser: `--outlier-ratio`, in [0, 1] or -1 (a ratio above 1 drops most
 /// segments of any scene, one far above it all of them).
-fn outlier_ratio(s: &str) -> Result<f64, String> {
+pub fn outlier_ratio(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v == -1.0 || (0.0..=1.0).contains(&v) => Ok(v),
         _ => Err(format!("expected a number in [0, 1] or -1, got `{s}`")),
     }
 }
 
-/// Clap value parser: a number in [0, 1].
+/// Value parser: a number in [0, 1].
 pub fn fraction(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
@@ -138,20 +140,16 @@ pub fn fraction(s: &str) -> Result<f64, String> {
 }
 
 /// Evaluation options (docs/method.md#evaluation), shared by `eval` and `refine`.
-#[derive(Clone, Debug, PartialEq, Args, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EvalParams {
     /// Evaluation radius r_e of the cylinders (scene units).
-    #[arg(long, default_value_t = 0.1, value_parser = positive)]
     pub eval_radius: f64,
     /// Metres per scene unit, for E_rms in centimetres.
-    #[arg(long, default_value_t = 1.0, value_parser = positive)]
     pub unit_scale: f64,
     /// lambda of the score (the paper uses 1 for real scenes).
-    #[arg(long, default_value_t = 0.1, value_parser = positive)]
     pub score_lambda: f64,
     /// Denominator of R_L: `paper` (ln of summed N(s)) or `authors` (ln N_box).
     /// Default: the profile's (`paper` for default, `authors` for reference).
-    #[arg(long, value_enum)]
     pub r_l: Option<RlMode>,
 }
 
@@ -168,55 +166,44 @@ impl Default for EvalParams {
 
 /// The refinement thresholds of docs/method.md#the-refinement-steps (defaults from the
 /// paper / the authors' code).
-#[derive(Clone, Debug, PartialEq, Args, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Params {
     /// `default` (the paper's intent, all fixes on) or `reference` (the authors' code,
     /// quirks included).
-    #[arg(long, value_enum, default_value_t = Profile::Default)]
     pub profile: Profile,
     /// Cylinder radius r for refinement (scene units; the paper uses 0.03 for ABC-NEF and
     /// 0.05 for real scenes), or `auto`: 0.02 x the 95th-percentile distance of the working
     /// set's Gaussian centers from their centroid. Also the clustering distance scale r_c.
-    #[arg(long, default_value = "0.03")]
     pub radius: RadiusArg,
 
     /// Translate: fraction of the points nearest to the line whose mean offset moves it.
-    #[arg(long, default_value_t = 0.4, value_parser = fraction)]
     pub translate_keep: f64,
     /// Step 4: `paper` (mean offset of the nearest translate-keep, the published step: to
     /// reproduce the paper, or to put the lines where the Gaussians are), `edge` (fit the
     /// edge: two faces' corner where the model has normals, else the dense ridge, iterated;
     /// to put the lines on the true edges) or `none`. Default: the profile's (`edge` for
     /// default, `paper` for reference).
-    #[arg(long, value_enum)]
     pub fit: Option<Fit>,
     /// Edge fit: most iterations (one engine batch each).
-    #[arg(long, default_value_t = 12)]
     pub fit_iterations: u32,
     /// Edge fit: largest turn of a line per iteration (degrees).
-    #[arg(long, default_value_t = 3.0, value_parser = positive)]
     pub fit_max_turn_deg: f64,
     /// Edge fit: largest total move of an endpoint, in units of r.
-    #[arg(long, default_value_t = 2.0, value_parser = positive)]
     pub fit_max_move: f64,
     /// Edge fit: final width of the ridge kernel, in units of r.
-    #[arg(long, default_value_t = 0.25, value_parser = positive)]
     pub fit_bandwidth: f64,
     /// Edge fit: fewest points under the kernel (or per face family) for a move; 1 or
     /// more.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..))]
     pub fit_min_points: u32,
     /// Edge fit: weight each Gaussian by its opacity (PLY `opacity`, after the sigmoid),
     /// so that faint floaters pull less; the fewest-points test still counts points. No
     /// effect where the model has no opacities or all are equal.
-    #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
     pub fit_opacity_weight: bool,
     /// Edge fit: keep a segment where it is unless its Gaussians explain the move (the
     /// move gate): a corner only when both faces are thin slabs of splats and the input
     /// line lies outside one of them; a ridge only when less than a third of it is face
     /// splats. Measured in one batch of members of the fitted lines. `false`: every
     /// fitted move stands.
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set, value_name = "BOOL")]
     pub fit_gate: bool,
     /// Leave out of the steps that place lines (the edge fit, its gate, the straightness
     /// test) every Gaussian whose largest standard deviation (`exp(max scale_i)`) exceeds
@@ -224,14 +211,12 @@ pub struct Params {
     /// steps that ask whether Gaussians are there (outliers, merges, crop, gaps) and the
     /// metrics see the whole model. Needs a 3DGS PLY with scales; 0: keep all.
     /// Default: the profile's (1 for default, 0 for reference).
-    #[arg(long, value_parser = nonnegative)]
     pub max_scale: Option<f64>,
     /// Drop a segment whose Gaussians' ridge bends across it by more than this x r: it
     /// follows a curve, not a line. The ridge is found (the edge fit's mean shift) in each
     /// third of the cylinder; the bend is the sagitta of the arc through the three, 9/4 of
     /// the middle one's offset from the chord through the others. A third with too few
     /// points is not judged. Runs after crop; 0: off.
-    #[arg(long, default_value_t = 0.0, value_parser = nonnegative)]
     pub max_sagitta: f64,
     /// After crop, split a segment where a stretch of its cylinder holds no Gaussian
     /// (and cut an empty stretch off an end): a stretch at least r long is empty beyond
@@ -239,143 +224,110 @@ pub struct Params {
     /// among the segment's gaps (2 at the ends, N + 1 inside) is at most this. Pieces
     /// with fewer than fit-min-points points are dropped. 0: off. Default: the profile's
     /// (0.01 for default, 0 for reference).
-    #[arg(long, value_parser = fraction)]
     pub split_gaps: Option<f64>,
     /// `--split-gaps` also splits a segment at an empty interior stretch (not only cuts an
     /// empty end). Off by default: trained models leave stretches of a true edge without
     /// Gaussians (textureless faces, thinning near edges), and the chance rule, which
     /// assumes evenly spread Gaussians, split true edges there.
-    #[arg(long, default_value_t = false, action = clap::ArgAction::Set, value_name = "BOOL")]
     pub split_interior: bool,
 
     /// Outliers: drop segments with density <= ratio x mean density, a ratio in [0, 1];
-    /// -1 uses max(mean - 2 std, 0). `default` profile: 0.1 (a trained model's density
-    /// varies tenfold between its faces and its thin features); `reference`: 0.2.
-    #[arg(long, value_parser = outlier_ratio, allow_hyphen_values = true)]
+    /// -1 uses max(mean - 2 std, 0). Default: the profile's (0.1 for default: a trained
+    /// model's density varies tenfold between its faces and its thin features; 0.2, the
+    /// paper's, for reference).
     pub outlier_ratio: Option<f64>,
 
     /// Run the collinear merge inside input lines (Line3D++ `.txt` groups).
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub collinear_merge: bool,
 
     /// Cluster: minimum similarity w of an edge.
-    #[arg(long, default_value_t = 0.4, value_parser = fraction)]
     pub cluster_min_weight: f64,
     /// Cluster: initial per-root threshold c (thr = w + c / size after a join).
-    #[arg(long, default_value_t = 1.5, value_parser = positive)]
     pub cluster_c: f64,
     /// Cluster: |cos| between directions above which the length weight is non-zero.
-    #[arg(long, default_value_t = 0.5, value_parser = fraction)]
     pub cluster_min_cos: f64,
 
     /// Merge: largest angle between the two directions (degrees).
-    #[arg(long, default_value_t = 30.0, value_parser = positive)]
     pub merge_angle_deg: f64,
     /// Merge: reject when both endpoints of the shorter are farther than this x L_long
     /// from the longer's line.
-    #[arg(long, default_value_t = 0.2, value_parser = positive)]
     pub merge_dist_frac: f64,
     /// Merge: reject when rho(G') < ratio x rho(G).
-    #[arg(long, default_value_t = 0.6, value_parser = positive)]
     pub merge_density_ratio: f64,
 
     /// Join: largest angle between the joined segment and each input (degrees).
-    #[arg(long, default_value_t = 10.0, value_parser = positive)]
     pub join_angle_deg: f64,
     /// Join: reject gaps longer than this x either length.
-    #[arg(long, default_value_t = 0.8, value_parser = positive)]
     pub join_gap_frac: f64,
     /// Join: the gap chord is shrunk by this fraction at each end before counting.
-    #[arg(long, default_value_t = 0.02, value_parser = fraction)]
     pub join_chord_shrink: f64,
     /// Join (fix): the gap must hold at least this x mean density x chord length points.
-    #[arg(long, default_value_t = 0.6, value_parser = positive)]
     pub join_gap_density: f64,
     /// Join: reject J when rho(J) < ratio x rho of either input.
-    #[arg(long, default_value_t = 0.6, value_parser = positive)]
     pub join_density_ratio: f64,
     /// Join: reject J when E(J) > ratio x E of either input.
-    #[arg(long, default_value_t = 1.1, value_parser = positive)]
     pub join_rmse_ratio: f64,
 
     /// Crop: length of each end window as a fraction of L.
-    #[arg(long, default_value_t = 0.02, value_parser = fraction)]
     pub crop_end_frac: f64,
     /// Crop: length of the middle window as a fraction of L.
-    #[arg(long, default_value_t = 0.6, value_parser = fraction)]
     pub crop_mid_frac: f64,
     /// Crop: an end (or probe) is sparse below this x the middle density.
-    #[arg(long, default_value_t = 0.5, value_parser = fraction)]
     pub crop_ratio: f64,
     /// Crop: half length of a binary-search probe window, as a fraction of L. Default:
     /// 0.1 with the authors' side-balance test (their `m ± 0.1 L`), 0.03 with the density
     /// test, whose window centred on the true end holds half the middle density whatever
     /// its size; a short window keeps the Gaussians of edges meeting at a corner from
     /// holding the end out past the corner.
-    #[arg(long, value_parser = positive)]
     pub crop_probe_half: Option<f64>,
     /// Crop: also extend an end whose window is dense, along the line, while windows past
     /// it stay dense, by at most this x L (0: never extend, the paper's crop). Windows of
     /// 2 x the probe half length march outward, one batch per step, and the last is
     /// bisected; a corner stops the march, since past it the cylinder holds only the
     /// other edge's cross-section. 0 to 10; at most 256 windows an end.
-    #[arg(long, default_value_t = 0.0, value_parser = extend_factor)]
     pub crop_extend: f64,
     /// Crop: most probes of the binary search, 1 to 64 (after 53 halvings an f64
     /// interval cannot shrink further, so more would only spin).
-    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub crop_max_probes: u32,
     /// Crop: the binary search stops when its interval is shorter than this (a positive
     /// number; the probe limit bounds the search whatever its value).
-    #[arg(long, default_value_t = 1e-4, value_parser = positive)]
     pub crop_min_interval: f64,
 
     /// Fix: cluster distance is the true 3D segment-to-segment distance (reference:
     /// lateral offset ignored when the shorter does not project inside). Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_cluster_distance: Option<bool>,
     /// Fix: a merge keeps the union of both extents along the kept line. Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_merge_extent: Option<bool>,
     /// Fix: a pair goes to the merge (not the join) when an endpoint of either projects
     /// inside the other (reference: only the shorter's endpoints inside the longer, as
     /// the authors test it). Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_merge_overlap: Option<bool>,
     /// Fix: join sorts endpoints by projection on the first direction (reference: by
     /// distance from its P1). Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_join_order: Option<bool>,
     /// Fix: join's gap test needs 0.6 x mean density x chord points, at least 1
     /// (reference: floor(mean density x chord)). Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_join_gap: Option<bool>,
     /// Fix: crop probes use the paper's density test (reference: side-count balance).
     /// Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_crop_density: Option<bool>,
     /// Fix: crop cuts an end only where the sparse stretch is at least r long (a shorter
     /// one is where the Gaussians thin out at a corner, not an overextension). Default:
     /// profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_crop_min_cut: Option<bool>,
     /// Fix: crop searches an end only where its window is sparse beyond chance at the
     /// middle's density (Poisson, chance at most 0.01), so that a sparse model's few
     /// points do not cut true extent. Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_crop_chance: Option<bool>,
     /// Fix: a merge or join keeps every input endpoint within r/2 (the most one edge-fit
     /// step moves a line) of the line it makes, so that chords of a curve are not merged
     /// or joined across it and nearby parallel edges are not averaged. Default: profile.
-    #[arg(long, value_name = "BOOL")]
     pub fix_merge_fidelity: Option<bool>,
     /// Order the endpoints of each segment so that |P1| <= |P2|, at load and for every
     /// segment a merge or join makes, as the authors' segment constructor does. Default:
     /// on for reference, off for default.
-    #[arg(long, value_name = "BOOL")]
     pub order_endpoints: Option<bool>,
 
-    #[command(flatten)]
     #[serde(flatten)]
     pub eval: EvalParams,
 }
@@ -609,6 +561,198 @@ impl Params {
                 .r_l
                 .unwrap_or(if on { RlMode::Paper } else { RlMode::Authors }),
         }
+    }
+}
+
+impl Params {
+    /// The name of every parameter [`Params::set`] takes, in the command line's order
+    /// (there `--{name}` with `-` for `_`).
+    pub const NAMES: &'static [&'static str] = &[
+        "profile",
+        "radius",
+        "translate_keep",
+        "fit",
+        "fit_iterations",
+        "fit_max_turn_deg",
+        "fit_max_move",
+        "fit_bandwidth",
+        "fit_min_points",
+        "fit_opacity_weight",
+        "fit_gate",
+        "max_scale",
+        "max_sagitta",
+        "split_gaps",
+        "split_interior",
+        "outlier_ratio",
+        "collinear_merge",
+        "cluster_min_weight",
+        "cluster_c",
+        "cluster_min_cos",
+        "merge_angle_deg",
+        "merge_dist_frac",
+        "merge_density_ratio",
+        "join_angle_deg",
+        "join_gap_frac",
+        "join_chord_shrink",
+        "join_gap_density",
+        "join_density_ratio",
+        "join_rmse_ratio",
+        "crop_end_frac",
+        "crop_mid_frac",
+        "crop_ratio",
+        "crop_probe_half",
+        "crop_extend",
+        "crop_max_probes",
+        "crop_min_interval",
+        "fix_cluster_distance",
+        "fix_merge_extent",
+        "fix_merge_overlap",
+        "fix_join_order",
+        "fix_join_gap",
+        "fix_crop_density",
+        "fix_crop_min_cut",
+        "fix_crop_chance",
+        "fix_merge_fidelity",
+        "order_endpoints",
+        "eval_radius",
+        "unit_scale",
+        "score_lambda",
+        "r_l",
+    ];
+
+    /// Sets the parameter `name` (one of [`Params::NAMES`]) from its text, with the
+    /// command line's checks: `set("radius", "auto")`, `set("fit_gate", "false")`. An
+    /// unknown name or a value out of range is an error that names both.
+    pub fn set(&mut self, name: &str, value: &str) -> Result<(), String> {
+        let set = |this: &mut Params| -> Result<(), String> {
+            match name {
+                "profile" => this.profile = value.parse()?,
+                "radius" => this.radius = value.parse()?,
+                "translate_keep" => this.translate_keep = fraction(value)?,
+                "fit" => this.fit = Some(value.parse()?),
+                "fit_iterations" => this.fit_iterations = in_range(value, 0, u32::MAX)?,
+                "fit_max_turn_deg" => this.fit_max_turn_deg = positive(value)?,
+                "fit_max_move" => this.fit_max_move = positive(value)?,
+                "fit_bandwidth" => this.fit_bandwidth = positive(value)?,
+                "fit_min_points" => this.fit_min_points = in_range(value, 1, u32::MAX)?,
+                "fit_opacity_weight" => this.fit_opacity_weight = boolean(value)?,
+                "fit_gate" => this.fit_gate = boolean(value)?,
+                "max_scale" => this.max_scale = Some(nonnegative(value)?),
+                "max_sagitta" => this.max_sagitta = nonnegative(value)?,
+                "split_gaps" => this.split_gaps = Some(fraction(value)?),
+                "split_interior" => this.split_interior = boolean(value)?,
+                "outlier_ratio" => this.outlier_ratio = Some(outlier_ratio(value)?),
+                "collinear_merge" => this.collinear_merge = boolean(value)?,
+                "cluster_min_weight" => this.cluster_min_weight = fraction(value)?,
+                "cluster_c" => this.cluster_c = positive(value)?,
+                "cluster_min_cos" => this.cluster_min_cos = fraction(value)?,
+                "merge_angle_deg" => this.merge_angle_deg = positive(value)?,
+                "merge_dist_frac" => this.merge_dist_frac = positive(value)?,
+                "merge_density_ratio" => this.merge_density_ratio = positive(value)?,
+                "join_angle_deg" => this.join_angle_deg = positive(value)?,
+                "join_gap_frac" => this.join_gap_frac = positive(value)?,
+                "join_chord_shrink" => this.join_chord_shrink = fraction(value)?,
+                "join_gap_density" => this.join_gap_density = positive(value)?,
+                "join_density_ratio" => this.join_density_ratio = positive(value)?,
+                "join_rmse_ratio" => this.join_rmse_ratio = positive(value)?,
+                "crop_end_frac" => this.crop_end_frac = fraction(value)?,
+                "crop_mid_frac" => this.crop_mid_frac = fraction(value)?,
+                "crop_ratio" => this.crop_ratio = fraction(value)?,
+                "crop_probe_half" => this.crop_probe_half = Some(positive(value)?),
+                "crop_extend" => this.crop_extend = extend_factor(value)?,
+                "crop_max_probes" => this.crop_max_probes = in_range(value, 1, 64)?,
+                "crop_min_interval" => this.crop_min_interval = positive(value)?,
+                "fix_cluster_distance" => this.fix_cluster_distance = Some(boolean(value)?),
+                "fix_merge_extent" => this.fix_merge_extent = Some(boolean(value)?),
+                "fix_merge_overlap" => this.fix_merge_overlap = Some(boolean(value)?),
+                "fix_join_order" => this.fix_join_order = Some(boolean(value)?),
+                "fix_join_gap" => this.fix_join_gap = Some(boolean(value)?),
+                "fix_crop_density" => this.fix_crop_density = Some(boolean(value)?),
+                "fix_crop_min_cut" => this.fix_crop_min_cut = Some(boolean(value)?),
+                "fix_crop_chance" => this.fix_crop_chance = Some(boolean(value)?),
+                "fix_merge_fidelity" => this.fix_merge_fidelity = Some(boolean(value)?),
+                "order_endpoints" => this.order_endpoints = Some(boolean(value)?),
+                "eval_radius" => this.eval.eval_radius = positive(value)?,
+                "unit_scale" => this.eval.unit_scale = positive(value)?,
+                "score_lambda" => this.eval.score_lambda = positive(value)?,
+                "r_l" => this.eval.r_l = Some(value.parse()?),
+                _ => return Err(format!("unknown parameter `{name}`")),
+            }
+            Ok(())
+        };
+        set(self).map_err(|e| {
+            if e.starts_with("unknown parameter") {
+                e
+            } else {
+                format!("invalid value '{value}' for '{name}': {e}")
+            }
+        })
+    }
+}
+
+/// A whole number in `[lo, hi]`.
+fn in_range(s: &str, lo: u32, hi: u32) -> Result<u32, String> {
+    match s.parse::<u32>() {
+        Ok(v) if (lo..=hi).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("{v} is not in {lo}..={hi}")),
+        Err(_) => Err(format!(
+            "expected a whole number in [{lo}, {hi}], got `{s}`"
+        )),
+    }
+}
+
+/// `true` or `false`.
+fn boolean(s: &str) -> Result<bool, String> {
+    match s {
+        "true" => Ok(true),
+        "false" => Ok(false),
+        _ => Err(format!("expected `true` or `false`, got `{s}`")),
+    }
+}
+
+/// The names of an enumeration's values, for its parser's message.
+fn one_of<T: Copy>(s: &str, values: &[(&str, T)]) -> Result<T, String> {
+    values
+        .iter()
+        .find(|(n, _)| *n == s)
+        .map(|(_, v)| *v)
+        .ok_or_else(|| {
+            let names: Vec<String> = values.iter().map(|(n, _)| format!("`{n}`")).collect();
+            format!("expected {}, got `{s}`", names.join(", "))
+        })
+}
+
+impl FromStr for Profile {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        one_of(
+            s,
+            &[
+                ("default", Profile::Default),
+                ("reference", Profile::Reference),
+            ],
+        )
+    }
+}
+
+impl FromStr for Fit {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        one_of(
+            s,
+            &[
+                ("paper", Fit::Paper),
+                ("edge", Fit::Edge),
+                ("none", Fit::None),
+            ],
+        )
+    }
+}
+
+impl FromStr for RlMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        one_of(s, &[("paper", RlMode::Paper), ("authors", RlMode::Authors)])
     }
 }
 

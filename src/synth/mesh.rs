@@ -2,12 +2,13 @@
 //! them the way trained 3DGS models place them: on the surface, concentrated at edges.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::DVec3;
 
 use super::sample::PointSampler;
 use crate::geom::{Aabb, Segment};
+use crate::io::{Error, Position};
 
 /// An indexed triangle mesh.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -18,120 +19,70 @@ pub struct TriMesh {
     pub triangles: Vec<[u32; 3]>,
 }
 
-/// Errors of [`read_obj_mesh`], each naming the file and, for content, the line.
-#[derive(Debug, thiserror::Error)]
-pub enum MeshError {
-    #[error("cannot read mesh file {}: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("{}, line {line}: {message}", path.display())]
-    Parse {
-        path: PathBuf,
-        line: usize,
-        message: String,
-    },
-    #[error("{}: no faces (an OBJ mesh needs `f` records)", path.display())]
-    NoFaces { path: PathBuf },
-}
-
-/// Reads the `v` and `f` records of a Wavefront OBJ file; other records (`vn`, `vt`, `o`,
-/// `g`, `s`, `usemtl`, `l`, ...) are skipped. Face corners may be written `a`, `a/b`,
-/// `a//c` or `a/b/c`; only the vertex index is used, negative indices count back from the
-/// last vertex defined so far, and polygons are split into triangle fans.
-pub fn read_obj_mesh(path: impl AsRef<Path>) -> Result<TriMesh, MeshError> {
+/// Reads the `v` and `f` records of a Wavefront OBJ file with io's OBJ reader
+/// ([`crate::io::obj`]); other records are skipped. Face corners may be written `a`,
+/// `a/b`, `a//c` or `a/b/c`; only the vertex index is used, negative indices count back
+/// from the last vertex defined so far, and polygons are split into triangle fans. Errors
+/// name the file and, for content, the line.
+pub fn read_obj_mesh(path: impl AsRef<Path>) -> Result<TriMesh, Error> {
     let path = path.as_ref();
     // Bounded like every reader: a device is refused, a pipe read at most 1 GiB.
-    let bytes = crate::io::read_input(path).map_err(|e| match e {
-        crate::io::Error::Io { cause, .. } => MeshError::Io {
-            path: path.to_path_buf(),
-            source: cause,
-        },
-        crate::io::Error::Unsupported { msg, .. } => MeshError::Io {
-            path: path.to_path_buf(),
-            source: std::io::Error::other(msg),
-        },
-        other => MeshError::Io {
-            path: path.to_path_buf(),
-            source: std::io::Error::other(other.to_string()),
-        },
-    })?;
+    let bytes = crate::io::read_input(path)?;
     // Comments and names may hold any bytes; the records we read are ASCII.
     parse_obj_mesh(&String::from_utf8_lossy(&bytes), path)
 }
 
 /// [`read_obj_mesh`] on text already in memory; `path` names it in errors.
-pub fn parse_obj_mesh(text: &str, path: &Path) -> Result<TriMesh, MeshError> {
-    let mut mesh = TriMesh::default();
+pub fn parse_obj_mesh(text: &str, path: &Path) -> Result<TriMesh, Error> {
+    let obj = crate::io::obj::parse(path, text, "vertex coordinate")?;
+    if obj.vertices.len() >= u32::MAX as usize {
+        let line = obj.vertices[u32::MAX as usize - 1].0;
+        return Err(Error::parse(
+            path,
+            Position::Line(line),
+            "more than 2^32 - 1 vertices",
+        ));
+    }
+    let mut mesh = TriMesh {
+        vertices: obj
+            .vertices
+            .iter()
+            .map(|(_, p)| DVec3::from_array(*p))
+            .collect(),
+        triangles: Vec::new(),
+    };
     let mut corners: Vec<u32> = Vec::new();
-    for (i, raw) in text.lines().enumerate() {
-        let line = i + 1;
-        let err = |message: String| MeshError::Parse {
-            path: path.to_path_buf(),
-            line,
-            message,
-        };
-        let mut tokens = raw.split_whitespace();
-        match tokens.next() {
-            Some("v") => {
-                let mut p = [0.0; 3];
-                for (k, c) in p.iter_mut().enumerate() {
-                    let tok = tokens
-                        .next()
-                        .ok_or_else(|| err(format!("vertex needs 3 coordinates, found {k}")))?;
-                    *c = tok
-                        .parse::<f64>()
-                        .map_err(|_| err(format!("vertex coordinate `{tok}` is not a number")))?;
-                    if !c.is_finite() {
-                        return Err(err(format!("vertex coordinate `{tok}` is not finite")));
-                    }
-                }
-                if mesh.vertices.len() >= u32::MAX as usize {
-                    return Err(err("more than 2^32 - 1 vertices".into()));
-                }
-                mesh.vertices.push(DVec3::from_array(p));
+    for f in obj.faces {
+        let err = |message: String| Error::parse(path, Position::Line(f.line), message);
+        let indices = f.indices.map_err(|e| err(format!("face corner {e}")))?;
+        let defined = f.defined as i64;
+        corners.clear();
+        for k in indices {
+            let index = if k > 0 { k - 1 } else { defined + k };
+            if index < 0 || index >= defined {
+                return Err(err(format!(
+                    "face corner `{k}` refers to a vertex that is not defined \
+                     ({defined} vertices so far)"
+                )));
             }
-            Some("f") => {
-                corners.clear();
-                let defined = mesh.vertices.len() as i64;
-                for tok in tokens {
-                    let index_text = tok.split('/').next().unwrap_or("");
-                    let k: i64 = index_text
-                        .parse()
-                        .map_err(|_| err(format!("face corner `{tok}` is not a vertex index")))?;
-                    let index = match k {
-                        0 => return Err(err("vertex index 0 (OBJ indices start at 1)".into())),
-                        k if k > 0 => k - 1,
-                        k => defined + k,
-                    };
-                    if index < 0 || index >= defined {
-                        return Err(err(format!(
-                            "face corner `{tok}` refers to a vertex that is not defined \
-                             ({defined} vertices so far)"
-                        )));
-                    }
-                    corners.push(index as u32);
-                }
-                if corners.len() < 3 {
-                    return Err(err(format!(
-                        "face needs at least 3 corners, found {}",
-                        corners.len()
-                    )));
-                }
-                for w in 1..corners.len() - 1 {
-                    mesh.triangles
-                        .push([corners[0], corners[w], corners[w + 1]]);
-                }
-            }
-            _ => {}
+            corners.push(index as u32);
+        }
+        if corners.len() < 3 {
+            return Err(err(format!(
+                "face needs at least 3 corners, found {}",
+                corners.len()
+            )));
+        }
+        for w in 1..corners.len() - 1 {
+            mesh.triangles
+                .push([corners[0], corners[w], corners[w + 1]]);
         }
     }
     if mesh.triangles.is_empty() {
-        return Err(MeshError::NoFaces {
-            path: path.to_path_buf(),
-        });
+        return Err(Error::no_data(
+            path,
+            "no faces (an OBJ mesh needs `f` records)",
+        ));
     }
     Ok(mesh)
 }
@@ -400,8 +351,9 @@ pub fn gaussians_from_mesh(
 mod tests {
     use super::*;
     use crate::geom::p64;
+    use std::path::PathBuf;
 
-    fn parse(text: &str) -> Result<TriMesh, MeshError> {
+    fn parse(text: &str) -> Result<TriMesh, Error> {
         parse_obj_mesh(text, Path::new("test.obj"))
     }
 
@@ -553,29 +505,30 @@ f 3 2 8 9
     #[test]
     fn bad_files_name_the_file_and_line() {
         let cases = [
-            ("v 0 0 0\nv 1 0\n", 2, "3 coordinates"),
+            ("v 0 0 0\nv 1 0\n", 2, "2 coordinates, expected 3"),
             ("v 0 0 0\nv 1 x 0\n", 2, "`x` is not a number"),
             ("v 0 0 nan\n", 1, "not finite"),
             ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n", 4, "not defined"),
             ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 -4\n", 4, "not defined"),
-            ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", 4, "index 0"),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n",
+                4,
+                "`0` is not a vertex index",
+            ),
             ("v 0 0 0\nv 1 0 0\n\nf 1 2\n", 4, "at least 3"),
             ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 a/3\n", 4, "`a/3`"),
         ];
         for (text, line, what) in cases {
             let e = parse(text).unwrap_err();
-            match &e {
-                MeshError::Parse { line: l, .. } => assert_eq!(*l, line, "{e}"),
-                other => panic!("{other:?}"),
-            }
+            assert!(e.is_input_error(), "{e}");
             let msg = e.to_string();
             assert!(msg.contains("test.obj") && msg.contains(what), "{msg}");
             assert!(msg.contains(&format!("line {line}")), "{msg}");
         }
         let e = parse("v 0 0 0\n# no faces\n").unwrap_err();
-        assert!(matches!(e, MeshError::NoFaces { .. }), "{e}");
+        assert!(e.to_string().contains("no faces"), "{e}");
         let e = read_obj_mesh("/nonexistent/mesh.obj").unwrap_err();
-        assert!(matches!(e, MeshError::Io { .. }));
+        assert!(matches!(e, Error::Io { .. }));
         assert!(e.to_string().contains("/nonexistent/mesh.obj"));
         #[cfg(unix)]
         {

@@ -20,8 +20,7 @@ mod toy;
 mod world;
 
 pub use mesh::{
-    gaussians_from_mesh, read_obj_mesh, sharp_edges, sharp_lines, MeshError, MeshGaussianOptions,
-    TriMesh,
+    gaussians_from_mesh, read_obj_mesh, sharp_edges, sharp_lines, MeshGaussianOptions, TriMesh,
 };
 pub use rng::Rng;
 pub use sample::gaussians_around_segments;

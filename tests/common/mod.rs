@@ -6,17 +6,21 @@ use linegs_gpu::engine::{CylStats, Query};
 use linegs_gpu::geom::{p64, Aabb, Cylinder, Segment};
 use linegs_gpu::index::Grid;
 
-/// Deterministic LCG so the tests need no RNG crate.
-pub struct Lcg(pub u64);
+use linegs_gpu::synth::Rng;
 
-impl Lcg {
-    pub fn f(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 11) as f64) / ((1u64 << 53) as f64)
+/// The tests' random numbers: the library's generator ([`Rng`], xoshiro256** seeded
+/// through SplitMix64), with the two draws the tests take.
+pub struct TestRng(Rng);
+
+impl TestRng {
+    pub fn new(seed: u64) -> TestRng {
+        TestRng(Rng::new(seed))
     }
+    /// Uniform in `[0, 1)`.
+    pub fn f(&mut self) -> f64 {
+        self.0.uniform()
+    }
+    /// Uniform in the unit cube.
     pub fn v(&mut self) -> DVec3 {
         DVec3::new(self.f(), self.f(), self.f())
     }
@@ -32,7 +36,7 @@ pub fn grid_of(points: &[[f32; 3]], cell: f64) -> Grid {
 
 /// Random centers in the unit cube, denser along a few lines like a trained 3DGS model.
 pub fn random_scene(n: usize, seed: u64) -> Vec<[f32; 3]> {
-    let mut r = Lcg(seed);
+    let mut r = TestRng::new(seed);
     let lines: Vec<(DVec3, DVec3)> = (0..6).map(|_| (r.v(), r.v())).collect();
     (0..n)
         .map(|i| {
@@ -48,7 +52,7 @@ pub fn random_scene(n: usize, seed: u64) -> Vec<[f32; 3]> {
 }
 
 pub fn random_queries(n: usize, seed: u64, r: f64) -> Vec<Query> {
-    let mut g = Lcg(seed);
+    let mut g = TestRng::new(seed);
     (0..n)
         .map(|_| {
             let a = g.v() * 1.2 - 0.1;
@@ -132,7 +136,7 @@ pub fn boundary_scene() -> (Vec<[f32; 3]>, Vec<Query>) {
 
 /// `n` centers along `seg` (uniform) with isotropic normal noise `sigma` — a dense edge
 /// of a trained 3DGS model.
-pub fn edge_points(seg: &Segment, n: usize, sigma: f64, rng: &mut Lcg) -> Vec<[f32; 3]> {
+pub fn edge_points(seg: &Segment, n: usize, sigma: f64, rng: &mut TestRng) -> Vec<[f32; 3]> {
     (0..n)
         .map(|_| {
             let mut g = || {
@@ -163,17 +167,39 @@ pub fn cpu_engine(
     linegs_gpu::engine::cpu::CpuEngine::new(std::sync::Arc::new(grid))
 }
 
-/// The GPU engine. Without an adapter this fails the test, unless the environment opts
-/// out with `LINEGS_SKIP_GPU_TESTS=1`: then `None`, and the skip is printed (`cargo test`
-/// shows it with the test's output, and in the summary of a failing run).
+/// `LINEGS_SKIP_GPU_TESTS=1`: GPU tests on a machine without an adapter skip (with a
+/// notice) instead of failing.
+pub fn skip_gpu_tests() -> bool {
+    std::env::var("LINEGS_SKIP_GPU_TESTS").is_ok_and(|v| v == "1")
+}
+
+/// The GPU setup of the tests' environment, as the commands read theirs: the adapter of
+/// `WGPU_ADAPTER_NAME`, new buffers filled with garbage where `LINEGS_GPU_GARBAGE` is set
+/// (scripts/test.sh sets it), and `opts` otherwise.
+pub fn gpu_setup(opts: linegs_gpu::engine::gpu::GpuOptions) -> linegs_gpu::engine::gpu::GpuSetup {
+    let env = linegs_gpu::engine::gpu::GpuSetup::from_vars(|k| std::env::var(k).ok());
+    linegs_gpu::engine::gpu::GpuSetup {
+        adapter_name: env.adapter_name,
+        options: linegs_gpu::engine::gpu::GpuOptions {
+            fill_garbage: opts.fill_garbage || env.options.fill_garbage,
+            ..opts
+        },
+    }
+}
+
+/// The GPU engine with `opts` in the tests' environment ([`gpu_setup`]). Without an
+/// adapter this fails the test, unless the environment opts out with
+/// `LINEGS_SKIP_GPU_TESTS=1`: then `None`, and the skip is printed (`cargo test` shows it
+/// with the test's output, and in the summary of a failing run).
 pub fn gpu_engine(
     grid: std::sync::Arc<Grid>,
     opts: linegs_gpu::engine::gpu::GpuOptions,
 ) -> Option<linegs_gpu::engine::gpu::GpuEngine> {
-    match linegs_gpu::engine::gpu::GpuEngine::with_options(grid, opts) {
+    let opened = linegs_gpu::engine::gpu::GpuDevice::open_setup(&gpu_setup(opts));
+    match opened.and_then(|d| d.engine(grid)) {
         Ok(e) => Some(e),
         Err(linegs_gpu::engine::EngineError::NoAdapter(why)) => {
-            if linegs_gpu::engine::gpu::skip_gpu_tests() {
+            if skip_gpu_tests() {
                 // println! is captured per test; eprintln! reaches the terminal at once.
                 eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({why})");
                 println!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({why})");

@@ -18,20 +18,23 @@ pub struct Context {
     /// requested on software adapters, whose device memory is the host's): the data
     /// uploaded once is then written in place, without a staging copy.
     pub map_primary: bool,
+    /// Whether new buffers are filled with garbage ([`super::GpuOptions::fill_garbage`]).
+    fill_garbage: bool,
     /// Errors that escaped every error scope, and device loss; checked after each batch
     /// so that they come back as `EngineError::Gpu` instead of the default handler's panic.
     stray: Arc<Mutex<Option<String>>>,
 }
 
-/// Picks the adapter: `WGPU_ADAPTER_NAME` (a case-insensitive substring of the adapter
-/// name) when set, else wgpu's default choice (`WGPU_POWER_PREF` honoured); `WGPU_BACKEND`
-/// restricts the backends in both cases ([`default_backends`]). Unlike `wgpu::util::initialize_adapter_from_env`,
-/// a name that matches nothing is an error, not a panic.
-pub fn pick_adapter() -> Result<wgpu::Adapter, EngineError> {
+/// Picks the adapter: the first whose name contains `name` (case-insensitive; the
+/// commands' `WGPU_ADAPTER_NAME`) when given, else wgpu's default choice (`WGPU_POWER_PREF`
+/// honoured); `WGPU_BACKEND` restricts the backends in both cases ([`default_backends`]).
+/// Unlike `wgpu::util::initialize_adapter_from_env`, a name that matches nothing is an
+/// error, not a panic.
+pub fn pick_adapter(name: Option<&str>) -> Result<wgpu::Adapter, EngineError> {
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
     let backends = default_backends();
-    if let Ok(name) = std::env::var("WGPU_ADAPTER_NAME") {
+    if let Some(name) = name {
         let want = name.to_lowercase();
         let adapters = pollster::block_on(instance.enumerate_adapters(backends));
         let names: Vec<String> = adapters.iter().map(|a| a.get_info().name).collect();
@@ -74,8 +77,13 @@ impl Context {
     /// adapter offers: large storage bindings, buffers and textures, up to 8 storage buffers
     /// per stage; on a software adapter also [`Context::map_primary`], unless
     /// `mapped_uploads` is false (every upload then goes through the queue's staging
-    /// memory, as on a hardware adapter).
-    pub fn new(adapter: &wgpu::Adapter, mapped_uploads: bool) -> Result<Context, EngineError> {
+    /// memory, as on a hardware adapter). With `fill_garbage`, [`Context::buffer`] fills
+    /// each new buffer with 0xFF bytes.
+    pub fn new(
+        adapter: &wgpu::Adapter,
+        mapped_uploads: bool,
+        fill_garbage: bool,
+    ) -> Result<Context, EngineError> {
         let offered = adapter.limits();
         let mut limits = wgpu::Limits::downlevel_defaults();
         limits.max_storage_buffer_binding_size = offered.max_storage_buffer_binding_size;
@@ -139,6 +147,7 @@ impl Context {
             limits,
             f64,
             map_primary,
+            fill_garbage,
             stray,
         })
     }
@@ -219,8 +228,9 @@ impl Context {
         buf
     }
 
-    /// A storage buffer of `size` bytes. In debug builds (tests) it is filled with 0xFF
-    /// bytes, so a kernel that reads memory it never wrote sees NaNs and huge counts.
+    /// A storage buffer of `size` bytes. With [`super::GpuOptions::fill_garbage`] it is
+    /// filled with 0xFF bytes, so a kernel that reads memory it never wrote sees NaNs and
+    /// huge counts.
     pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         let size = size.max(4).next_multiple_of(4);
         let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -229,7 +239,7 @@ impl Context {
             usage: usage | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        if fill_garbage() && !usage.contains(wgpu::BufferUsages::MAP_READ) {
+        if self.fill_garbage && !usage.contains(wgpu::BufferUsages::MAP_READ) {
             let garbage = vec![0xFFu8; size as usize];
             self.queue.write_buffer(&buf, 0, &garbage);
         }
@@ -389,17 +399,6 @@ pub fn pods<T: bytemuck::Pod>(bytes: &[u8]) -> std::borrow::Cow<'_, [T]> {
     }
 }
 
-/// `LINEGS_SKIP_GPU_TESTS=1`: GPU tests on a machine without an adapter skip (with a
-/// notice) instead of failing.
-pub fn skip_gpu_tests() -> bool {
-    std::env::var("LINEGS_SKIP_GPU_TESTS").is_ok_and(|v| v == "1")
-}
-
-/// Test builds fill new buffers with garbage (also on request: `LINEGS_GPU_GARBAGE=1`).
-pub fn fill_garbage() -> bool {
-    cfg!(debug_assertions) || std::env::var_os("LINEGS_GPU_GARBAGE").is_some()
-}
-
 /// Workgroups for `n` invocations of `workgroup` each, tiled in 2D when more than
 /// `max_x` are needed (the kernels rebuild the linear index from `num_workgroups`).
 pub fn tiles(n: u64, workgroup: u64, max_x: u32) -> (u32, u32) {
@@ -416,9 +415,10 @@ mod tests {
     /// usages that the validation test needs to be errors); without an adapter a failure,
     /// unless `LINEGS_SKIP_GPU_TESTS=1` (then `None`, with a notice).
     fn context() -> Option<Context> {
-        match pick_adapter() {
-            Ok(a) => Some(Context::new(&a, false).expect("device")),
-            Err(e) if skip_gpu_tests() => {
+        let name = std::env::var("WGPU_ADAPTER_NAME").ok();
+        match pick_adapter(name.as_deref()) {
+            Ok(a) => Some(Context::new(&a, false, true).expect("device")),
+            Err(e) if std::env::var("LINEGS_SKIP_GPU_TESTS").is_ok_and(|v| v == "1") => {
                 eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): {e}");
                 None
             }
@@ -453,7 +453,7 @@ mod tests {
     }
 
     #[test]
-    fn new_buffers_hold_garbage_in_test_builds() {
+    fn new_buffers_hold_garbage_when_asked() {
         let Some(ctx) = context() else { return };
         let buf = ctx.buffer(
             "garbage",

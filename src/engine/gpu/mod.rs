@@ -48,10 +48,10 @@ mod query;
 mod resources;
 mod stages;
 
-pub use device::{enumerate_adapters, skip_gpu_tests};
+pub use device::enumerate_adapters;
 pub use kernels::{common_wgsl, eval_source, fit_source, kernel_source, walk_source};
 pub use layout::CHUNK;
-pub use options::{FitOn, GpuOptions, MembersOn, SMALL_BATCH};
+pub use options::{FitOn, GpuOptions, GpuSetup, MembersOn, SMALL_BATCH};
 pub use resources::PointStore;
 
 use super::{
@@ -124,14 +124,21 @@ pub struct GpuDevice {
 }
 
 impl GpuDevice {
-    /// The adapter chosen by `WGPU_ADAPTER_NAME` / `WGPU_BACKEND` (or wgpu's default).
+    /// wgpu's default adapter (`WGPU_BACKEND` and `WGPU_POWER_PREF` honoured, as wgpu
+    /// reads them).
     pub fn open_default(opts: GpuOptions) -> Result<GpuDevice, EngineError> {
-        GpuDevice::open(&device::pick_adapter()?, opts)
+        GpuDevice::open(&device::pick_adapter(None)?, opts)
+    }
+
+    /// The adapter and options of `setup` (what the commands read from their environment).
+    pub fn open_setup(setup: &GpuSetup) -> Result<GpuDevice, EngineError> {
+        let adapter = device::pick_adapter(setup.adapter_name.as_deref())?;
+        GpuDevice::open(&adapter, setup.options)
     }
 
     /// Opens `adapter` and compiles the kernels.
     pub fn open(adapter: &wgpu::Adapter, opts: GpuOptions) -> Result<GpuDevice, EngineError> {
-        let ctx = Context::new(adapter, opts.mapped_uploads)?;
+        let ctx = Context::new(adapter, opts.mapped_uploads, opts.fill_garbage)?;
         let software = ctx.info.device_type == wgpu::DeviceType::Cpu;
         let fit_wanted = ctx.f64
             && match opts.fit {
@@ -255,12 +262,12 @@ impl GpuDevice {
 }
 
 impl GpuEngine {
-    /// Opens the adapter chosen by `WGPU_ADAPTER_NAME` / `WGPU_BACKEND` (or wgpu's default)
-    /// and uploads the grid.
+    /// Opens wgpu's default adapter with the default options and uploads the grid.
     pub fn new(grid: Arc<Grid>) -> Result<Self, EngineError> {
         Self::with_options(grid, GpuOptions::default())
     }
 
+    /// [`GpuEngine::new`] with `opts`.
     pub fn with_options(grid: Arc<Grid>, opts: GpuOptions) -> Result<Self, EngineError> {
         GpuDevice::open_default(opts)?.engine(grid)
     }

@@ -40,6 +40,11 @@ pub struct GpuOptions {
     /// batch 20 ms shorter at 10^6 Gaussians). On by default; tests turn it off to run
     /// the staging path that hardware adapters take.
     pub mapped_uploads: bool,
+    /// Whether every new buffer the kernels write is first filled with 0xFF bytes, so that
+    /// a kernel that reads memory it never wrote sees NaNs and huge counts. On in debug
+    /// builds; the commands turn it on with `LINEGS_GPU_GARBAGE` ([`GpuSetup::from_vars`]),
+    /// the tests where `scripts/test.sh` sets that variable.
+    pub fill_garbage: bool,
 }
 
 /// Where the GPU engine builds per-point member lists.
@@ -82,31 +87,70 @@ pub const SMALL_BATCH: usize = 16;
 
 impl GpuOptions {
     /// The options the commands use: the defaults, with batches of at most
-    /// [`SMALL_BATCH`] queries on the host (`LINEGS_GPU_SMALL_BATCH=N` sets another bound;
-    /// 0 sends every batch to the device), member lists and the edge fit by adapter
-    /// ([`MembersOn::Auto`], [`FitOn::Auto`]; `LINEGS_GPU_MEMBERS=device|host` and
-    /// `LINEGS_GPU_FIT=device|host` choose).
+    /// [`SMALL_BATCH`] queries on the host, member lists and the edge fit by adapter
+    /// ([`MembersOn::Auto`], [`FitOn::Auto`]) and the device warmed up when it opens. The
+    /// commands then apply their environment ([`GpuSetup::from_vars`]).
     pub fn for_commands() -> Self {
-        let small_batch = std::env::var("LINEGS_GPU_SMALL_BATCH")
-            .ok()
-            .and_then(|v| v.trim().parse().ok())
-            .unwrap_or(SMALL_BATCH);
-        let fit = match std::env::var("LINEGS_GPU_FIT").as_deref() {
-            Ok("device") => FitOn::Device,
-            Ok("host") => FitOn::Host,
-            _ => FitOn::Auto,
-        };
-        let members = match std::env::var("LINEGS_GPU_MEMBERS").as_deref() {
-            Ok("device") => MembersOn::Device,
-            Ok("host") => MembersOn::Host,
-            _ => MembersOn::Auto,
-        };
         GpuOptions {
-            small_batch,
-            fit,
-            members,
+            small_batch: SMALL_BATCH,
+            fit: FitOn::Auto,
+            members: MembersOn::Auto,
             warm_up: true,
             ..Default::default()
+        }
+    }
+}
+
+/// How the GPU engine of the commands (and of [`crate::pipeline::Job`]) opens: which
+/// adapter, and the engine's options. A plain value: the commands build it from their
+/// environment once ([`GpuSetup::from_vars`], called in `src/cmd/`); the default is
+/// [`GpuOptions::for_commands`] on wgpu's choice of adapter.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct GpuSetup {
+    /// A case-insensitive part of the adapter's name; `None`: wgpu's default choice
+    /// (`WGPU_POWER_PREF` honoured, as wgpu reads it). A name that matches no adapter is an
+    /// error, not a fallback.
+    pub adapter_name: Option<String>,
+    pub options: GpuOptions,
+}
+
+impl Default for GpuSetup {
+    fn default() -> Self {
+        GpuSetup {
+            adapter_name: None,
+            options: GpuOptions::for_commands(),
+        }
+    }
+}
+
+impl GpuSetup {
+    /// The default setup with the variables that `var` looks up applied (the commands
+    /// pass the process environment; the table is in docs/troubleshooting.md#environment):
+    /// - `WGPU_ADAPTER_NAME`: [`GpuSetup::adapter_name`];
+    /// - `LINEGS_GPU_SMALL_BATCH=N`: [`GpuOptions::small_batch`] (0 sends every batch to
+    ///   the device; not a number: the default [`SMALL_BATCH`]);
+    /// - `LINEGS_GPU_FIT=device|host`: [`GpuOptions::fit`] (else by adapter);
+    /// - `LINEGS_GPU_MEMBERS=device|host`: [`GpuOptions::members`] (else by adapter);
+    /// - `LINEGS_GPU_GARBAGE` (any value): [`GpuOptions::fill_garbage`].
+    pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> GpuSetup {
+        let mut options = GpuOptions::for_commands();
+        if let Some(n) = var("LINEGS_GPU_SMALL_BATCH").and_then(|v| v.trim().parse().ok()) {
+            options.small_batch = n;
+        }
+        options.fit = match var("LINEGS_GPU_FIT").as_deref() {
+            Some("device") => FitOn::Device,
+            Some("host") => FitOn::Host,
+            _ => FitOn::Auto,
+        };
+        options.members = match var("LINEGS_GPU_MEMBERS").as_deref() {
+            Some("device") => MembersOn::Device,
+            Some("host") => MembersOn::Host,
+            _ => MembersOn::Auto,
+        };
+        options.fill_garbage |= var("LINEGS_GPU_GARBAGE").is_some();
+        GpuSetup {
+            adapter_name: var("WGPU_ADAPTER_NAME"),
+            options,
         }
     }
 }
@@ -123,6 +167,38 @@ impl Default for GpuOptions {
             members: MembersOn::Device,
             warm_up: false,
             mapped_uploads: true,
+            fill_garbage: cfg!(debug_assertions),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_variables_set_what_they_name() {
+        let none = GpuSetup::from_vars(|_| None);
+        assert_eq!(none, GpuSetup::default());
+        assert_eq!(none.options.small_batch, SMALL_BATCH);
+        let vars = |k: &str| {
+            match k {
+                "WGPU_ADAPTER_NAME" => Some("llvmpipe"),
+                "LINEGS_GPU_SMALL_BATCH" => Some(" 0 "),
+                "LINEGS_GPU_FIT" => Some("host"),
+                "LINEGS_GPU_MEMBERS" => Some("device"),
+                "LINEGS_GPU_GARBAGE" => Some(""),
+                _ => None,
+            }
+            .map(String::from)
+        };
+        let s = GpuSetup::from_vars(vars);
+        assert_eq!(s.adapter_name.as_deref(), Some("llvmpipe"));
+        assert_eq!(s.options.small_batch, 0);
+        assert_eq!(s.options.fit, FitOn::Host);
+        assert_eq!(s.options.members, MembersOn::Device);
+        assert!(s.options.fill_garbage && s.options.warm_up);
+        let odd = GpuSetup::from_vars(|k| (k == "LINEGS_GPU_SMALL_BATCH").then(|| "x".into()));
+        assert_eq!(odd.options.small_batch, SMALL_BATCH);
     }
 }

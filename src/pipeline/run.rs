@@ -1,284 +1,18 @@
-//! The whole job of docs/method.md#the-refinement-steps, behind one entry point that every
-//! caller uses (the CLI's `refine`, `eval`, `demo`, `bench` and `batch`, the Python
-//! package, the tests):
-//!
-//! 1. a [`Scene`]: the Gaussian centers and the lines, loaded from files
-//!    ([`Scene::load`]) or taken as arrays ([`Scene::from_arrays`]);
-//! 2. a [`Job`]: the parameters, the backend and what to measure beyond the paper's
-//!    metrics (a radius sweep, ground truth);
-//! 3. [`Job::refine`] or [`Job::evaluate`]: builds the working set, resolves the
-//!    [`Settings`] once, builds the grid and the engine once (a [`Refiner`]), runs the
-//!    steps and the evaluations, and returns one [`Report`]
-//!    (docs/formats.md#the-report) — the same shape for refine, eval and demo.
+//! A [`Job`] run on a [`Scene`]: the [`Refiner`] (working set, settings, grid, engine)
+//! built once, the steps and the evaluations, one report.
 
+use super::{RunError, Scene, Stage};
 use crate::engine::dedup::Dedup;
+use crate::engine::gpu::GpuSetup;
 use crate::engine::select::{prepare, Backend};
 use crate::engine::{Engine, EngineError};
 use crate::eval::{self, gt, Metrics};
-use crate::geom::{LineSet, Segment, MIN_LENGTH};
+use crate::geom::{LineSet, Segment};
 use crate::index::{Grid, WorkingSet};
-use crate::io::{self, PlyOptions};
 use crate::refine::{self, Params, RadiusArg, Settings};
-use crate::report::{GroundTruth, InputReport, Report, Sweep};
-use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
+use crate::report::{GroundTruth, Report, Sweep};
 use std::sync::Arc;
 use std::time::Instant;
-
-pub use crate::refine::auto_radius;
-
-/// One timed stage of a run.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Stage {
-    pub name: String,
-    /// Segments after the stage.
-    pub segments: usize,
-    pub seconds: f64,
-    /// GPU engine: host time of its batches in this stage (preparing queries, deciding
-    /// flagged points), excluding waits for the device.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub host_seconds: Option<f64>,
-    /// GPU engine: time waiting for the device in this stage.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub device_seconds: Option<f64>,
-}
-
-impl Stage {
-    fn since(name: &str, segments: usize, t: Instant) -> Stage {
-        Stage {
-            name: name.to_string(),
-            segments,
-            seconds: t.elapsed().as_secs_f64(),
-            host_seconds: None,
-            device_seconds: None,
-        }
-    }
-}
-
-#[derive(thiserror::Error, Debug)]
-pub enum RunError {
-    #[error(transparent)]
-    Engine(#[from] EngineError),
-    #[error(transparent)]
-    Io(#[from] io::Error),
-    /// The input or the options cannot work together (exit code 2).
-    #[error("{0}")]
-    Input(String),
-    /// The lines and the Gaussians are not in one frame ([`Job::check_frames`]; exit
-    /// code 2): the message says why and what fixes it.
-    #[error("{0}")]
-    FrameMismatch(String),
-}
-
-impl RunError {
-    /// Whether the user's input is at fault (exit code 2) rather than the machine.
-    pub fn is_input_error(&self) -> bool {
-        match self {
-            RunError::Input(_) | RunError::FrameMismatch(_) => true,
-            RunError::Io(e) => e.is_input_error(),
-            RunError::Engine(_) => false,
-        }
-    }
-}
-
-/// How to read a scene's files.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct LoadOptions {
-    /// Keep only Gaussians with opacity `>= min_opacity` (in `[0, 1]`).
-    pub min_opacity: Option<f64>,
-    /// A NaN or infinite Gaussian center is an error instead of a counted warning.
-    pub strict: bool,
-    /// Maps the Gaussians into the lines' frame (`--gaussians-transform`).
-    pub transform: Option<io::GaussianTransform>,
-    /// The line readers' options (`--curves`).
-    pub lines: io::LineOptions,
-}
-
-/// Reads a Gaussian model with `opts` (checked first).
-pub fn read_gaussians(path: &Path, opts: &LoadOptions) -> Result<io::GaussianCloud, RunError> {
-    Ok(io::read_gaussians(path, &ply_options(opts)?)?)
-}
-
-/// The model's centers and, where the file has them and they line up with the centers
-/// (one per center kept), its attributes: what `refine` reads, a pipe read once.
-pub fn read_gaussians_and_attributes(
-    path: &Path,
-    opts: &LoadOptions,
-) -> Result<(io::GaussianCloud, Option<io::GaussianAttributes>), RunError> {
-    let (cloud, attrs) = io::read_gaussians_and_attributes(path, &ply_options(opts)?)?;
-    let attrs = attrs.filter(|a| a.normals.len() == cloud.centers.len());
-    Ok((cloud, attrs))
-}
-
-fn ply_options(opts: &LoadOptions) -> Result<PlyOptions, RunError> {
-    if let Some(o) = opts.min_opacity {
-        if !(0.0..=1.0).contains(&o) {
-            return Err(RunError::Input(format!(
-                "--min-opacity {o}: expected an opacity in [0, 1]"
-            )));
-        }
-    }
-    Ok(PlyOptions {
-        min_opacity: opts.min_opacity,
-        strict: opts.strict,
-    })
-}
-
-/// The Gaussian centers and the line segments of one scene, in memory, with what loading
-/// them found (counts, drops, warnings).
-#[derive(Clone, Debug)]
-pub struct Scene {
-    pub gaussians: Vec<[f32; 3]>,
-    pub lines: LineSet,
-    pub input: InputReport,
-    /// One line each, for the user and the report.
-    pub warnings: Vec<String>,
-    /// Seconds spent reading the files (0 for arrays).
-    pub load_seconds: f64,
-    /// Each Gaussian's surface normal (its shortest axis; zero where it is not flat), in
-    /// the order of `gaussians`, where the file has rotations and scales (the edge fit's
-    /// corner test). Read by a second pass over the PLY.
-    pub normals: Option<Vec<[f32; 3]>>,
-    /// Each Gaussian's largest standard deviation (scene units), same order, where the
-    /// file has scales (`--max-scale`).
-    pub max_scale: Option<Vec<f32>>,
-    /// Smallest standard deviation of each Gaussian (its thickness), where the file has
-    /// scales.
-    pub min_scale: Option<Vec<f32>>,
-    /// Each Gaussian's opacity in `[0, 1]`, same order, where the file has rotations,
-    /// scales and opacities (`--fit-opacity-weight`).
-    pub opacity: Option<Vec<f32>>,
-    /// What the scene is, when it was made rather than read (the demo's synthetic scene).
-    pub description: Option<String>,
-}
-
-impl Scene {
-    /// Reads the Gaussians (`point_cloud.ply` or any format of docs/formats.md) and the lines.
-    pub fn load(gaussians: &Path, lines: &Path, opts: &LoadOptions) -> Result<Scene, RunError> {
-        let t = Instant::now();
-        // Normals for the edge fit (PLY with rotations and scales). A frame transform
-        // would have to turn them too: with one, the edge fit uses the centers only.
-        let (mut cloud, attrs) = read_gaussians_and_attributes(gaussians, opts)?;
-        let (normals, max_scale, min_scale, opacity) = match attrs {
-            // Opacities do not depend on the frame; normals would have to turn and scales
-            // to scale with it: with a transform only the opacities are used.
-            Some(a) if opts.transform.is_some() => (None, None, None, a.opacity),
-            Some(a) => (
-                Some(a.normals),
-                Some(a.max_scale),
-                Some(a.min_scale),
-                a.opacity,
-            ),
-            None => (None, None, None, None),
-        };
-        if let Some(t) = &opts.transform {
-            t.apply(&mut cloud.centers);
-        }
-        let file = io::read_lines_with(lines, &opts.lines)?;
-        let mut warnings = cloud.warnings;
-        warnings.extend(file.warnings);
-        let input = InputReport {
-            gaussians: Some(gaussians.display().to_string()),
-            lines: Some(lines.display().to_string()),
-            lines_format: Some(file.format.name().to_string()),
-            gaussians_read: cloud.centers.len(),
-            gaussians_nonfinite_skipped: cloud.skipped_nonfinite,
-            gaussians_below_opacity: cloud.dropped_low_opacity,
-            segments_read: file.lines.len(),
-            segments_invalid_dropped: file.dropped_invalid,
-            input_lines: file.lines.input_lines(),
-            n_box: 0,
-            gaussians_transform: opts.transform.as_ref().map(|t| t.describe.clone()),
-        };
-        Ok(Scene {
-            gaussians: cloud.centers,
-            lines: file.lines,
-            input,
-            warnings,
-            load_seconds: t.elapsed().as_secs_f64(),
-            normals,
-            max_scale,
-            min_scale,
-            opacity,
-            description: None,
-        })
-    }
-
-    /// A scene from arrays (the Python package, synthetic scenes): Gaussians with a NaN
-    /// or infinite center are skipped with a warning that counts them (docs/formats.md); segments
-    /// with a NaN or infinite coordinate are an error; degenerate segments
-    /// (`L <= 1e-12`) are dropped with a warning (docs/method.md#geometry).
-    pub fn from_arrays(gaussians: Vec<[f32; 3]>, lines: LineSet) -> Result<Scene, RunError> {
-        let mut warnings = Vec::new();
-        let n_read = gaussians.len();
-        let mut gaussians = gaussians;
-        gaussians.retain(|c| c.iter().all(|v| v.is_finite()));
-        let nonfinite = n_read - gaussians.len();
-        if nonfinite > 0 {
-            warnings.push(format!(
-                "gaussians: skipped {nonfinite} Gaussian{} with a NaN or infinite center",
-                if nonfinite == 1 { "" } else { "s" }
-            ));
-        }
-        if gaussians.is_empty() {
-            return Err(RunError::Input(
-                "gaussians: the model holds no Gaussian with a finite center".into(),
-            ));
-        }
-        if let Some(i) = lines
-            .segments
-            .iter()
-            .position(|s| !(s.p1.is_finite() && s.p2.is_finite()))
-        {
-            return Err(RunError::Input(format!(
-                "segments: segment {i} has a NaN or infinite coordinate"
-            )));
-        }
-        let keep: Vec<usize> = (0..lines.len())
-            .filter(|&i| lines.segments[i].length() > MIN_LENGTH)
-            .collect();
-        let dropped = lines.len() - keep.len();
-        let lines = if dropped > 0 {
-            warnings.push(format!(
-                "segments: dropped {dropped} degenerate segment{} (length <= 1e-12)",
-                if dropped == 1 { "" } else { "s" }
-            ));
-            lines.select(&keep)
-        } else {
-            lines
-        };
-        if lines.is_empty() {
-            return Err(RunError::Input(
-                "segments: no valid line segment (none given, or all of length <= 1e-12)".into(),
-            ));
-        }
-        let input = InputReport {
-            gaussians: None,
-            lines: None,
-            lines_format: None,
-            gaussians_read: gaussians.len(),
-            gaussians_nonfinite_skipped: nonfinite,
-            gaussians_below_opacity: 0,
-            segments_read: lines.len(),
-            segments_invalid_dropped: dropped,
-            input_lines: lines.input_lines(),
-            n_box: 0,
-            gaussians_transform: None,
-        };
-        Ok(Scene {
-            gaussians,
-            lines,
-            input,
-            warnings,
-            load_seconds: 0.0,
-            normals: None,
-            max_scale: None,
-            min_scale: None,
-            opacity: None,
-            description: None,
-        })
-    }
-}
 
 /// The grid cell of the working set: near the refinement radius, and not below half the
 /// evaluation radius (so an evaluation cylinder spans few cells). One rule for refine and
@@ -303,15 +37,27 @@ pub struct Refiner {
 
 impl Refiner {
     /// Working set of the box of `segments` (docs/method.md#geometry), settings resolved
-    /// over it, grid, and the engine of `backend`.
+    /// over it, grid, and the engine of `backend` (a GPU engine opened the default way,
+    /// [`GpuSetup::default`]).
     pub fn new(
         gaussians: &[[f32; 3]],
         segments: &[Segment],
         params: &Params,
         backend: Backend,
     ) -> Result<Refiner, RunError> {
+        Refiner::with_setup(gaussians, segments, params, backend, &GpuSetup::default())
+    }
+
+    /// [`Refiner::new`] with a GPU engine opened as `gpu` says.
+    pub fn with_setup(
+        gaussians: &[[f32; 3]],
+        segments: &[Segment],
+        params: &Params,
+        backend: Backend,
+        gpu: &GpuSetup,
+    ) -> Result<Refiner, RunError> {
         // The device opens (and its kernels compile) while the grid is built.
-        let pending = prepare(backend);
+        let pending = prepare(backend, gpu);
         Refiner::with_engine(gaussians, segments, params, |grid| pending.finish(grid))
     }
 
@@ -525,6 +271,9 @@ pub struct Refined {
 pub struct Job {
     pub params: Params,
     pub backend: Backend,
+    /// How the GPU engine opens (adapter, options): the commands read it from their
+    /// environment; the default is [`GpuSetup::default`].
+    pub gpu: GpuSetup,
     /// The paper's radius sweep: metrics at each of these radii, before and after.
     pub sweep: Option<Vec<f64>>,
     /// Ground-truth edges and the protocol of the ABC-NEF metrics (same frame as the
@@ -559,11 +308,12 @@ impl Job {
 
     /// The engine for `scene`, built once.
     pub fn refiner(&self, scene: &Scene) -> Result<Refiner, RunError> {
-        Refiner::new(
+        Refiner::with_setup(
             &scene.gaussians,
             &scene.lines.segments,
             &self.params,
             self.backend,
+            &self.gpu,
         )
     }
 
@@ -791,135 +541,53 @@ impl Job {
     }
 }
 
-/// Where a refinement's files go.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Outputs {
-    /// The refined segments; the format follows the extension.
-    pub lines: PathBuf,
-    /// The JSON report.
-    pub report: Option<PathBuf>,
-    /// A PLY with the input (red) and refined (blue) segments as coloured edges.
-    pub compare_ply: Option<PathBuf>,
-}
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::refine::Fit;
 
-/// Makes `out` a result the readers accept: zero-length segments (which f64 rounding can
-/// make of a scene far from the origin, or a refinement can leave) are dropped with a
-/// warning, and a result with no segment is an error that says why, before any file is
-/// written.
-fn readable_result(input: &LineSet, out: &mut Outcome) -> Result<(), RunError> {
-    let keep: Vec<usize> = (0..out.lines.len())
-        .filter(|&k| out.lines.segments[k].is_valid())
-        .collect();
-    let (mut lo, mut hi) = (
-        glam::DVec3::splat(f64::INFINITY),
-        glam::DVec3::splat(f64::NEG_INFINITY),
-    );
-    for s in input.segments.iter().filter(|s| s.is_valid()) {
-        lo = lo.min(s.p1).min(s.p2);
-        hi = hi.max(s.p1).max(s.p2);
-    }
-    let (far, size) = (
-        lo.abs().max(hi.abs()).max_element(),
-        (hi - lo).max_element(),
-    );
-    let hint = if far.is_finite() && far > 1e5 * size.max(f64::MIN_POSITIVE) {
-        format!(
-            "; the scene lies {far:.3e} from the origin and is {size:.3e} across, where the model's f32 centers cannot resolve it: recentre the lines and the model near the origin (subtract the scene's center from both)"
-        )
-    } else {
-        String::new()
-    };
-    if keep.len() < out.lines.len() {
-        let msg = format!(
-            "{} of {} refined segments have zero length and were left out of the output{hint}",
-            out.lines.len() - keep.len(),
-            out.lines.len()
-        );
-        match &mut out.report.refine {
-            Some(steps) => steps.warnings.push(msg),
-            None => out.report.warnings.push(msg),
-        }
-        out.lines = out.lines.select(&keep);
-    }
-    if out.lines.is_empty() {
-        return Err(RunError::Input(format!(
-            "no segment is left after refinement ({} in the input){}; nothing was written",
-            input.len(),
-            if hint.is_empty() {
-                " (see the stages' counts with --verbose: the outlier step, --outlier-ratio, drops the segments with the fewest Gaussians)"
-                    .to_string()
-            } else {
-                hint
-            }
-        )));
-    }
-    Ok(())
-}
-
-/// Colours of the input and refined layers in comparison files.
-pub const BEFORE_COLOR: [u8; 3] = [220, 50, 40];
-pub const AFTER_COLOR: [u8; 3] = [30, 90, 220];
-
-impl Outputs {
-    /// Checks every output path before any work, so a typo or a collision costs nothing:
-    /// extensions, folders, and that no output is one of `inputs` or another output
-    /// ([`io::OutputSet::check`]).
-    pub fn check(&self, inputs: &[&Path]) -> Result<(), RunError> {
-        let mut set = io::OutputSet::new();
-        for p in inputs {
-            set.input(p);
-        }
-        set.output("-o", &self.lines, &io::LINE_OUTPUTS);
-        if let Some(p) = &self.report {
-            set.output("--report", p, &["json"]);
-        }
-        if let Some(p) = &self.compare_ply {
-            set.output("--compare-ply", p, &["ply"]);
-        }
-        set.check()?;
-        Ok(())
+    fn job() -> Job {
+        let params = Params {
+            fit: Some(Fit::Paper),
+            ..Params::default()
+        };
+        Job::new(params, Backend::Cpu)
     }
 
-    /// Writes the refined lines, the comparison PLY and the report (each atomically), the
-    /// report last and with the `write` stage and the output path in it.
-    pub fn write(&self, input: &LineSet, out: &mut Outcome) -> Result<(), RunError> {
-        // All of them land together or none does: a failure leaves earlier files as they were.
-        let mut set = io::OutputSet::new();
-        self.stage(&mut set, input, out)?;
-        set.commit()?;
-        Ok(())
+    #[test]
+    fn a_job_moves_the_segment_onto_its_gaussians_and_reports_it() {
+        let scene = super::super::axis_scene();
+        let out = job().refine(&scene, |_| {}).unwrap();
+        assert_eq!(out.lines.len(), 1);
+        let s = out.lines.segments[0];
+        // The translate step moves it by the mean offset of its nearest points: onto y = 0.
+        assert!(s.p1.y.abs() < 1e-6 && s.p2.y.abs() < 1e-6, "{s:?}");
+        assert!(s.length() > 0.9, "{s:?}");
+        let r = &out.report;
+        assert_eq!((r.command.as_str(), r.backend.as_str()), ("refine", "cpu"));
+        assert_eq!(r.input.n_box, 1000);
+        assert_eq!(r.before.points_in_cylinders, 1000);
+        assert_eq!(r.after.as_ref().unwrap().points_in_cylinders, 1000);
+        assert!(r.stages.iter().any(|st| st.name == "index"));
+        // Evaluating the same lines measures what the refinement measured before.
+        let eval = job().evaluate(&scene, None).unwrap();
+        assert_eq!(eval.before, r.before);
+        assert!(eval.after.is_none());
     }
 
-    /// Like [`Outputs::write`], into `set`: nothing lands until the caller commits it
-    /// (with its own files, as one transaction).
-    pub fn stage(
-        &self,
-        set: &mut io::OutputSet,
-        input: &LineSet,
-        out: &mut Outcome,
-    ) -> Result<(), RunError> {
-        readable_result(input, out)?;
-        let t = Instant::now();
-        set.write(&self.lines, |p| io::write_lines(p, &out.lines.segments))?;
-        if let Some(cp) = &self.compare_ply {
-            set.write(cp, |p| {
-                io::write_lines_ply_layers(
-                    p,
-                    &[
-                        (&input.segments[..], BEFORE_COLOR),
-                        (&out.lines.segments[..], AFTER_COLOR),
-                    ],
-                )
-            })?;
-        }
-        let write = Stage::since("write", out.lines.len(), t);
-        out.report.total_seconds += write.seconds;
-        out.report.stages.push(write);
-        out.report.output = Some(self.lines.display().to_string());
-        if let Some(rp) = &self.report {
-            let json = out.report.to_json();
-            set.write(rp, |p| io::write_bytes_atomic(p, json.as_bytes()))?;
-        }
-        Ok(())
+    #[test]
+    fn lines_away_from_every_gaussian_stop_the_run() {
+        let mut scene = super::super::axis_scene();
+        scene.lines = LineSet::new(vec![Segment::from_arrays(
+            [50.0, 50.0, 50.0],
+            [51.0, 50.0, 50.0],
+        )]);
+        let checked = Job {
+            check_frames: true,
+            ..job()
+        };
+        let e = checked.refine(&scene, |_| {}).unwrap_err();
+        assert!(matches!(e, RunError::FrameMismatch(_)), "{e}");
+        assert!(e.is_input_error());
     }
 }
