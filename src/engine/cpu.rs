@@ -2,9 +2,10 @@
 //! its points in grid order, so results do not depend on the thread count.
 
 use super::{
-    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, Member, Nearest, NearestSum,
-    Query,
+    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, FitJob, Member, Nearest,
+    NearestSum, Query,
 };
+use crate::geom::fit::FitResult;
 use crate::geom::{p64, Cylinder};
 use crate::index::Grid;
 use glam::DVec3;
@@ -214,6 +215,15 @@ impl Engine for CpuEngine {
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
         self.count_batch(queries.len());
         Ok(members_of(&self.grid, queries))
+    }
+
+    /// Each segment's neighbourhood gathered once and iterated on in cache
+    /// ([`super::fit::gathered`]): one batch, a query per step.
+    fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
+        let (out, steps) = super::fit::gathered(&self.grid, job);
+        self.batches.fetch_add(1, Ordering::Relaxed);
+        self.queries.fetch_add(steps, Ordering::Relaxed);
+        Ok(out)
     }
 
     fn counters(&self) -> Counters {

@@ -301,7 +301,7 @@ pub fn fit_prelude() -> String {
     format!(
         "// Generated from src/engine/gpu/layout.rs: do not edit here.\n\
          const MIN_ELONGATION: f64 = {:?}lf;\n{}{}",
-        crate::refine::fit::MIN_ELONGATION,
+        crate::geom::fit::MIN_ELONGATION,
         FitQuery::WGSL,
         FitOut::WGSL
     )
