@@ -138,15 +138,26 @@ pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
     queries
         .par_iter()
         .with_min_len(8)
-        .map(|q| member_list(grid, q))
+        .map_init(Vec::new, |buf, q| {
+            // Listed into a buffer the thread reuses, then copied once at its size.
+            members_into(grid, q, buf);
+            buf.clone()
+        })
         .collect()
 }
 
 /// The members of one query on the host, in working-set order.
 pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
     let mut out = Vec::new();
+    members_into(grid, q, &mut out);
+    out
+}
+
+/// [`member_list`] into `out` (cleared first).
+fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
+    out.clear();
     if !q.seg.is_valid() {
-        return out;
+        return;
     }
     let cyl = Cylinder::new(&q.seg, q.r);
     grid.visit_rows(&q.seg, q.r, |row| {
@@ -166,7 +177,6 @@ pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
     // box, so a far segment would otherwise reorder the members (and the fit's
     // sums) of every other segment in the last bits.
     out.sort_unstable_by_key(|m| m.id);
-    out
 }
 
 impl Engine for CpuEngine {

@@ -168,16 +168,20 @@ pub fn ridge(pts: &[(f64, DVec2)], pw: &[f64], r: f64, bandwidth: f64) -> Option
     // the kernel's mean is a mean of points.
     let mut h = (0.5 * r).max(h_min);
     let mut c = DVec2::ZERO;
-    let mut w = vec![0.0; pts.len()];
     for _ in 0..100 {
-        for ((wi, (_, q)), pw) in w.iter_mut().zip(pts).zip(pw) {
-            *wi = pw * (-(*q - c).length_squared() / (2.0 * h * h)).exp();
+        // The weights and both sums in one pass, each sum in point order from the start
+        // value of `Iterator::sum` (-0.0 for f64, zero for DVec2).
+        let mut sw = -0.0;
+        let mut sq = DVec2::ZERO;
+        for ((_, q), pw) in pts.iter().zip(pw) {
+            let wi = pw * (-(*q - c).length_squared() / (2.0 * h * h)).exp();
+            sw += wi;
+            sq += *q * wi;
         }
-        let sw: f64 = w.iter().sum();
         if sw <= 0.0 {
             return None;
         }
-        let next = pts.iter().zip(&w).map(|(p, w)| p.1 * *w).sum::<DVec2>() / sw;
+        let next = sq / sw;
         let moved = (next - c).length();
         c = next;
         if h > h_min {
@@ -192,6 +196,7 @@ pub fn ridge(pts: &[(f64, DVec2)], pw: &[f64], r: f64, bandwidth: f64) -> Option
         b: DVec2::ZERO,
     };
     let mut weight = 0.0;
+    let mut w = vec![0.0; pts.len()];
     for ((wi, (_, q)), pw) in w.iter_mut().zip(pts).zip(pw) {
         let k = (-(*q - c).length_squared() / (2.0 * h_min * h_min)).exp();
         weight += k;
