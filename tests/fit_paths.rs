@@ -54,6 +54,7 @@ fn both(
     }
     assert_eq!(once.how, per_iteration.how);
     assert_eq!(once.iterations, per_iteration.iterations);
+    assert_eq!(once.steps, per_iteration.steps);
     once
 }
 

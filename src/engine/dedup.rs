@@ -225,24 +225,28 @@ impl Engine for Dedup {
 
     /// A segment's fit is a function of its bits (and the job's parameters): each
     /// distinct segment is fitted once and its result copied.
+    /// Each step of a segment counts as a query asked.
     fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
-        self.count(job.segments.len());
         let queries: Vec<Query> = job.segments.iter().map(|s| Query::new(*s, job.r)).collect();
-        match Groups::of(&queries, None) {
-            None => self.inner.fit_edges(job),
+        let f = match Groups::of(&queries, None) {
+            None => self.inner.fit_edges(job)?,
             Some(g) => {
                 let distinct: Vec<_> = g.first.iter().map(|&i| job.segments[i]).collect();
                 let f = self.inner.fit_edges(&FitJob {
                     segments: &distinct,
                     ..*job
                 })?;
-                Ok(FitResult {
+                FitResult {
                     segments: g.fan_out(&f.segments),
                     how: g.fan_out(&f.how),
                     iterations: f.iterations,
-                })
+                    steps: g.fan_out(&f.steps),
+                }
             }
-        }
+        };
+        let steps: u64 = f.steps.iter().map(|&s| u64::from(s)).sum();
+        self.asked.fetch_add(steps, Ordering::Relaxed);
+        Ok(f)
     }
 
     fn counters(&self) -> Counters {

@@ -95,6 +95,8 @@ pub struct FitResult {
     /// Steps of the segment that took the most (the engine batches of a fit that asks
     /// once per iteration).
     pub iterations: u32,
+    /// Steps each segment took (cylinder queries answered for it).
+    pub steps: Vec<u32>,
 }
 
 /// Two perpendicular unit vectors across `d`.
@@ -518,6 +520,7 @@ impl FitResult {
             segments: tracks.iter().map(|t| t.cur).collect(),
             how: tracks.iter().map(|t| t.how).collect(),
             iterations: tracks.iter().map(|t| t.steps).max().unwrap_or(0),
+            steps: tracks.iter().map(|t| t.steps).collect(),
         }
     }
 }
