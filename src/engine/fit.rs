@@ -162,7 +162,8 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
         } else {
             // Every point of X(cur, r) lies within r of cur, and cur within the margin
             // of `at` (end by end, so every point of it): within r + margin of `at`.
-            if at.is_none_or(|g| !(end_move(&g, &t.cur) <= margin)) {
+            let covers = |g: Segment| end_move(&g, &t.cur) <= margin;
+            if !at.is_some_and(covers) {
                 gather(grid, &t.cur, r + margin, &mut s.near);
                 at = Some(t.cur);
             }
