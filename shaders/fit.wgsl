@@ -1,4 +1,4 @@
-// The edge fit's ridge (src/refine/fit.rs `ridge` and `weighted_line`, with unit point
+// The edge fit's ridge (src/geom/fit.rs `ridge` and `weighted_line`, with unit point
 // weights), one workgroup of FIT_WG lanes per query, in f64 (`SHADER_F64`; the engine
 // compiles this kernel only where the adapter has it), over the query's sure members as
 // the member pass of eval.wgsl listed them on the device (their sorted indices, contiguous

@@ -1,5 +1,7 @@
 //! Segments, cylinders and boxes (docs/method.md#geometry). All host-side math is f64.
 
+pub mod fit;
+
 use glam::DVec3;
 
 /// Segments shorter than this are invalid (docs/method.md#geometry) and dropped at load.

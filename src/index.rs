@@ -162,15 +162,19 @@ impl Grid {
         for c in 0..total {
             start[c + 1] += start[c];
         }
-        let mut fill = start.clone();
+        // Scattered with `start` itself as the cursors (no second table of the grid's
+        // size: fresh pages cost more than the pass): cell k's cursor runs from its start
+        // to the next cell's start, so afterwards `start[k]` holds `start[k + 1]`.
         let mut sorted = vec![[0f32; 3]; points.len()];
         let mut ids = vec![0u32; points.len()];
         for (i, &k) in keys.iter().enumerate() {
-            let slot = fill[k as usize] as usize;
-            fill[k as usize] += 1;
+            let slot = start[k as usize] as usize;
+            start[k as usize] += 1;
             sorted[slot] = points[i];
             ids[slot] = i as u32;
         }
+        start.copy_within(0..total, 1);
+        start[0] = 0;
         grid.cell_start = start;
         grid.points = sorted;
         grid.ids = ids;

@@ -309,12 +309,8 @@ fn a_query_with_more_than_65535_members_in_one_cell() {
     let fq = [Query::new(part, 0.02), Query::new(seg, 0.02)];
     let n = cpu.members(&fq[..1]).unwrap()[0].len();
     assert!((15_000..16_384).contains(&n), "{n}");
-    let (attrs, params) = (Default::default(), Default::default());
-    let ask = FitAsk {
-        attrs: &attrs,
-        params: &params,
-        sensitive: None,
-    };
+    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default());
+    let ask = FitAsk::new(&spec, Default::default());
     let before = gpu.counters();
     let want = cpu.fit_lines(&fq, &ask).unwrap();
     let got = gpu.fit_lines(&fq, &ask).unwrap();
@@ -527,12 +523,8 @@ fn the_edge_fit_runs_where_the_option_says() {
     use linegs_gpu::engine::FitAsk;
     let r = 0.03;
     let (pts, qs) = ridge_scene(r);
-    let (attrs, params) = (Default::default(), Default::default());
-    let ask = FitAsk {
-        attrs: &attrs,
-        params: &params,
-        sensitive: None,
-    };
+    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default());
+    let ask = FitAsk::new(&spec, Default::default());
     for on in [FitOn::Device, FitOn::Host, FitOn::Auto] {
         let opts = GpuOptions {
             fit: on,
@@ -628,17 +620,12 @@ fn ridge_scene(r: f64) -> (Vec<[f32; 3]>, Vec<Query>) {
 #[test]
 fn the_device_fit_answers_like_the_host() {
     use linegs_gpu::engine::FitAsk;
-    use linegs_gpu::refine::fit::{Attributes, How};
+    use linegs_gpu::refine::fit::{Attributes, FitSpec, How};
     use linegs_gpu::refine::Params;
     let r = 0.03;
     let (pts, qs) = ridge_scene(r);
-    let params = Params::default();
-    let plain = Attributes::default();
-    let ask = FitAsk {
-        attrs: &plain,
-        params: &params,
-        sensitive: None,
-    };
+    let spec = FitSpec::from(&Params::default());
+    let ask = FitAsk::new(&spec, Default::default());
     // Whole, and with the point store split in two (13 bytes a point per binding: the
     // 16-byte cell-relative points do not fit one, the 12-byte coordinates the fit reads
     // do).
@@ -714,11 +701,7 @@ fn the_device_fit_answers_like_the_host() {
         opacity: None,
         thickness: None,
     };
-    let ask = FitAsk {
-        attrs: &with,
-        params: &params,
-        sensitive: None,
-    };
+    let ask = FitAsk::new(&spec, with.fit_points());
     assert_eq!(
         cpu.fit_lines(&qs, &ask).unwrap(),
         gpu.fit_lines(&qs, &ask).unwrap()

@@ -2,9 +2,10 @@
 //! its points in grid order, so results do not depend on the thread count.
 
 use super::{
-    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, Member, Nearest, NearestSum,
-    Query,
+    Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, FitJob, Member, Nearest,
+    NearestSum, Query,
 };
+use crate::geom::fit::FitResult;
 use crate::geom::{p64, Cylinder};
 use crate::index::Grid;
 use glam::DVec3;
@@ -137,15 +138,26 @@ pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
     queries
         .par_iter()
         .with_min_len(8)
-        .map(|q| member_list(grid, q))
+        .map_init(Vec::new, |buf, q| {
+            // Listed into a buffer the thread reuses, then copied once at its size.
+            members_into(grid, q, buf);
+            buf.clone()
+        })
         .collect()
 }
 
 /// The members of one query on the host, in working-set order.
 pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
     let mut out = Vec::new();
+    members_into(grid, q, &mut out);
+    out
+}
+
+/// [`member_list`] into `out` (cleared first).
+fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
+    out.clear();
     if !q.seg.is_valid() {
-        return out;
+        return;
     }
     let cyl = Cylinder::new(&q.seg, q.r);
     grid.visit_rows(&q.seg, q.r, |row| {
@@ -165,7 +177,6 @@ pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
     // box, so a far segment would otherwise reorder the members (and the fit's
     // sums) of every other segment in the last bits.
     out.sort_unstable_by_key(|m| m.id);
-    out
 }
 
 impl Engine for CpuEngine {
@@ -214,6 +225,15 @@ impl Engine for CpuEngine {
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
         self.count_batch(queries.len());
         Ok(members_of(&self.grid, queries))
+    }
+
+    /// Each segment's neighbourhood gathered once and iterated on in cache
+    /// ([`super::fit::gathered`]): one batch, a query per step.
+    fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
+        let (out, steps) = super::fit::gathered(&self.grid, job);
+        self.batches.fetch_add(1, Ordering::Relaxed);
+        self.queries.fetch_add(steps, Ordering::Relaxed);
+        Ok(out)
     }
 
     fn counters(&self) -> Counters {

@@ -15,8 +15,9 @@
 //! the inner engine as it is, without a copy.
 
 use super::{
-    Answers, Ask, Counters, Engine, EngineError, FitAnswer, FitAsk, Member, Nearest, Query,
+    Answers, Ask, Counters, Engine, EngineError, FitAnswer, FitAsk, FitJob, Member, Nearest, Query,
 };
+use crate::geom::fit::{FitResult, LineFit};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -208,9 +209,7 @@ impl Engine for Dedup {
                 // The inner engine numbers the distinct queries.
                 let outer = ask.sensitive;
                 let first = &g.first;
-                let remap = move |d: usize, f: &crate::refine::fit::LineFit| {
-                    outer.is_some_and(|s| s(first[d], f))
-                };
+                let remap = move |d: usize, f: &LineFit| outer.is_some_and(|s| s(first[d], f));
                 let inner_ask = FitAsk {
                     sensitive: Some(&remap),
                     ..*ask
@@ -222,6 +221,32 @@ impl Engine for Dedup {
                 Ok(g.fan_out(&a))
             }
         }
+    }
+
+    /// A segment's fit is a function of its bits (and the job's parameters): each
+    /// distinct segment is fitted once and its result copied.
+    /// Each step of a segment counts as a query asked.
+    fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
+        let queries: Vec<Query> = job.segments.iter().map(|s| Query::new(*s, job.r)).collect();
+        let f = match Groups::of(&queries, None) {
+            None => self.inner.fit_edges(job)?,
+            Some(g) => {
+                let distinct: Vec<_> = g.first.iter().map(|&i| job.segments[i]).collect();
+                let f = self.inner.fit_edges(&FitJob {
+                    segments: &distinct,
+                    ..*job
+                })?;
+                FitResult {
+                    segments: g.fan_out(&f.segments),
+                    how: g.fan_out(&f.how),
+                    iterations: f.iterations,
+                    steps: g.fan_out(&f.steps),
+                }
+            }
+        };
+        let steps: u64 = f.steps.iter().map(|&s| u64::from(s)).sum();
+        self.asked.fetch_add(steps, Ordering::Relaxed);
+        Ok(f)
     }
 
     fn counters(&self) -> Counters {

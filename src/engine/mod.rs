@@ -5,6 +5,7 @@
 
 pub mod cpu;
 pub mod dedup;
+pub mod fit;
 pub mod gpu;
 pub mod select;
 
@@ -170,24 +171,16 @@ impl Nearest<'_> {
     }
 }
 
-/// One member of `X(s, r)`, for steps that need per-point data (the edge fit).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Member {
-    /// Index of the point in the working set (the order the engine was built from).
-    pub id: u32,
-    /// Axial position `t1 = (p-P1)·d`.
-    pub t: f64,
-    /// Perpendicular offset `v = (p-P1) - t1 d`.
-    pub offset: DVec3,
-}
+pub use crate::geom::fit::Member;
+use crate::geom::fit::{FitPoints, FitResult, FitSpec, How, LineFit};
 
-/// What the edge fit asks of [`Engine::fit_lines`]: the per-point attributes of the
-/// working set, the refinement parameters, and optionally which answers feed a decision
-/// that lies close to its threshold.
+/// What the edge fit asks of [`Engine::fit_lines`]: its parameters, the per-point
+/// attributes of the working set, and optionally which answers feed a decision that lies
+/// close to its threshold.
 #[derive(Clone, Copy)]
 pub struct FitAsk<'a> {
-    pub attrs: &'a crate::refine::fit::Attributes,
-    pub params: &'a crate::refine::Params,
+    pub spec: &'a FitSpec,
+    pub points: FitPoints<'a>,
     /// `sensitive(i, line)`: whether the caller's decision from `line` as query `i`'s
     /// answer lies within 1e-5 r of a threshold. An engine that fits to float precision
     /// (the GPU engine's device ridge) fits those queries exactly on the host instead, so
@@ -195,12 +188,33 @@ pub struct FitAsk<'a> {
     pub sensitive: Option<&'a Sensitive<'a>>,
 }
 
+impl<'a> FitAsk<'a> {
+    /// The ask of `spec` over `points`, without a sensitivity test.
+    pub fn new(spec: &'a FitSpec, points: FitPoints<'a>) -> Self {
+        FitAsk {
+            spec,
+            points,
+            sensitive: None,
+        }
+    }
+}
+
 /// [`FitAsk::sensitive`]: `(query index, its line) -> near a threshold`.
-pub type Sensitive<'a> = dyn Fn(usize, &crate::refine::fit::LineFit) -> bool + Sync + 'a;
+pub type Sensitive<'a> = dyn Fn(usize, &LineFit) -> bool + Sync + 'a;
 
 /// One query's fit step: the line in its segment's cross-section frame (`None`: stay),
 /// and how it was decided.
-pub type FitAnswer = (Option<crate::refine::fit::LineFit>, crate::refine::fit::How);
+pub type FitAnswer = (Option<LineFit>, How);
+
+/// The whole edge fit, as [`Engine::fit_edges`] takes it: the segments (each also its
+/// own start), the radius, the parameters and the per-point attributes.
+#[derive(Clone, Copy)]
+pub struct FitJob<'a> {
+    pub segments: &'a [Segment],
+    pub r: f64,
+    pub spec: &'a FitSpec,
+    pub points: FitPoints<'a>,
+}
 
 /// Work counters, for tests that prove batching and upload-once, and for the report.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -272,15 +286,22 @@ pub trait Engine: Send + Sync {
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError>;
     /// The edge fit's step (`--fit edge`) for every query's segment (`query.seg`, radius
     /// `query.r`) from its members: by default [`Self::members`], then the host's
-    /// [`crate::refine::fit::steps`]. An engine may fit on its device instead (the GPU
-    /// engine's ridge), answering like the host to float precision.
+    /// [`fit::steps`]. An engine may fit on its device instead (the GPU engine's ridge),
+    /// answering like the host to float precision.
     fn fit_lines(
         &self,
         queries: &[Query],
         ask: &FitAsk<'_>,
     ) -> Result<Vec<FitAnswer>, EngineError> {
         let members = self.members(queries)?;
-        Ok(crate::refine::fit::steps(queries, &members, ask))
+        Ok(fit::steps(queries, &members, ask))
+    }
+    /// The whole edge fit: every segment stepped until it settles or has taken
+    /// `spec.iterations` steps. By default one [`Self::fit_lines`] batch per iteration
+    /// ([`fit::by_batches`]); the CPU engine gathers each segment's neighbourhood once
+    /// instead ([`fit::gathered`]), with the same answers bit for bit.
+    fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
+        fit::by_batches(self, job)
     }
     /// The union of all members of the batch.
     fn coverage(&self, queries: &[Query]) -> Result<Coverage, EngineError> {

@@ -54,7 +54,7 @@ pub const MODE_MEMBERS: u32 = 7;
 pub const CTL_MEMBERS_BAD: u32 = 2;
 /// Lanes of the fit kernel's workgroup (one workgroup per query).
 pub const FIT_WG: u32 = 64;
-/// Most mean-shift steps of the ridge (`ridge()`'s schedule in src/refine/fit.rs).
+/// Most mean-shift steps of the ridge (`ridge()`'s schedule in src/geom/fit.rs).
 pub const FIT_STEPS: u32 = 100;
 /// Most members of a query the fit kernel takes; a query with more is fitted on the host.
 /// The kernel's loops then stay below FIT_STEPS + 2 passes of
@@ -218,7 +218,7 @@ shared! {
 shared! {
     /// One query's segment for the fit kernel, in scene units and f64 (the kernel runs in
     /// f64 with `SHADER_F64`, the host's arithmetic): `P1`, the unit direction `d`
-    /// (`Segment::dir`), the cross-section basis `e1`, `e2` (src/refine/fit.rs `basis`),
+    /// (`Segment::dir`), the cross-section basis `e1`, `e2` (src/geom/fit.rs `basis`),
     /// the radius and the final kernel width `fit_bandwidth x r`.
     struct FitQuery {
         p1x: f64 => "f64", p1y: f64 => "f64", p1z: f64 => "f64",
@@ -301,7 +301,7 @@ pub fn fit_prelude() -> String {
     format!(
         "// Generated from src/engine/gpu/layout.rs: do not edit here.\n\
          const MIN_ELONGATION: f64 = {:?}lf;\n{}{}",
-        crate::refine::fit::MIN_ELONGATION,
+        crate::geom::fit::MIN_ELONGATION,
         FitQuery::WGSL,
         FitOut::WGSL
     )

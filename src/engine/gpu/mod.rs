@@ -55,8 +55,10 @@ pub use options::{FitOn, GpuOptions, GpuSetup, MembersOn, SMALL_BATCH};
 pub use resources::PointStore;
 
 use super::{
-    Answers, Ask, Counters, CylStats, Engine, EngineError, FitAnswer, FitAsk, Nearest, Query, Want,
+    Answers, Ask, Counters, CylStats, Engine, EngineError, FitAnswer, FitAsk, FitJob, Nearest,
+    Query, Want,
 };
+use crate::geom::fit::{FitPoints, FitResult, FitSpec};
 use crate::index::Grid;
 use batch::Kind;
 use device::Context;
@@ -351,15 +353,15 @@ impl GpuEngine {
         queries: &[Query],
         ask: &FitAsk<'_>,
     ) -> Result<Vec<FitAnswer>, EngineError> {
-        use crate::refine::fit::{How, LineFit};
+        use crate::geom::fit::{How, LineFit};
         let grid = &*self.grid;
-        let p = ask.params;
+        let p = ask.spec;
         // The host's own values (`Cylinder::new`, `basis`, `ridge`'s h_min).
         let frames: Vec<layout::FitQuery> = queries
             .iter()
             .map(|q| {
                 let d = q.seg.dir();
-                let (e1, e2) = crate::refine::fit::basis(d);
+                let (e1, e2) = crate::geom::fit::basis(d);
                 let p1 = q.seg.p1;
                 layout::FitQuery {
                     p1x: p1.x,
@@ -375,11 +377,11 @@ impl GpuEngine {
                     e2y: e2.y,
                     e2z: e2.z,
                     r: q.r,
-                    h_min: p.fit_bandwidth * q.r,
+                    h_min: p.bandwidth * q.r,
                 }
             })
             .collect();
-        let min_points = p.fit_min_points as f64;
+        let min_points = p.min_points as f64;
         let mut out: Vec<FitAnswer> = vec![(None, How::Unclear); queries.len()];
         let fallbacks = &self.fallbacks;
         let (device_fits, refitted) = (&self.device_fits, &self.device_fits_refitted);
@@ -437,7 +439,7 @@ impl GpuEngine {
                             fallbacks.fetch_add(1, Ordering::Relaxed);
                             refitted.fetch_add(1, Ordering::Relaxed);
                             let m = super::cpu::member_list(grid, q);
-                            crate::refine::fit::steps(std::slice::from_ref(q), &[m], ask)[0]
+                            super::fit::steps(std::slice::from_ref(q), &[m], ask)[0]
                         }
                     };
                 });
@@ -513,13 +515,11 @@ impl Engine for GpuEngine {
     ) -> Result<Vec<FitAnswer>, EngineError> {
         let device = self.device_fit
             && queries.len() > self.small_batch
-            && ask.attrs.normals.is_none()
-            && !ask.params.fit_opacity_weight
-            && !self.grid.is_empty();
+            && self.ridge_on_device(ask.spec, &ask.points);
         if !device {
             let members = self.members(queries)?;
             let t = std::time::Instant::now();
-            let out = crate::refine::fit::steps(queries, &members, ask);
+            let out = super::fit::steps(queries, &members, ask);
             self.clock.add(t.elapsed().as_secs_f64(), 0.0);
             return Ok(out);
         }
@@ -530,15 +530,30 @@ impl Engine for GpuEngine {
             (order, sent)
         });
         let by_caller = &order;
-        let sensitive = ask.sensitive.map(|s| {
-            move |j: usize, line: &crate::refine::fit::LineFit| s(by_caller.index(j), line)
-        });
+        let sensitive = ask
+            .sensitive
+            .map(|s| move |j: usize, line: &crate::geom::fit::LineFit| s(by_caller.index(j), line));
         let ask = FitAsk {
             sensitive: sensitive.as_ref().map(|s| s as &super::Sensitive<'_>),
             ..*ask
         };
         let answers = self.fit_batch(&mut self.lock(), &sent, &ask)?;
         Ok(self.on_host(|| order.restore(answers)))
+    }
+
+    /// With the ridge on the device ([`GpuOptions::fit`], the plain ridge), one batch
+    /// per iteration ([`super::fit::by_batches`]: each batch's ridge on the device);
+    /// otherwise the CPU engine's fit over the same grid, each neighbourhood gathered
+    /// once ([`super::fit::gathered`]), as one host batch.
+    fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
+        if self.device_fit && self.ridge_on_device(job.spec, &job.points) {
+            return super::fit::by_batches(self, job);
+        }
+        self.count_batch(0);
+        let (out, steps) = self.on_cpu(0, || super::fit::gathered(&self.grid, job));
+        self.queries.fetch_add(steps, Ordering::Relaxed);
+        self.cpu_queries.fetch_add(steps, Ordering::Relaxed);
+        Ok(out)
     }
 
     fn counters(&self) -> Counters {
@@ -559,6 +574,13 @@ impl Engine for GpuEngine {
 }
 
 impl GpuEngine {
+    /// Whether the fit of `spec` over `points` is the plain ridge, which the device can
+    /// fit: no normals (the two-face fit stays on the host), no opacity weights, and
+    /// points to fit.
+    fn ridge_on_device(&self, spec: &FitSpec, points: &FitPoints<'_>) -> bool {
+        points.normals.is_none() && !spec.opacity_weight && !self.grid.is_empty()
+    }
+
     /// `f()`, its time counted as the engine's host work (`host_seconds`).
     fn on_host<R>(&self, f: impl FnOnce() -> R) -> R {
         let t = std::time::Instant::now();

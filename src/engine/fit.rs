@@ -1,0 +1,215 @@
+//! The edge fit's iterations over an engine (`--fit edge`): every segment steps
+//! ([`crate::geom::fit::step`]) from the members of its current cylinder until it settles
+//! or has taken `iterations` steps.
+//!
+//! Two ways to the same answers, bit for bit:
+//! - [`gathered`] (the CPU engine's [`Engine::fit_edges`], and the GPU engine's wherever
+//!   its fit runs on the host): per segment, the points within `r + GATHER_MARGIN r` of
+//!   its line are gathered from the grid once into a compact list (working-set order),
+//!   and every step takes its members from that list, in cache, by the same cylinder test
+//!   as a walk; the list is gathered again only when the line has moved more than the
+//!   margin from where it was gathered.
+//! - [`by_batches`] (the default [`Engine::fit_edges`], the GPU engine's device fit): one
+//!   [`Engine::fit_lines`] batch per iteration for all segments still moving.
+
+use super::cpu::member_list;
+use super::{Engine, EngineError, FitAnswer, FitAsk, FitJob, Query};
+use crate::geom::fit::{near_settled, step, FitResult, LineFit, Member, Track};
+use crate::geom::{p64, Segment};
+use crate::index::Grid;
+use rayon::prelude::*;
+use std::collections::HashMap;
+
+/// How far (in units of r) a line may move from where its neighbourhood was gathered
+/// before it is gathered again. A wider margin gathers less often but tests more points
+/// per step.
+pub const GATHER_MARGIN: f64 = 0.5;
+
+/// The fit with one engine batch ([`Engine::fit_lines`]) per iteration, for all segments
+/// still moving; exact copies (the same segment now and at the start) are asked once.
+pub fn by_batches<E: Engine + ?Sized>(
+    engine: &E,
+    job: &FitJob<'_>,
+) -> Result<FitResult, EngineError> {
+    let r = job.r;
+    let spec = job.spec;
+    let mut tracks: Vec<Track> = job.segments.iter().map(|s| Track::new(*s)).collect();
+    let mut active: Vec<usize> = (0..tracks.len()).filter(|&i| tracks[i].starts()).collect();
+    let mut iterations = 0;
+    while !active.is_empty() && iterations < spec.iterations {
+        iterations += 1;
+        let mut seen: HashMap<[u64; 12], usize> = HashMap::new();
+        let mut uniq: Vec<usize> = Vec::new();
+        let of: Vec<usize> = active
+            .iter()
+            .map(|&i| {
+                let (a, b) = (tracks[i].cur, tracks[i].origin);
+                let key = [a.p1, a.p2, b.p1, b.p2]
+                    .map(|v| v.to_array().map(f64::to_bits))
+                    .concat();
+                *seen
+                    .entry(key.try_into().expect("12 words"))
+                    .or_insert_with(|| {
+                        uniq.push(i);
+                        uniq.len() - 1
+                    })
+            })
+            .collect();
+        let queries: Vec<Query> = uniq.iter().map(|&i| Query::new(tracks[i].cur, r)).collect();
+        let near = |j: usize, f: &LineFit| {
+            let t = &tracks[uniq[j]];
+            near_settled(&t.cur, f, &t.origin, r, spec)
+        };
+        let ask = FitAsk {
+            spec,
+            points: job.points,
+            sensitive: Some(&near),
+        };
+        let steps = engine.fit_lines(&queries, &ask)?;
+        let mut next = Vec::with_capacity(active.len());
+        for (&i, &d) in active.iter().zip(&of) {
+            if tracks[i].advance(steps[d], r, spec) {
+                next.push(i);
+            }
+        }
+        active = next;
+    }
+    Ok(FitResult::of_tracks(&tracks))
+}
+
+/// [`step`] of every query's segment (`q.seg`, radius `q.r`) from its members: the
+/// default [`Engine::fit_lines`], and the host's answer wherever an engine has none. The
+/// segments are fitted in parallel; each step depends only on its own members, so the
+/// answers are the same for every thread count.
+pub fn steps(queries: &[Query], members: &[Vec<Member>], ask: &FitAsk<'_>) -> Vec<FitAnswer> {
+    queries
+        .par_iter()
+        .zip(members)
+        .with_min_len(4)
+        .map(|(q, m)| step(&q.seg, m, &ask.points, q.r, ask.spec))
+        .collect()
+}
+
+/// One gathered point: its working-set id and its coordinates.
+type Gathered = (u32, [f32; 3]);
+
+/// The points of `grid` within `reach` of segment `g` (and a few more: the test is
+/// generous by a relative 1e-7), in working-set order.
+fn gather(grid: &Grid, g: &Segment, reach: f64, out: &mut Vec<Gathered>) {
+    out.clear();
+    let d = g.dir();
+    let scale = g.p1.abs().max_element().max(g.p2.abs().max_element()) + 1.0;
+    let reach = reach * (1.0 + 1e-7) + 1e-9 * scale;
+    // The capsule of radius `reach` around `g` lies in the capped cylinder around `g`
+    // lengthened by `reach` at each end, whose rows the grid visits.
+    let long = Segment::new(g.p1 - d * reach, g.p2 + d * reach);
+    let (l, r2) = (g.length(), reach * reach);
+    grid.visit_rows(&long, reach, |row| {
+        let range = grid.row_range(&row);
+        let start = range.start;
+        for (j, p) in grid.points[range].iter().enumerate() {
+            let w = p64(*p) - g.p1;
+            let t = w.dot(d).clamp(0.0, l);
+            if (w - d * t).length_squared() <= r2 {
+                out.push((grid.ids[start + j], *p));
+            }
+        }
+    });
+    out.sort_unstable_by_key(|x| x.0);
+}
+
+/// Largest move of an end from `a` to `b`.
+fn end_move(a: &Segment, b: &Segment) -> f64 {
+    (a.p1 - b.p1).length().max((a.p2 - b.p2).length())
+}
+
+/// The members of `X(s, r)` among `near` (which holds every point within `r` of `s`),
+/// in their order: the test and arithmetic of a walk ([`member_list`]).
+fn members_among(near: &[Gathered], s: &Segment, r: f64, out: &mut Vec<Member>) {
+    out.clear();
+    let cyl = crate::geom::Cylinder::new(s, r);
+    for &(id, p) in near {
+        if let Some((t, offset)) = cyl.test(p64(p)) {
+            out.push(Member { id, t, offset });
+        }
+    }
+}
+
+/// Buffers one thread reuses from segment to segment.
+#[derive(Default)]
+struct Scratch {
+    near: Vec<Gathered>,
+    members: Vec<Member>,
+}
+
+/// One segment's iterations, its neighbourhood gathered once (and again only after it
+/// moved more than [`GATHER_MARGIN`] r from where it was gathered).
+fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) -> Track {
+    let (r, spec) = (job.r, job.spec);
+    let mut t = Track::new(seg);
+    if !t.starts() {
+        return t;
+    }
+    let margin = GATHER_MARGIN * r;
+    // Radii the capsule argument does not cover (not a positive finite r) walk per step.
+    let direct = !(r.is_finite() && r > 0.0);
+    let mut at: Option<Segment> = None;
+    while t.steps < spec.iterations {
+        if direct {
+            s.members = member_list(grid, &Query::new(t.cur, r));
+        } else if !t.cur.is_valid() {
+            s.members.clear();
+        } else {
+            // Every point of X(cur, r) lies within r of cur, and cur within the margin
+            // of `at` (end by end, so every point of it): within r + margin of `at`.
+            let covers = |g: Segment| end_move(&g, &t.cur) <= margin;
+            if !at.is_some_and(covers) {
+                gather(grid, &t.cur, r + margin, &mut s.near);
+                at = Some(t.cur);
+            }
+            members_among(&s.near, &t.cur, r, &mut s.members);
+        }
+        let answer = step(&t.cur, &s.members, &job.points, r, spec);
+        if !t.advance(answer, r, spec) {
+            break;
+        }
+    }
+    t
+}
+
+/// The fit over `grid`, each segment's neighbourhood gathered once and iterated on in
+/// cache: the answers of [`by_batches`] over an exact engine of the same grid. Also
+/// returns the steps taken (cylinders answered), all segments together.
+pub fn gathered(grid: &Grid, job: &FitJob<'_>) -> (FitResult, u64) {
+    // Segments in the order of their midpoints' cells (`cell_of` clamps into the grid),
+    // so that neighbouring segments, which share points, run close together in time:
+    // only an order of work, never part of an answer.
+    let mut order: Vec<(u32, usize)> = job
+        .segments
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let cell = if grid.is_empty() {
+                0
+            } else {
+                grid.cell_of(s.midpoint())
+            };
+            (cell, i)
+        })
+        .collect();
+    order.sort_unstable();
+    let done: Vec<(usize, Track)> = order
+        .par_iter()
+        .with_min_len(4)
+        .map_init(Scratch::default, |s, &(_, i)| {
+            (i, track_gathered(grid, job, job.segments[i], s))
+        })
+        .collect();
+    let mut tracks: Vec<Track> = job.segments.iter().map(|s| Track::new(*s)).collect();
+    let mut steps = 0;
+    for (i, t) in done {
+        steps += u64::from(t.steps);
+        tracks[i] = t;
+    }
+    (FitResult::of_tracks(&tracks), steps)
+}

@@ -1,0 +1,553 @@
+//! The edge fit's mathematics (`--fit edge`, docs/method.md#step-4-translate): one step of
+//! a segment from the points of its cylinder, the per-step bounds, and the per-segment
+//! iteration state. Plain data in, plain data out: the engines run it over their own
+//! member lists (the CPU engine gathers each neighbourhood once and iterates in cache,
+//! `crate::engine::fit`), and the refinement's step only chooses the parameters.
+//!
+//! One step, per segment (in the frame of its current line: axial `t`, 2D offset `q`
+//! in the plane perpendicular to `d`):
+//! - **Two faces** (only where the Gaussians carry normals, a flat Gaussian's shortest
+//!   axis): the normals that lie across the line fall into two families 20° or more apart;
+//!   each family's plane is fitted robustly (median offset along its mean normal) in each
+//!   half of the segment, and the two planes' intersection in each half gives the line.
+//! - **Ridge** otherwise: a line `q = a + b (t - t̄)` fitted by iteratively reweighted least
+//!   squares with a Gaussian kernel on the residual whose width shrinks from `r/2` to
+//!   `bandwidth x r` — mode seeking, so a shell of face Gaussians around a dense ridge
+//!   does not pull the line off it the way a mean does. The line turns only where its
+//!   points are elongated along it ([`MIN_ELONGATION`]); a short one keeps its direction.
+//! - **Neither clear** (too few points carry the kernel's weight): no move.
+//!
+//! Each step moves a line by at most `0.5 r` and turns it by at most `max_turn_deg` (and
+//! so that neither end moves more than `r/4` by the turn); its total move stays within
+//! `max_move x r` of where it started ([`apply`]), so a line is never carried over to
+//! another edge.
+
+use super::Segment;
+use glam::{DVec2, DVec3};
+
+/// One member of `X(s, r)`, for steps that need per-point data (the edge fit).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Member {
+    /// Index of the point in the working set (the order the engine was built from).
+    pub id: u32,
+    /// Axial position `t1 = (p-P1)·d`.
+    pub t: f64,
+    /// Perpendicular offset `v = (p-P1) - t1 d`.
+    pub offset: DVec3,
+}
+
+/// The fit's parameters, as plain numbers (the refinement's `--fit-*` options).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FitSpec {
+    /// Most steps per segment.
+    pub iterations: u32,
+    /// Most turn per step, in degrees.
+    pub max_turn_deg: f64,
+    /// Most total move of an end from its start, in units of r.
+    pub max_move: f64,
+    /// Final kernel width of the ridge, in units of r.
+    pub bandwidth: f64,
+    /// Fewest points (kernel weight) for a ridge or a face family.
+    pub min_points: u32,
+    /// Each point weighted by its opacity ([`FitPoints::opacity`]).
+    pub opacity_weight: bool,
+}
+
+/// Per-point attributes of the working set (index = working-set id) that the fit reads,
+/// where the file has them.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct FitPoints<'a> {
+    /// Unit surface normal of each Gaussian (its shortest axis); zero where it has none.
+    pub normals: Option<&'a [[f32; 3]]>,
+    /// Opacity of each Gaussian in `[0, 1]`: the per-point weight with
+    /// [`FitSpec::opacity_weight`].
+    pub opacity: Option<&'a [f32]>,
+}
+
+impl FitPoints<'_> {
+    /// The fit's weight of working-set point `id`: its opacity where there are
+    /// opacities, else 1.
+    pub fn weight(&self, id: u32) -> f64 {
+        self.opacity.map_or(1.0, |o| f64::from(o[id as usize]))
+    }
+}
+
+/// What the fit did to one segment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum How {
+    /// Moved onto two faces' intersection.
+    Corner,
+    /// Moved onto a dense ridge of centers.
+    Ridge,
+    /// Too few points for any estimate: not moved.
+    Unclear,
+    /// An estimate existed, but the move gate found that the Gaussians do not explain it
+    /// better than the input line: not moved.
+    Kept,
+}
+
+/// The fit of a set of segments.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitResult {
+    pub segments: Vec<Segment>,
+    /// How each segment's last move was decided.
+    pub how: Vec<How>,
+    /// Steps of the segment that took the most (the engine batches of a fit that asks
+    /// once per iteration).
+    pub iterations: u32,
+    /// Steps each segment took (cylinder queries answered for it).
+    pub steps: Vec<u32>,
+}
+
+/// Two perpendicular unit vectors across `d`.
+pub fn basis(d: DVec3) -> (DVec3, DVec3) {
+    let a = if d.x.abs() < 0.9 { DVec3::X } else { DVec3::Y };
+    let e1 = (a - d * a.dot(d)).normalize();
+    (e1, d.cross(e1))
+}
+
+/// The line model `q(t) = a + b (t - t0)` in a segment's cross-section frame
+/// ([`basis`] of its direction; `t` from `P1`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LineFit {
+    pub t0: f64,
+    pub a: DVec2,
+    pub b: DVec2,
+}
+
+/// The ridge turns only where its points' weighted axial spread (variance of `t`) is at
+/// least this many times their cross spread (variance of `q` about the line).
+///
+/// Refitting in the frame of the line just fitted moves a slope of `q` on `t` by about
+/// `var(q) / var(t)` times the turn before it: where the cloud is short against its
+/// width (a segment shorter than about `r`), each iteration would amplify the last one's
+/// rounding (measured: doubling per iteration on the Line3D++ test scene, 1e-8 r → 2e-5 r
+/// in 12 iterations) and the line would wander by the turn limit without settling.
+/// With the ratio at 4 or more a step passes on at most a quarter of an earlier
+/// difference; below it the line keeps its direction and only moves onto the ridge.
+pub const MIN_ELONGATION: f64 = 4.0;
+
+/// Weighted least squares of `q` on `t`; `None` without weight. No slope (`b = 0`)
+/// without axial spread, or with less than [`MIN_ELONGATION`] times the cross spread.
+fn weighted_line(pts: &[(f64, DVec2)], w: &[f64]) -> Option<LineFit> {
+    let sw: f64 = w.iter().sum();
+    if sw <= 0.0 {
+        return None;
+    }
+    let t0 = pts.iter().zip(w).map(|(p, w)| p.0 * w).sum::<f64>() / sw;
+    let a = pts.iter().zip(w).map(|(p, w)| p.1 * *w).sum::<DVec2>() / sw;
+    let mut stt = 0.0;
+    let mut sqq = 0.0;
+    let mut stq = DVec2::ZERO;
+    for (p, w) in pts.iter().zip(w) {
+        let dt = p.0 - t0;
+        stt += w * dt * dt;
+        sqq += w * (p.1 - a).length_squared();
+        stq += (p.1 - a) * (w * dt);
+    }
+    let b = if stt > 1e-300 && stt >= MIN_ELONGATION * sqq {
+        stq / stt
+    } else {
+        DVec2::ZERO
+    };
+    Some(LineFit { t0, a, b })
+}
+
+/// The ridge: first its position by mean shift of the cross-section offsets (a Gaussian
+/// kernel whose width shrinks to `bandwidth x r`), then its direction by a kernel-weighted
+/// fit of offset against axial position around that position. Returns the fit and the
+/// number of points under the final kernel (kernel weights summed, without the per-point
+/// weights `pw`, so that a weighting never turns "too few points" into enough). Each
+/// point counts with its weight `pw` (1, or its opacity) times the kernel's. Position
+/// first: a line fitted freely through two parallel ridges can settle crossing them.
+pub fn ridge(pts: &[(f64, DVec2)], pw: &[f64], r: f64, bandwidth: f64) -> Option<(LineFit, f64)> {
+    if pts.is_empty() {
+        return None;
+    }
+    let h_min = bandwidth * r;
+    // Starting at half the radius keeps the line on its own ridge when another lies
+    // within r; a ridge that is the only one in the cylinder is reached from there, as
+    // the kernel's mean is a mean of points.
+    let mut h = (0.5 * r).max(h_min);
+    let mut c = DVec2::ZERO;
+    for _ in 0..100 {
+        // The weights and both sums in one pass, each sum in point order from the start
+        // value of `Iterator::sum` (-0.0 for f64, zero for DVec2).
+        let mut sw = -0.0;
+        let mut sq = DVec2::ZERO;
+        for ((_, q), pw) in pts.iter().zip(pw) {
+            let wi = pw * (-(*q - c).length_squared() / (2.0 * h * h)).exp();
+            sw += wi;
+            sq += *q * wi;
+        }
+        if sw <= 0.0 {
+            return None;
+        }
+        let next = sq / sw;
+        let moved = (next - c).length();
+        c = next;
+        if h > h_min {
+            h = (h * 0.8).max(h_min);
+        } else if moved < 1e-5 * r {
+            break;
+        }
+    }
+    let mut fit = LineFit {
+        t0: 0.0,
+        a: c,
+        b: DVec2::ZERO,
+    };
+    let mut weight = 0.0;
+    let mut w = vec![0.0; pts.len()];
+    for ((wi, (_, q)), pw) in w.iter_mut().zip(pts).zip(pw) {
+        let k = (-(*q - c).length_squared() / (2.0 * h_min * h_min)).exp();
+        weight += k;
+        *wi = pw * k;
+    }
+    if let Some(f) = weighted_line(pts, &w) {
+        fit = f;
+    }
+    Some((fit, weight))
+}
+
+/// Median of `v` (sorts it).
+pub fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Weighted median of `(value, weight)` pairs: the smallest value whose cumulative weight
+/// reaches half the total; the plain [`median`] when all weights are equal.
+fn weighted_median(v: &mut [(f64, f64)]) -> f64 {
+    if v.iter().all(|x| x.1 == v[0].1) {
+        let mut vals: Vec<f64> = v.iter().map(|x| x.0).collect();
+        return median(&mut vals);
+    }
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let half = 0.5 * v.iter().map(|x| x.1).sum::<f64>();
+    let mut acc = 0.0;
+    for &(x, w) in v.iter() {
+        acc += w;
+        if acc >= half {
+            return x;
+        }
+    }
+    v[v.len() - 1].0
+}
+
+/// Two face families' mean normals (2D, unit) and their members.
+pub type Families = [(DVec2, Vec<usize>); 2];
+
+/// Two surface-normal families across the line: their mean normals (2D, unit) and members.
+/// Normals are sign-free, so they are clustered by doubled angle (2-means).
+/// Each normal counts with its weight `pw` in the families' means.
+pub fn families(normals: &[DVec2], pw: &[f64], min_points: usize) -> Option<Families> {
+    let dbl: Vec<DVec2> = normals
+        .iter()
+        .map(|n| DVec2::new(n.x * n.x - n.y * n.y, 2.0 * n.x * n.y))
+        .collect();
+    if dbl.len() < 2 * min_points {
+        return None;
+    }
+    // Seeds: the first normal and the one farthest from it in doubled angle.
+    let c0 = dbl[0];
+    let far = dbl
+        .iter()
+        .copied()
+        .max_by(|a, b| (*a - c0).length().total_cmp(&(*b - c0).length()))?;
+    let mut c = [c0, far];
+    let mut label = vec![0usize; dbl.len()];
+    for _ in 0..20 {
+        for (l, u) in label.iter_mut().zip(&dbl) {
+            *l = usize::from((*u - c[1]).length_squared() < (*u - c[0]).length_squared());
+        }
+        let mut s = [DVec2::ZERO; 2];
+        for ((l, u), w) in label.iter().zip(&dbl).zip(pw) {
+            s[*l] += *u * *w;
+        }
+        let next = [s[0].normalize_or_zero(), s[1].normalize_or_zero()];
+        if next == c {
+            break;
+        }
+        c = next;
+    }
+    let out: Families = [0, 1].map(|k| {
+        // Back from doubled angle to a normal direction.
+        let ang = 0.5 * c[k].y.atan2(c[k].x);
+        let members = (0..dbl.len()).filter(|&i| label[i] == k).collect();
+        (DVec2::new(ang.cos(), ang.sin()), members)
+    });
+    // 20° or more apart: cos(2 x 20°) in doubled angle.
+    let apart = c[0].dot(c[1]) < (40f64).to_radians().cos();
+    (apart && out.iter().all(|f| f.1.len() >= min_points)).then_some(out)
+}
+
+/// The corner of two face families in the points `sel` (indices into `pts`).
+fn corner(
+    pts: &[(f64, DVec2)],
+    pw: &[f64],
+    fam: &Families,
+    sel: impl Fn(f64) -> bool,
+    min_points: usize,
+) -> Option<DVec2> {
+    let mut c = [0.0; 2];
+    for (ck, (n, members)) in c.iter_mut().zip(fam) {
+        let n = *n;
+        let mut off: Vec<(f64, f64)> = members
+            .iter()
+            .filter(|&&i| sel(pts[i].0))
+            .map(|&i| (n.dot(pts[i].1), pw[i]))
+            .collect();
+        if off.len() < min_points {
+            return None;
+        }
+        *ck = weighted_median(&mut off);
+    }
+    let (n1, n2) = (fam[0].0, fam[1].0);
+    let det = n1.x * n2.y - n1.y * n2.x;
+    if det.abs() < 1e-9 {
+        return None;
+    }
+    Some(DVec2::new(
+        (c[0] * n2.y - c[1] * n1.y) / det,
+        (n1.x * c[1] - n2.x * c[0]) / det,
+    ))
+}
+
+/// The corner line of two face families, from the corners of the two halves (a single
+/// corner, no turn, when a half has too few points).
+fn two_planes(
+    pts: &[(f64, DVec2)],
+    pw: &[f64],
+    normals: &[DVec2],
+    keep: &[usize],
+    len: f64,
+    min_points: usize,
+) -> Option<LineFit> {
+    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
+    let fam = families(normals, &sub_w, min_points)?;
+    // Family members index `normals`, which are the points `keep`.
+    let sub: Vec<(f64, DVec2)> = keep.iter().map(|&i| pts[i]).collect();
+    let all = corner(&sub, &sub_w, &fam, |_| true, min_points)?;
+    let half = 0.5 * len;
+    match (
+        corner(&sub, &sub_w, &fam, |t| t < half, min_points),
+        corner(&sub, &sub_w, &fam, |t| t >= half, min_points),
+    ) {
+        (Some(c1), Some(c2)) => Some(LineFit {
+            t0: half,
+            a: 0.5 * (c1 + c2),
+            b: (c2 - c1) / half,
+        }),
+        _ => Some(LineFit {
+            t0: half,
+            a: all,
+            b: DVec2::ZERO,
+        }),
+    }
+}
+
+/// The members' axial positions and cross-section offsets in the frame `(e1, e2)`, and
+/// their weights (opacities with [`FitSpec::opacity_weight`], else 1).
+pub fn cross_section(
+    members: &[Member],
+    (e1, e2): (DVec3, DVec3),
+    points: &FitPoints<'_>,
+    opacity_weight: bool,
+) -> (Vec<(f64, DVec2)>, Vec<f64>) {
+    let pts = members
+        .iter()
+        .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
+        .collect();
+    let pw = if opacity_weight {
+        members.iter().map(|m| points.weight(m.id)).collect()
+    } else {
+        vec![1.0; members.len()]
+    };
+    (pts, pw)
+}
+
+/// One segment's next line from its members (those of `X(s, r)`, in working-set order),
+/// or `None` (stay).
+pub fn step(
+    s: &Segment,
+    members: &[Member],
+    points: &FitPoints<'_>,
+    r: f64,
+    spec: &FitSpec,
+) -> (Option<LineFit>, How) {
+    let d = s.dir();
+    let (e1, e2) = basis(d);
+    let (pts, pw) = cross_section(members, (e1, e2), points, spec.opacity_weight);
+    let min_points = spec.min_points as usize;
+    if let Some(ns) = points.normals {
+        // Normals across the line (a face through the edge): |n·d| < sin 30°; a Gaussian
+        // with no normal (zero) is left out.
+        let mut keep = Vec::new();
+        let mut n2 = Vec::new();
+        for (i, m) in members.iter().enumerate() {
+            let n = super::p64(ns[m.id as usize]);
+            let across = DVec2::new(n.dot(e1), n.dot(e2));
+            if across.length() > 0.866 {
+                keep.push(i);
+                n2.push(across.normalize());
+            }
+        }
+        if let Some(f) = two_planes(&pts, &pw, &n2, &keep, s.length(), min_points) {
+            if f.a.length() <= r {
+                return (Some(f), How::Corner);
+            }
+        }
+    }
+    match ridge(&pts, &pw, r, spec.bandwidth) {
+        Some((f, weight)) if weight >= min_points as f64 => (Some(f), How::Ridge),
+        _ => (None, How::Unclear),
+    }
+}
+
+/// Applies `f` to `s` with the per-step bounds; returns the new segment and how far it
+/// moved (largest endpoint move). Neither end of the result lies more than `max_move x r`
+/// (up to rounding) from its end of `origin`.
+pub fn apply(s: &Segment, f: &LineFit, origin: &Segment, r: f64, spec: &FitSpec) -> (Segment, f64) {
+    let d = s.dir();
+    let (e1, e2) = basis(d);
+    let lift = |v: DVec2| e1 * v.x + e2 * v.y;
+    let l = s.length();
+    // A turn moves each end by at most r/4 per step, and by at most max_turn_deg.
+    let max_slope = spec.max_turn_deg.to_radians().tan().min(0.5 * r / l);
+    let mut b = f.b;
+    if b.length() > max_slope {
+        b *= max_slope / b.length();
+    }
+    let mut a = f.a + b * (0.5 * l - f.t0); // offset at the midpoint
+    let step_max = 0.5 * r;
+    if a.length() > step_max {
+        a *= step_max / a.length();
+    }
+    let m1 = lift(a - b * (0.5 * l));
+    let m2 = lift(a + b * (0.5 * l));
+    let mut out = Segment::new(s.p1 + m1, s.p2 + m2);
+    // Stay within max_move x r of the start: scale the total move back.
+    let limit = spec.max_move * r;
+    let total = (out.p1 - origin.p1)
+        .length()
+        .max((out.p2 - origin.p2).length());
+    if total > limit {
+        let k = limit / total;
+        out = Segment::new(
+            origin.p1 + (out.p1 - origin.p1) * k,
+            origin.p2 + (out.p2 - origin.p2) * k,
+        );
+    }
+    let moved = (out.p1 - s.p1).length().max((out.p2 - s.p2).length());
+    (out, moved)
+}
+
+/// A segment keeps iterating while its step moved it by more than this many r.
+pub const SETTLED: f64 = 1e-3;
+
+/// Whether a step's line `f` for segment `s` (started at `origin`) moves it by within
+/// rounding (1e-5 r) of [`SETTLED`]: the one threshold the iteration takes from a step's
+/// answer, which an engine that fits to float precision leaves to the exact fit.
+pub fn near_settled(s: &Segment, f: &LineFit, origin: &Segment, r: f64, spec: &FitSpec) -> bool {
+    let (_, moved) = apply(s, f, origin, r, spec);
+    (moved - SETTLED * r).abs() <= 1e-5 * r
+}
+
+/// One segment's state through the iterations of the fit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Track {
+    /// Where the segment started.
+    pub origin: Segment,
+    /// Where it is now.
+    pub cur: Segment,
+    /// How its last move was decided.
+    pub how: How,
+    /// Steps taken.
+    pub steps: u32,
+}
+
+impl Track {
+    pub fn new(origin: Segment) -> Self {
+        Track {
+            origin,
+            cur: origin,
+            how: How::Unclear,
+            steps: 0,
+        }
+    }
+
+    /// Whether the segment takes a first step at all.
+    pub fn starts(&self) -> bool {
+        self.cur.is_valid()
+    }
+
+    /// Takes the step `answer` (from the members of `X(cur, r)`); returns whether the
+    /// segment is still moving (its step moved it by more than [`SETTLED`] r).
+    pub fn advance(&mut self, answer: (Option<LineFit>, How), r: f64, spec: &FitSpec) -> bool {
+        self.steps += 1;
+        let (f, h) = answer;
+        // A segment that has moved keeps the model of its last move: a later step that
+        // found too few points does not undo what placed it.
+        let has_moved = self.cur != self.origin;
+        match f.map(|f| apply(&self.cur, &f, &self.origin, r, spec)) {
+            Some((s, moved)) => {
+                if moved > 0.0 || !has_moved {
+                    self.how = h;
+                }
+                self.cur = s;
+                moved > SETTLED * r
+            }
+            None => {
+                if !has_moved {
+                    self.how = h;
+                }
+                false
+            }
+        }
+    }
+}
+
+impl FitResult {
+    /// The result of finished tracks.
+    pub fn of_tracks(tracks: &[Track]) -> FitResult {
+        FitResult {
+            segments: tracks.iter().map(|t| t.cur).collect(),
+            how: tracks.iter().map(|t| t.how).collect(),
+            iterations: tracks.iter().map(|t| t.steps).max().unwrap_or(0),
+            steps: tracks.iter().map(|t| t.steps).collect(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_doubled_angle_keeps_the_families_sign_free() {
+        // Normals of two perpendicular faces, half of them flipped.
+        let mut n = Vec::new();
+        for i in 0..20 {
+            let s = if i % 2 == 0 { 1.0 } else { -1.0 };
+            n.push(DVec2::new(s, 0.0));
+            n.push(DVec2::new(0.0, s));
+        }
+        let f = families(&n, &[1.0; 40], 5).unwrap();
+        assert_eq!(f[0].1.len(), 20);
+        assert_eq!(f[1].1.len(), 20);
+        assert!(f[0].0.dot(f[1].0).abs() < 1e-9);
+        // one family only: no corner
+        assert!(families(
+            &n.iter().step_by(2).copied().collect::<Vec<_>>(),
+            &[1.0; 20],
+            5
+        )
+        .is_none());
+    }
+}
