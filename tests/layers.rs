@@ -16,12 +16,7 @@ const UPPER: &[&str] = &["refine", "pipeline", "cmd"];
 /// Edges from a lower layer up that exist today and are being removed: `(layer, path)`,
 /// a path allowed to be named from that layer, itself and anything under it. Delete an
 /// entry when the edge is gone (the test then keeps it gone).
-const ALLOWED_UP: &[(&str, &str)] = &[
-    // The engine runs the edge fit's mathematics (`refine::fit`) and takes the fit's
-    // `Params` in `FitAsk`; the fit is moving below the engine.
-    ("engine", "refine::fit"),
-    ("engine", "refine::Params"),
-];
+const ALLOWED_UP: &[(&str, &str)] = &[];
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
