@@ -925,7 +925,7 @@ mod tests {
 
     #[test]
     fn edges_order_by_weight_then_indices() {
-        let mut e = vec![
+        let mut e = [
             e(3, 4, 0.5),
             e(1, 9, 0.5),
             e(0, 2, 0.75),
