@@ -404,29 +404,6 @@ impl Drop for SceneLock {
     }
 }
 
-/// An exclusive `flock` on `file` without waiting: `Ok(false)` when another process holds
-/// it. (Elsewhere than Unix, always `Ok(true)`: no lock.)
-fn try_lock(file: &std::fs::File) -> std::io::Result<bool> {
-    #[cfg(unix)]
-    {
-        use std::os::unix::io::AsRawFd;
-        // SAFETY: flock on a file descriptor this function borrows for the call.
-        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
-            return Ok(true);
-        }
-        let e = std::io::Error::last_os_error();
-        if e.kind() == std::io::ErrorKind::WouldBlock {
-            return Ok(false);
-        }
-        Err(e)
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = file;
-        Ok(true)
-    }
-}
-
 /// Takes the lock of `dir` (created if missing), or `None` when another run holds it.
 fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
     let path = dir.join(LOCK_NAME);
@@ -437,7 +414,7 @@ fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
             .write(true)
             .open(&path)
             .map_err(|e| io::Error::io(&path, "create", e))?;
-        match try_lock(&file) {
+        match io::try_lock(&file) {
             Ok(true) => {}
             Ok(false) => return Ok(None),
             Err(e) => return Err(io::Error::io(&path, "lock", e).into()),
@@ -930,8 +907,17 @@ impl Summary {
 /// (Re)writes `summary.csv` and `summary.md` in `outdir` from every finished scene.
 pub fn write_summary(m: &Manifest, outdir: &Path) -> Result<Summary, RunError> {
     let s = summarize(m, outdir);
-    io::write_bytes_atomic(&outdir.join("summary.csv"), s.to_csv().as_bytes())?;
-    io::write_bytes_atomic(&outdir.join("summary.md"), s.to_markdown().as_bytes())?;
+    // One set: a kill never leaves a new table beside an old one.
+    let (csv, md) = (outdir.join("summary.csv"), outdir.join("summary.md"));
+    let mut set = io::OutputSet::new();
+    set.output("summary.csv", &csv, &["csv"])
+        .output("summary.md", &md, &["md"]);
+    set.check()?;
+    set.write(&csv, |p| io::write_bytes_atomic(p, s.to_csv().as_bytes()))?;
+    set.write(&md, |p| {
+        io::write_bytes_atomic(p, s.to_markdown().as_bytes())
+    })?;
+    set.commit()?;
     Ok(s)
 }
 
