@@ -449,7 +449,10 @@ fn clean_litter(outdir: &Path, name: &str, dir: &Path, format: &str) {
             && rest.as_bytes()[..6].iter().all(u8::is_ascii_alphanumeric)
             && [".tmp", ".json", ".txt", &format!(".{format}")].contains(&tail)
     };
-    if let Ok(rd) = std::fs::read_dir(dir) {
+    // A killed run's committed output set is finished first: its temporary files are the
+    // set's new outputs. If it cannot be, they stay.
+    let finished = io::finish_output_sets(dir).is_ok();
+    if let (true, Ok(rd)) = (finished, std::fs::read_dir(dir)) {
         for d in rd.flatten() {
             let f = d.file_name();
             if ours(&f.to_string_lossy()) && d.file_type().is_ok_and(|t| t.is_file()) {
@@ -924,6 +927,38 @@ pub fn write_summary(m: &Manifest, outdir: &Path) -> Result<Summary, RunError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scene whose run was killed between the renames of its outputs: the next run's
+    /// cleaning finishes the set instead of removing its new files.
+    #[test]
+    fn a_scene_killed_between_its_renames_is_finished_not_cleaned_away() {
+        let out = tempfile::tempdir().unwrap();
+        let dir = out.path().join("s1");
+        std::fs::create_dir(&dir).unwrap();
+        let [refined, report, _] = owned_files(&dir, "obj");
+        let mut set = io::OutputSet::new();
+        for f in [&refined, &report] {
+            std::fs::write(f, "old").unwrap();
+            set.output("-o", f, &[]);
+        }
+        set.check().unwrap();
+        for f in [&refined, &report] {
+            set.write(f, |p| io::write_bytes_atomic(p, b"new")).unwrap();
+        }
+        set.commit_stopping(io::Stop::AfterRenames(1)).unwrap_err();
+        assert_eq!(std::fs::read_to_string(&report).unwrap(), "old");
+        clean_litter(out.path(), "s1", &dir, "obj");
+        for f in [&refined, &report] {
+            assert_eq!(
+                std::fs::read_to_string(f).unwrap(),
+                "new",
+                "{}",
+                f.display()
+            );
+        }
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().collect();
+        assert_eq!(left.len(), 2, "{left:?}");
+    }
 
     #[test]
     fn the_papers_mean_leaves_out_an_object_whose_lines_give_no_sample() {

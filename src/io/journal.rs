@@ -243,16 +243,17 @@ pub(crate) fn commit_with(staged: Vec<Staged>, stop: Stop) -> Result<(), Error> 
         }
         drop(s.lock);
     }
-    drop(journals);
+    // Removed while still locked, so no other run takes them for a killed run's.
     for j in &plan.journals {
         let _ = std::fs::remove_file(j);
     }
+    drop(journals);
     Ok(())
 }
 
 /// Finishes the output sets that killed runs committed in `dir` (see the module comment)
 /// and returns how many.
-pub(crate) fn recover(dir: &Path) -> Result<usize, Error> {
+pub fn recover(dir: &Path) -> Result<usize, Error> {
     let Ok(rd) = std::fs::read_dir(dir) else {
         return Ok(0);
     };
@@ -285,9 +286,13 @@ pub(crate) fn recover(dir: &Path) -> Result<usize, Error> {
         let text = std::fs::read_to_string(&j).map_err(|_| bad())?;
         let plan = Plan::parse(&text).ok_or_else(bad)?;
         for (temp, target) in &plan.renames {
-            if std::fs::symlink_metadata(temp).is_ok() {
-                std::fs::rename(temp, target)
-                    .map_err(|e| Error::io(target, "finish a killed run's output set at", e))?;
+            // A temporary file already gone was renamed (by the run, or by another run
+            // finishing the set from its journal in another folder).
+            match std::fs::rename(temp, target) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(Error::io(target, "finish a killed run's output set at", e))
+                }
+                _ => {}
             }
         }
         for other in &plan.journals {

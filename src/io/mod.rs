@@ -30,6 +30,9 @@ pub use gaussians::{
 };
 pub use info::{info, info_with, FileInfo, FileKind};
 pub use input::STREAM_LIMIT;
+pub use journal::recover as finish_output_sets;
+#[cfg(test)]
+pub(crate) use journal::Stop;
 pub use litter::{
     clean_stale_runtime_dirs, clean_stale_temps, try_lock, RUNTIME_PREFIX, STALE_AGE,
 };
