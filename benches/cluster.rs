@@ -70,8 +70,14 @@ fn dense() {
         let clusters = cluster(&lines, &s);
         let secs = t.elapsed().as_secs_f64();
         let peak = linegs_gpu::mem::peak_rss_bytes().unwrap_or(0);
+        // FNV-1a over every member in order: equal digests, equal clusters.
+        let digest = clusters.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, c| {
+            c.iter()
+                .chain([&usize::MAX])
+                .fold(h, |h, &m| (h ^ m as u64).wrapping_mul(0x100_0000_01b3))
+        });
         println!(
-            "cluster/dense/{n}: {secs:.2} s, {} clusters, peak RSS {:.0} MB ({:.0} MB above the input)",
+            "cluster/dense/{n}: {secs:.2} s, {} clusters (digest {digest:016x}), peak RSS {:.0} MB ({:.0} MB above the input)",
             clusters.len(),
             peak as f64 / 1e6,
             peak.saturating_sub(base) as f64 / 1e6

@@ -95,6 +95,8 @@ run() {
     echo "reference,linegs-demo/gaussians.ply,linegs-demo/input.txt,,auto,"
   } >scenes.csv
   step batch "$bin" batch scenes.csv -o results --backend cpu
+  # The trained pairs (3DGS models a trainer produced, Line3D++ on their renders).
+  step batch-real "$bin" batch "$repo/tests/data/real_pairs/manifest.csv" -o results-real --backend cpu
   # The GPU engine (any adapter, lavapipe included); without one both binaries fail alike.
   step refine-gpu "$bin" refine --backend gpu -g linegs-demo/gaussians.ply -l linegs-demo/input.txt \
     -o gpu.obj --report gpu.json

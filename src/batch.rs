@@ -407,29 +407,6 @@ impl Drop for SceneLock {
     }
 }
 
-/// An exclusive `flock` on `file` without waiting: `Ok(false)` when another process holds
-/// it. (Elsewhere than Unix, always `Ok(true)`: no lock.)
-fn try_lock(file: &std::fs::File) -> std::io::Result<bool> {
-    #[cfg(unix)]
-    {
-        use std::os::unix::io::AsRawFd;
-        // SAFETY: flock on a file descriptor this function borrows for the call.
-        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
-            return Ok(true);
-        }
-        let e = std::io::Error::last_os_error();
-        if e.kind() == std::io::ErrorKind::WouldBlock {
-            return Ok(false);
-        }
-        Err(e)
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = file;
-        Ok(true)
-    }
-}
-
 /// Takes the lock of `dir` (created if missing), or `None` when another run holds it.
 fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
     let path = dir.join(LOCK_NAME);
@@ -440,7 +417,7 @@ fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
             .write(true)
             .open(&path)
             .map_err(|e| io::Error::io(&path, "create", e))?;
-        match try_lock(&file) {
+        match io::try_lock(&file) {
             Ok(true) => {}
             Ok(false) => return Ok(None),
             Err(e) => return Err(io::Error::io(&path, "lock", e).into()),
@@ -475,7 +452,10 @@ fn clean_litter(outdir: &Path, name: &str, dir: &Path, format: &str) {
             && rest.as_bytes()[..6].iter().all(u8::is_ascii_alphanumeric)
             && [".tmp", ".json", ".txt", &format!(".{format}")].contains(&tail)
     };
-    if let Ok(rd) = std::fs::read_dir(dir) {
+    // A killed run's committed output set is finished first: its temporary files are the
+    // set's new outputs. If it cannot be, they stay.
+    let finished = io::finish_output_sets(dir).is_ok();
+    if let (true, Ok(rd)) = (finished, std::fs::read_dir(dir)) {
         for d in rd.flatten() {
             let f = d.file_name();
             if ours(&f.to_string_lossy()) && d.file_type().is_ok_and(|t| t.is_file()) {
@@ -933,14 +913,55 @@ impl Summary {
 /// (Re)writes `summary.csv` and `summary.md` in `outdir` from every finished scene.
 pub fn write_summary(m: &Manifest, outdir: &Path) -> Result<Summary, RunError> {
     let s = summarize(m, outdir);
-    io::write_bytes_atomic(&outdir.join("summary.csv"), s.to_csv().as_bytes())?;
-    io::write_bytes_atomic(&outdir.join("summary.md"), s.to_markdown().as_bytes())?;
+    // One set: a kill never leaves a new table beside an old one.
+    let (csv, md) = (outdir.join("summary.csv"), outdir.join("summary.md"));
+    let mut set = io::OutputSet::new();
+    set.output("summary.csv", &csv, &["csv"])
+        .output("summary.md", &md, &["md"]);
+    set.check()?;
+    set.write(&csv, |p| io::write_bytes_atomic(p, s.to_csv().as_bytes()))?;
+    set.write(&md, |p| {
+        io::write_bytes_atomic(p, s.to_markdown().as_bytes())
+    })?;
+    set.commit()?;
     Ok(s)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scene whose run was killed between the renames of its outputs: the next run's
+    /// cleaning finishes the set instead of removing its new files.
+    #[test]
+    fn a_scene_killed_between_its_renames_is_finished_not_cleaned_away() {
+        let out = tempfile::tempdir().unwrap();
+        let dir = out.path().join("s1");
+        std::fs::create_dir(&dir).unwrap();
+        let [refined, report, _] = owned_files(&dir, "obj");
+        let mut set = io::OutputSet::new();
+        for f in [&refined, &report] {
+            std::fs::write(f, "old").unwrap();
+            set.output("-o", f, &[]);
+        }
+        set.check().unwrap();
+        for f in [&refined, &report] {
+            set.write(f, |p| io::write_bytes_atomic(p, b"new")).unwrap();
+        }
+        set.commit_stopping(io::Stop::AfterRenames(1)).unwrap_err();
+        assert_eq!(std::fs::read_to_string(&report).unwrap(), "old");
+        clean_litter(out.path(), "s1", &dir, "obj");
+        for f in [&refined, &report] {
+            assert_eq!(
+                std::fs::read_to_string(f).unwrap(),
+                "new",
+                "{}",
+                f.display()
+            );
+        }
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().collect();
+        assert_eq!(left.len(), 2, "{left:?}");
+    }
 
     #[test]
     fn the_papers_mean_leaves_out_an_object_whose_lines_give_no_sample() {

@@ -61,17 +61,24 @@ enum Command {
 /// directory spec requires, and removed at exit): the probe then finds no display and
 /// says nothing, and no real error is hidden. Done at the start of `main`, before any
 /// thread exists, since changing the environment races with threads that read it.
-fn private_runtime_dir() -> Option<tempfile::TempDir> {
+/// The folder is locked while the process lives, and the folders of killed runs are
+/// removed (`io::clean_stale_runtime_dirs`).
+fn private_runtime_dir() -> Option<(tempfile::TempDir, Option<std::fs::File>)> {
     let current = std::env::var_os("XDG_RUNTIME_DIR");
     if current.is_some_and(|d| std::path::Path::new(&d).is_dir()) {
         return None;
     }
+    linegs_gpu::io::clean_stale_runtime_dirs();
     let dir = tempfile::Builder::new()
-        .prefix("linegs-gpu-runtime-")
+        .prefix(linegs_gpu::io::RUNTIME_PREFIX)
         .tempdir()
         .ok()?;
+    let lock = std::fs::File::open(dir.path()).ok();
+    if let Some(f) = &lock {
+        let _ = linegs_gpu::io::try_lock(f);
+    }
     std::env::set_var("XDG_RUNTIME_DIR", dir.path());
-    Some(dir)
+    Some((dir, lock))
 }
 
 /// The exit of a process whose standard output or error could not be written (the

@@ -784,6 +784,34 @@ fn random_mutants_of_every_format_are_read_or_refused() {
     assert!(runs >= 2000, "{runs}");
 }
 
+/// The SPZ seeds are written by fuzz/make_seeds.py from the format's description, not by
+/// the project's encoder: every version reads back to the centers (and opacities) it wrote.
+#[test]
+fn hand_made_spz_of_every_version_reads_back_its_centers() {
+    let seeds = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/models");
+    let want = [
+        [0.0f32, 0.0, 0.0],
+        [1.0, 0.5, -0.25],
+        [-2.0, 3.0, 1.5],
+        [0.125, -0.75, 4.0],
+    ];
+    let mut versions = Vec::new();
+    for v in ["v1", "v2", "v3", "v3_sh3", "v4", "v4_sh2"] {
+        let data = std::fs::read(seeds.join(format!("gen_spz_{v}.spz"))).unwrap();
+        let c = parse_gaussian_model(Path::new("m.spz"), &data[1..], &PlyOptions::default())
+            .unwrap_or_else(|e| panic!("{v}: {e}"));
+        assert_eq!(c.centers, want, "{v}");
+        versions.push(c.format.split(',').next().unwrap().to_string());
+    }
+    for v in 1..=4 {
+        let name = format!("Niantic SPZ version {v} (");
+        assert!(
+            versions.iter().any(|f| f.starts_with(&name)),
+            "{versions:?}"
+        );
+    }
+}
+
 // ------------------------------------------------------------------ hostile geometry
 
 #[test]
@@ -910,4 +938,86 @@ fn a_result_no_reader_accepts_is_refused_with_the_reason() {
         "{e}"
     );
     assert!(!out.exists());
+}
+
+/// Sets a file's or folder's time back past the age at which litter is stale.
+fn make_old(p: &Path) {
+    let old = std::time::SystemTime::now() - linegs_gpu::io::STALE_AGE * 2;
+    std::fs::File::open(p).unwrap().set_modified(old).unwrap();
+}
+
+/// What killed runs left beside the outputs (temporary files) and in the system's
+/// temporary folder (private runtime folders): the next run removes what is old, unlocked
+/// and named as its own kind, and nothing else.
+#[cfg(unix)]
+#[test]
+fn the_next_run_removes_the_litter_of_killed_runs_and_nothing_else() {
+    let d = tempfile::tempdir().unwrap();
+    let (g, l) = scene(d.path());
+    let out = d.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let names = [
+        ".linegs-Kill3d.obj",    // a killed run's, old: removed
+        ".linegs-Kill3e.tmp",    // a killed writer's, old: removed
+        ".linegs-Fresh1.json",   // young: perhaps a live run's, kept
+        ".linegs-Held12.obj",    // old but locked by a live process, kept
+        ".linegs-notes.txt.bak", // not a temporary name, kept
+        "notes.txt",
+    ];
+    for n in names {
+        std::fs::write(out.join(n), b"x").unwrap();
+        if n != ".linegs-Fresh1.json" {
+            make_old(&out.join(n));
+        }
+    }
+    let held = std::fs::File::open(out.join(".linegs-Held12.obj")).unwrap();
+    assert!(linegs_gpu::io::try_lock(&held).unwrap());
+    let o = refine(&g, &l, &[&out.join("r.obj")], &["-o"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut left: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    left.sort();
+    assert_eq!(
+        left,
+        [
+            ".linegs-Fresh1.json",
+            ".linegs-Held12.obj",
+            ".linegs-notes.txt.bak",
+            "notes.txt",
+            "r.obj"
+        ]
+    );
+
+    // Runtime folders, made when XDG_RUNTIME_DIR is unset.
+    let tmp = d.path().join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
+    for n in ["Old123", "New123", "Held12"] {
+        let p = tmp.join(format!("linegs-gpu-runtime-{n}"));
+        std::fs::create_dir(&p).unwrap();
+        std::fs::write(p.join("x"), b"").unwrap();
+        if n != "New123" {
+            make_old(&p);
+        }
+    }
+    let held = std::fs::File::open(tmp.join("linegs-gpu-runtime-Held12")).unwrap();
+    assert!(linegs_gpu::io::try_lock(&held).unwrap());
+    let o = common::linegs()
+        .args(["info", &g.display().to_string()])
+        .env_remove("XDG_RUNTIME_DIR")
+        .env("TMPDIR", &tmp)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut left: Vec<String> = std::fs::read_dir(&tmp)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    left.sort();
+    // The run's own folder went at its exit.
+    assert_eq!(
+        left,
+        ["linegs-gpu-runtime-Held12", "linegs-gpu-runtime-New123"]
+    );
 }

@@ -8,8 +8,10 @@ mod error;
 mod gaussians;
 mod info;
 mod input;
+mod journal;
 mod limap;
 mod lines;
+mod litter;
 mod normals;
 mod npy;
 pub mod obj;
@@ -29,6 +31,13 @@ pub use gaussians::{
 };
 pub use info::{info, info_with, FileInfo, FileKind};
 pub use input::STREAM_LIMIT;
+pub use journal::recover as finish_output_sets;
+#[cfg(test)]
+pub(crate) use journal::Stop;
+pub use litter::{
+    clean_stale_runtime_dirs, clean_stale_temps, try_lock, RUNTIME_PREFIX, STALE_AGE,
+};
+
 pub(crate) use input::{read_input, read_small};
 pub use lines::{
     parse_lines, parse_lines_with, read_lines, read_lines_with, LineFile, LineFormat, LineOptions,

@@ -1,7 +1,10 @@
 //! All the outputs of one run as one transaction: every path is checked before any work
 //! (extension, folder, not an input, not another output), each file is written under a
 //! temporary name beside its target, and only when all of them are written are they
-//! renamed into place. A run that fails at any point leaves every earlier file as it was.
+//! renamed into place, as one set ([`super::journal`]). A run that fails at any point
+//! leaves every earlier file as it was. Checking the outputs also finishes the sets that
+//! killed runs committed in the folders involved and removes their stale temporary files
+//! ([`super::litter`]).
 //!
 //! ```no_run
 //! # use linegs_gpu::io::{self, OutputSet, LINE_OUTPUTS};
@@ -22,16 +25,16 @@
 
 use std::path::{Path, PathBuf};
 
-use tempfile::TempPath;
-
 use super::error::Error;
+use super::journal::{self, Staged};
+use super::litter;
 
 /// The outputs of one run; see the module comment.
 #[derive(Default)]
 pub struct OutputSet {
     inputs: Vec<PathBuf>,
     outputs: Vec<(&'static str, PathBuf, Vec<String>)>,
-    staged: Vec<(PathBuf, TempPath)>,
+    staged: Vec<Staged>,
 }
 
 /// What makes two paths the same file: the canonical path (symlinks, `..`) and, for a
@@ -120,6 +123,25 @@ impl OutputSet {
     /// that it is not a folder or a device, and that it is neither an input nor another
     /// output. Call it before any work.
     pub fn check(&self) -> Result<(), Error> {
+        // What killed runs left: their committed sets finished, then their litter removed.
+        let mut folders: Vec<PathBuf> = Vec::new();
+        for p in self.outputs.iter().map(|(_, p, _)| p) {
+            let dir = std::fs::canonicalize(folder(p)).unwrap_or_else(|_| folder(p).into());
+            if !folders.contains(&dir) {
+                journal::recover(&dir)?;
+                litter::clean_stale_temps(&dir);
+                folders.push(dir);
+            }
+        }
+        for p in &self.inputs {
+            if let Ok(dir) = std::fs::canonicalize(folder(p)) {
+                if !folders.contains(&dir) {
+                    // An input's folder may be read-only: what cannot be finished stays.
+                    let _ = journal::recover(&dir);
+                    folders.push(dir);
+                }
+            }
+        }
         let inputs: Vec<(PathBuf, FileId)> = self
             .inputs
             .iter()
@@ -242,20 +264,30 @@ impl OutputSet {
             .map_err(|e| Error::io(path, "create a temporary file beside", e))?
             .into_temp_path();
         write(&staged).map_err(|e| e.with_path(path))?;
-        self.staged.push((path.to_path_buf(), staged));
+        // Locked until the commit, so no other run takes it for a killed run's litter.
+        let lock = std::fs::File::open(&staged).ok();
+        if let Some(f) = &lock {
+            let _ = litter::try_lock(f);
+        }
+        self.staged.push(Staged {
+            target: path.to_path_buf(),
+            temp: staged,
+            lock,
+        });
         Ok(())
     }
 
-    /// Renames every written output into place (each a rename within its own folder).
-    /// Dropping the set without a commit removes the temporary files and leaves the
-    /// targets as they were.
+    /// Renames every written output into place, as one set (each a rename within its own
+    /// folder; see [`super::journal`]). Dropping the set without a commit removes the
+    /// temporary files and leaves the targets as they were.
     pub fn commit(mut self) -> Result<(), Error> {
-        for (path, staged) in self.staged.drain(..) {
-            staged
-                .persist(&path)
-                .map_err(|e| Error::io(&path, "rename the finished file onto", e.error))?;
-        }
-        Ok(())
+        journal::commit(std::mem::take(&mut self.staged))
+    }
+
+    /// [`OutputSet::commit`] stopped as a kill would stop it.
+    #[cfg(test)]
+    pub(crate) fn commit_stopping(mut self, stop: journal::Stop) -> Result<(), Error> {
+        journal::commit_with(std::mem::take(&mut self.staged), stop)
     }
 }
 
@@ -270,6 +302,133 @@ mod tests {
             .collect();
         v.sort();
         v
+    }
+
+    /// Three outputs in two folders, written as `new` over files holding `old`, staged but
+    /// not committed.
+    fn staged_set(dir: &Path) -> (OutputSet, [PathBuf; 3]) {
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        let files = [
+            dir.join("x.obj"),
+            dir.join("x.ply"),
+            dir.join("sub").join("x.json"),
+        ];
+        let mut outs = OutputSet::new();
+        for f in &files {
+            std::fs::write(f, "old").unwrap();
+            outs.output("-o", f, &[]);
+        }
+        outs.check().unwrap();
+        for f in &files {
+            outs.write(f, |p| super::super::write_bytes_atomic(p, b"new"))
+                .unwrap();
+        }
+        (outs, files)
+    }
+
+    fn contents(files: &[PathBuf]) -> Vec<String> {
+        files
+            .iter()
+            .map(|f| std::fs::read_to_string(f).unwrap())
+            .collect()
+    }
+
+    fn litter(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = names(dir)
+            .into_iter()
+            .chain(names(&dir.join("sub")))
+            .filter(|n| n.starts_with(".linegs-"))
+            .collect();
+        v.sort();
+        v
+    }
+
+    /// A run that only writes in `folder` (a new file there).
+    fn next_run(folder: &Path) -> Result<(), Error> {
+        let mut outs = OutputSet::new();
+        outs.output("-o", &folder.join("other.txt"), &["txt"]);
+        outs.check()
+    }
+
+    #[test]
+    fn a_kill_between_the_renames_leaves_a_set_the_next_run_finishes() {
+        for done in 0..3 {
+            for next_in in ["", "sub"] {
+                let d = tempfile::tempdir().unwrap();
+                let (outs, files) = staged_set(d.path());
+                outs.commit_stopping(journal::Stop::AfterRenames(done))
+                    .unwrap_err();
+                // Mixed on disk: the first `done` are new; a journal in each folder.
+                let mut want = vec!["old"; 3];
+                want[..done].fill("new");
+                assert_eq!(contents(&files), want);
+                let journals = litter(d.path())
+                    .into_iter()
+                    .filter(|n| n.ends_with(".commit"))
+                    .count();
+                assert_eq!(journals, 2);
+                // The next run in either folder finishes the whole set.
+                next_run(&d.path().join(next_in)).unwrap();
+                assert_eq!(
+                    contents(&files),
+                    ["new"; 3],
+                    "done {done}, next in {next_in:?}"
+                );
+                assert!(litter(d.path()).is_empty(), "{:?}", litter(d.path()));
+            }
+        }
+    }
+
+    #[test]
+    fn a_journal_a_live_run_holds_is_left_to_it() {
+        let d = tempfile::tempdir().unwrap();
+        let (outs, files) = staged_set(d.path());
+        outs.commit_stopping(journal::Stop::AfterRenames(1))
+            .unwrap_err();
+        let j = names(d.path())
+            .into_iter()
+            .find(|n| n.ends_with(".commit"))
+            .unwrap();
+        let held = std::fs::File::open(d.path().join(j)).unwrap();
+        assert!(super::super::litter::try_lock(&held).unwrap());
+        next_run(d.path()).unwrap();
+        assert_eq!(contents(&files), ["new", "old", "old"]);
+        drop(held);
+        next_run(d.path()).unwrap();
+        assert_eq!(contents(&files), ["new"; 3]);
+    }
+
+    #[test]
+    fn a_kill_before_the_commit_point_leaves_the_old_set_and_litter_a_later_run_removes() {
+        let d = tempfile::tempdir().unwrap();
+        let (outs, files) = staged_set(d.path());
+        outs.commit_stopping(journal::Stop::BeforeJournal)
+            .unwrap_err();
+        assert_eq!(contents(&files), ["old"; 3]);
+        let left = litter(d.path());
+        assert_eq!(left.len(), 3, "{left:?}");
+        // Too fresh to be sure no live run owns them.
+        next_run(d.path()).unwrap();
+        next_run(&d.path().join("sub")).unwrap();
+        assert_eq!(litter(d.path()), left);
+        let old = std::time::SystemTime::now() - super::super::STALE_AGE * 2;
+        for n in &left {
+            let p = [d.path().to_path_buf(), d.path().join("sub")]
+                .into_iter()
+                .map(|f| f.join(n))
+                .find(|p| p.exists())
+                .unwrap();
+            std::fs::File::options()
+                .write(true)
+                .open(p)
+                .unwrap()
+                .set_modified(old)
+                .unwrap();
+        }
+        next_run(d.path()).unwrap();
+        next_run(&d.path().join("sub")).unwrap();
+        assert!(litter(d.path()).is_empty(), "{:?}", litter(d.path()));
+        assert_eq!(contents(&files), ["old"; 3]);
     }
 
     #[test]

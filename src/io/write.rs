@@ -34,6 +34,8 @@ pub(crate) fn write_atomic(
     let tmp = builder
         .tempfile_in(parent)
         .map_err(|e| Error::io(path, "create a temporary file beside", e))?;
+    // Held while it exists, so no other run takes it for a killed run's litter.
+    let _ = super::litter::try_lock(tmp.as_file());
     {
         let mut w = BufWriter::with_capacity(1 << 20, tmp.as_file());
         body(&mut w).map_err(|e| Error::io(path, "write", e))?;

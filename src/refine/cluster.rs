@@ -14,12 +14,39 @@ use crate::refine::Settings;
 use glam::DVec3;
 use rayon::prelude::*;
 
-/// A similarity edge between segments `i < j` of different input lines.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Edge {
-    pub i: usize,
-    pub j: usize,
-    pub w: f64,
+/// A similarity edge between segments `i < j` of different input lines, with its weight
+/// `w >= 0`, packed in 16 bytes whose order is the order step 7 takes edges in: `w`
+/// ascending (a non-negative `f64` orders as its bits), then `i`, then `j`. Dense inputs
+/// keep about a hundred edges per segment, so the size is most of the step's memory.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Edge(u128);
+
+impl Edge {
+    /// Indices below 2^32 (a line set of more segments would not fit in memory).
+    pub fn new(i: usize, j: usize, w: f64) -> Edge {
+        debug_assert!(i < j && w >= 0.0, "edge ({i}, {j}, {w})");
+        let index = |k: usize| u32::try_from(k).expect("segment index below 2^32") as u128;
+        // `+ 0.0` turns a -0.0 into +0.0, whose bits order below every positive weight.
+        Edge((((w + 0.0).to_bits() as u128) << 64) | (index(i) << 32) | index(j))
+    }
+
+    pub fn i(self) -> usize {
+        (self.0 >> 32) as u32 as usize
+    }
+
+    pub fn j(self) -> usize {
+        self.0 as u32 as usize
+    }
+
+    pub fn w(self) -> f64 {
+        f64::from_bits((self.0 >> 64) as u64)
+    }
+}
+
+impl std::fmt::Debug for Edge {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Edge({}, {}, {})", self.i(), self.j(), self.w())
+    }
 }
 
 /// Similarity `w` of docs/method.md#step-7-cluster. The longer segment is `a` when the
@@ -120,7 +147,7 @@ pub fn edges(lines: &LineSet, s: &Settings) -> Vec<Edge> {
             p.cluster_min_cos,
         ),
     };
-    e.par_sort_unstable_by(|a, b| a.w.total_cmp(&b.w).then((a.i, a.j).cmp(&(b.i, b.j))));
+    e.par_sort_unstable();
     e
 }
 
@@ -135,7 +162,7 @@ fn edges_all_pairs(lines: &LineSet, r_c: f64, fix: bool, min_w: f64, min_cos: f6
                     return None;
                 }
                 let w = similarity(&segs[i], &segs[j], r_c, fix, min_cos);
-                (w >= min_w).then_some(Edge { i, j, w })
+                (w >= min_w).then(|| Edge::new(i, j, w))
             })
         })
         .collect()
@@ -277,6 +304,16 @@ fn clip(a: DVec3, b: DVec3, lo: DVec3, hi: DVec3) -> Option<(DVec3, DVec3)> {
     (t0 <= t1).then(|| (a + d * t0, a + d * t1))
 }
 
+/// What the candidate loop reads of a segment, in one place (one cache line or two).
+struct Packed {
+    seg: Segment,
+    dir: DVec3,
+    len: f64,
+    group: u32,
+    /// Index in the line set.
+    orig: u32,
+}
+
 /// Candidate pairs from a spatial hash, then the exact test.
 ///
 /// Why it finds every edge: let `G` be the longer of an edge (the one `similarity` calls
@@ -290,6 +327,11 @@ fn clip(a: DVec3, b: DVec3, lo: DVec3, hi: DVec3) -> Option<(DVec3, DVec3)> {
 /// seen a few times, not tens) and queried with its extended capsule; a pair is tested
 /// from its longer member only, so every edge is found exactly once. Each keeps its
 /// [`MAX_NEIGHBOURS`] most similar edges (`max_neighbours`).
+///
+/// What keeps it fast on dense inputs: the segments are renumbered in grid order, so the
+/// candidates of neighbouring segments are neighbours in memory; each cell lists its
+/// segments by rank (length, then index, so that a pair's longer member has the higher
+/// rank) and a query stops reading a cell at its own rank; the edges take 16 bytes.
 fn edges_hashed(
     lines: &LineSet,
     r_c: f64,
@@ -319,12 +361,50 @@ fn edges_hashed(
     let (lo, hi) = (lo - margin, hi + margin);
     let grid = CellGrid::new(lo, hi, h);
 
-    // The cells each segment passes through, as a counting-sorted table: cell c holds
-    // members[start[c]..start[c+1]].
-    let cells_of: Vec<Vec<u32>> = (0..n)
+    // Segments in grid order (the cell of the midpoint, then the index): `pk[k]`.
+    let mut order: Vec<(u32, u32)> = (0..n)
         .into_par_iter()
-        .map_init(Vec::new, |cells, i| {
-            grid.cells_on(segs[i].p1, segs[i].p2, 8, cells);
+        .map(|i| {
+            let m = (segs[i].p1 + segs[i].p2) * 0.5;
+            let c = ((m - grid.origin) / grid.h).floor().as_i64vec3();
+            let c = [c.x, c.y, c.z].map(|v| v.max(0));
+            let c = [0, 1, 2].map(|k| c[k].min(grid.dims[k] - 1));
+            (grid.key(c), i as u32)
+        })
+        .collect();
+    order.par_sort_unstable();
+    let pk: Vec<Packed> = order
+        .par_iter()
+        .map(|&(_, i)| {
+            let seg = segs[i as usize];
+            Packed {
+                seg,
+                dir: seg.dir(),
+                len: seg.length(),
+                group: lines.group(i as usize),
+                orig: i,
+            }
+        })
+        .collect();
+    drop(order);
+    // rank[k]: position by length, then by index downwards. The longer member of a pair
+    // (`similarity` calls the lower index long on equal lengths) has the higher rank.
+    let mut by_rank: Vec<u32> = (0..n as u32).collect();
+    by_rank.par_sort_unstable_by(|&a, &b| {
+        let (a, b) = (&pk[a as usize], &pk[b as usize]);
+        a.len.total_cmp(&b.len).then(b.orig.cmp(&a.orig))
+    });
+    let mut rank = vec![0u32; n];
+    for (r, &k) in by_rank.iter().enumerate() {
+        rank[k as usize] = r as u32;
+    }
+
+    // The cells each segment passes through, as a counting-sorted table: cell c holds
+    // members[start[c]..start[c+1]], each `rank << 32 | k`, by rank.
+    let cells_of: Vec<Vec<u32>> = pk
+        .par_iter()
+        .map_init(Vec::new, |cells, p| {
+            grid.cells_on(p.seg.p1, p.seg.p2, 8, cells);
             cells.clone()
         })
         .collect();
@@ -338,82 +418,92 @@ fn edges_hashed(
         start[c + 1] += start[c];
     }
     let mut fill = start.clone();
-    let mut members = vec![0u32; start[grid.n_cells()] as usize];
-    for (i, cells) in cells_of.iter().enumerate() {
-        for &c in cells {
-            members[fill[c as usize] as usize] = i as u32;
+    let mut members = vec![0u64; start[grid.n_cells()] as usize];
+    for &k in &by_rank {
+        for &c in &cells_of[k as usize] {
+            members[fill[c as usize] as usize] = (u64::from(rank[k as usize]) << 32) | u64::from(k);
             fill[c as usize] += 1;
         }
     }
-    drop(cells_of);
-    drop(fill);
+    drop((cells_of, fill, by_rank));
 
-    let lengths: Vec<f64> = segs.iter().map(|s| s.length()).collect();
-    let dirs: Vec<DVec3> = segs.iter().map(|s| s.dir()).collect();
     // Chunks of segments share one scratch mark array (n entries) for deduplication.
     let chunk = (n / (8 * rayon::current_num_threads())).clamp(256, 1 << 14);
-    (0..n.div_ceil(chunk))
+    let parts: Vec<Vec<Edge>> = (0..n.div_ceil(chunk))
         .into_par_iter()
-        .flat_map_iter(|c| {
+        .map(|c| {
             let mut seen = vec![u32::MAX; n];
             let (mut cells, mut cands) = (Vec::new(), Vec::new());
+            let mut mine: Vec<(f64, u32)> = Vec::new();
             let mut out = Vec::new();
             for g in c * chunk..((c + 1) * chunk).min(n) {
-                let first = out.len();
-                let s = &segs[g];
-                let ext = s.dir() * lengths[g];
+                let pg = &pk[g];
+                let s = &pg.seg;
+                let ext = pg.dir * pg.len;
                 let Some((a, b)) = clip(s.p1 - ext, s.p2 + ext, lo, hi) else {
                     continue;
                 };
                 grid.cells(a, b, bound, &mut cells);
                 cands.clear();
+                let below = u64::from(rank[g]) << 32;
                 for &cell in &cells {
                     let range = start[cell as usize] as usize..start[cell as usize + 1] as usize;
-                    for &o in &members[range] {
+                    for &m in &members[range] {
+                        if m >= below {
+                            break; // the rest are longer: `g` is not their pair's long one
+                        }
+                        let o = m as u32;
                         if seen[o as usize] != g as u32 {
                             seen[o as usize] = g as u32;
-                            cands.push(o as usize);
+                            cands.push(o);
                         }
                     }
                 }
+                mine.clear();
                 for &o in &cands {
-                    if o == g || lines.group(o) == lines.group(g) {
+                    let po = &pk[o as usize];
+                    if po.group == pg.group {
                         continue;
                     }
-                    let (i, j) = (g.min(o), g.max(o));
-                    // `similarity(i, j)` calls `i` long on equal lengths; only the long one's
-                    // extended capsule is sure to reach the other.
-                    let long = if lengths[i] >= lengths[j] { i } else { j };
-                    if long != g {
-                        continue;
-                    }
+                    let (pi, pj) = if pg.orig < po.orig {
+                        (pg, po)
+                    } else {
+                        (po, pg)
+                    };
                     let w = similarity_of(
-                        [
-                            (&segs[i], lengths[i], dirs[i]),
-                            (&segs[j], lengths[j], dirs[j]),
-                        ],
+                        [(&pi.seg, pi.len, pi.dir), (&pj.seg, pj.len, pj.dir)],
                         r_c,
                         true,
                         min_cos,
                         min_w,
                     );
                     if w >= min_w {
-                        out.push(Edge { i, j, w });
+                        mine.push((w, po.orig));
                     }
                 }
                 // The most similar first (ties: the lower other index), the rest dropped.
-                let mine = &mut out[first..];
                 if mine.len() > max_neighbours {
-                    let other = |e: &Edge| e.i + e.j - g;
                     mine.select_nth_unstable_by(max_neighbours, |a, b| {
-                        b.w.total_cmp(&a.w).then(other(a).cmp(&other(b)))
+                        b.0.total_cmp(&a.0).then(a.1.cmp(&b.1))
                     });
-                    out.truncate(first + max_neighbours);
+                    mine.truncate(max_neighbours);
                 }
+                let me = pg.orig as usize;
+                out.extend(mine.iter().map(|&(w, o)| {
+                    let o = o as usize;
+                    Edge::new(me.min(o), me.max(o), w)
+                }));
             }
             out
         })
-        .collect()
+        .collect();
+    drop((members, start, pk, rank));
+    // One copy of the edges at a time: each part is freed once copied.
+    let mut all = Vec::with_capacity(parts.iter().map(Vec::len).sum());
+    for p in parts {
+        all.extend_from_slice(&p);
+    }
+    all
 }
 
 /// Union-find by size with a threshold per root: edges (ascending) join two roots when
@@ -431,9 +521,8 @@ fn union_find(n: usize, edges: &[Edge], c: f64) -> Vec<usize> {
         x
     }
     for e in edges {
-        let ra = find(&mut parent, e.i);
-        let rb = find(&mut parent, e.j);
-        if ra == rb || e.w > thr[ra] || e.w > thr[rb] {
+        let (w, ra, rb) = (e.w(), find(&mut parent, e.i()), find(&mut parent, e.j()));
+        if ra == rb || w > thr[ra] || w > thr[rb] {
             continue;
         }
         let (big, small) = if size[ra] >= size[rb] {
@@ -443,34 +532,41 @@ fn union_find(n: usize, edges: &[Edge], c: f64) -> Vec<usize> {
         };
         parent[small] = big;
         size[big] += size[small];
-        thr[big] = e.w + c / size[big] as f64;
+        thr[big] = w + c / size[big] as f64;
     }
     (0..n).map(|i| find(&mut parent, i)).collect()
 }
 
-/// Members in greedy-matching order: pairs by descending weight (ties in `(i, j)` order),
-/// a pair placed when neither member is yet; the rest in index order. `members` is
-/// ascending; `edges` are the edges inside the cluster.
-fn greedy_order(members: &[usize], edges: &[Edge]) -> Vec<usize> {
-    let mut e = edges.to_vec();
-    e.sort_by(|a, b| b.w.total_cmp(&a.w).then((a.i, a.j).cmp(&(b.i, b.j))));
-    let mut is_placed = vec![false; members.len()];
-    let mut order = Vec::with_capacity(members.len());
-    for ed in &e {
-        let (Ok(a), Ok(b)) = (members.binary_search(&ed.i), members.binary_search(&ed.j)) else {
-            continue;
-        };
-        if !is_placed[a] && !is_placed[b] {
-            is_placed[a] = true;
-            is_placed[b] = true;
-            order.push(ed.i);
-            order.push(ed.j);
+/// The members of every cluster in greedy-matching order, [`greedy_order`] of each
+/// cluster in one pass over the edges (ascending, as union-find took them) from the end:
+/// a run of equal weights is taken in `(i, j)` order, so each cluster sees its own edges
+/// in [`greedy_order`]'s order, and no cluster's edges are copied out.
+fn greedy_orders(members: &[Vec<usize>], cluster_of: &[u32], edges: &[Edge]) -> Vec<Vec<usize>> {
+    let mut placed = vec![false; cluster_of.len()];
+    let mut order: Vec<Vec<usize>> = members
+        .iter()
+        .map(|m| Vec::with_capacity(m.len()))
+        .collect();
+    let mut end = edges.len();
+    while end > 0 {
+        let w = edges[end - 1].w().to_bits();
+        let mut start = end - 1;
+        while start > 0 && edges[start - 1].w().to_bits() == w {
+            start -= 1;
         }
+        for e in &edges[start..end] {
+            let (i, j) = (e.i(), e.j());
+            let c = cluster_of[i];
+            if c == cluster_of[j] && !placed[i] && !placed[j] {
+                placed[i] = true;
+                placed[j] = true;
+                order[c as usize].extend([i, j]);
+            }
+        }
+        end = start;
     }
-    for (k, &m) in members.iter().enumerate() {
-        if !is_placed[k] {
-            order.push(m);
-        }
+    for (order, m) in order.iter_mut().zip(members) {
+        order.extend(m.iter().filter(|&&k| !placed[k]));
     }
     order
 }
@@ -541,14 +637,14 @@ fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
     let reps = LineSet::new(same.iter().map(|c| lines.segments[c[0]]).collect());
     let mut linked = vec![false; reps.len()];
     for e in edges(&reps, st) {
-        linked[e.i] = true;
-        linked[e.j] = true;
+        linked[e.i()] = true;
+        linked[e.j()] = true;
     }
     let n = reps.len();
     let reversed = LineSet::new(reps.segments.iter().rev().copied().collect());
     for e in edges(&reversed, st) {
-        linked[n - 1 - e.i] = true;
-        linked[n - 1 - e.j] = true;
+        linked[n - 1 - e.i()] = true;
+        linked[n - 1 - e.j()] = true;
     }
     same.into_iter()
         .zip(linked)
@@ -573,27 +669,53 @@ pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
     let root = union_find(n, &edges, p.cluster_c);
     let mut id_of_root = vec![usize::MAX; n];
     let mut members: Vec<Vec<usize>> = Vec::new();
-    let mut cluster_of = vec![0usize; n];
+    let mut cluster_of = vec![0u32; n];
     for i in 0..n {
         let r = root[i];
         if id_of_root[r] == usize::MAX {
             id_of_root[r] = members.len();
             members.push(Vec::new());
         }
-        cluster_of[i] = id_of_root[r];
+        cluster_of[i] = id_of_root[r] as u32;
         members[id_of_root[r]].push(i);
     }
-    let mut inner: Vec<Vec<Edge>> = vec![Vec::new(); members.len()];
-    for e in &edges {
-        if cluster_of[e.i] == cluster_of[e.j] {
-            inner[cluster_of[e.i]].push(*e);
+    drop((root, id_of_root));
+    greedy_orders(&members, &cluster_of, &edges)
+}
+
+/// Members of one cluster in greedy-matching order, the definition of [`greedy_orders`]: pairs by descending weight (ties in `(i, j)` order),
+/// a pair placed when neither member is yet; the rest in index order. `members` is
+/// ascending; `edges` are the edges inside the cluster.
+#[cfg(test)]
+fn greedy_order(members: &[usize], edges: &[Edge]) -> Vec<usize> {
+    let mut e = edges.to_vec();
+    e.sort_by(|a, b| {
+        b.w()
+            .total_cmp(&a.w())
+            .then((a.i(), a.j()).cmp(&(b.i(), b.j())))
+    });
+    let mut is_placed = vec![false; members.len()];
+    let mut order = Vec::with_capacity(members.len());
+    for ed in &e {
+        let (Ok(a), Ok(b)) = (
+            members.binary_search(&ed.i()),
+            members.binary_search(&ed.j()),
+        ) else {
+            continue;
+        };
+        if !is_placed[a] && !is_placed[b] {
+            is_placed[a] = true;
+            is_placed[b] = true;
+            order.push(ed.i());
+            order.push(ed.j());
         }
     }
-    members
-        .par_iter()
-        .zip(inner.par_iter())
-        .map(|(m, e)| greedy_order(m, e))
-        .collect()
+    for (k, &m) in members.iter().enumerate() {
+        if !is_placed[k] {
+            order.push(m);
+        }
+    }
+    order
 }
 
 #[cfg(test)]
@@ -700,7 +822,7 @@ mod tests {
     }
 
     fn e(i: usize, j: usize, w: f64) -> Edge {
-        Edge { i, j, w }
+        Edge::new(i, j, w)
     }
 
     #[test]
@@ -746,6 +868,85 @@ mod tests {
         assert_eq!(greedy_order(&members, &edges), vec![2, 4, 0, 3, 1, 5]);
         let tie = [e(1, 2, 0.5), e(0, 3, 0.5)];
         assert_eq!(greedy_order(&[0, 1, 2, 3], &tie), vec![0, 3, 1, 2]);
+    }
+
+    /// The one-pass order of all clusters is each cluster's own greedy order, also where
+    /// weights tie across and inside clusters.
+    #[test]
+    fn greedy_orders_of_all_clusters_are_each_clusters_greedy_order() {
+        let mut r = Lcg(9);
+        for scene in 0..6 {
+            let lines = random_lines(700, scene + 1, scene % 2 == 0);
+            let st = Params::default().with_radius([0.03, 0.05, 0.1][scene as usize % 3]);
+            let mut edges = edges(&lines, &st);
+            if scene >= 3 {
+                // Weights on a coarse lattice: many ties.
+                edges = edges
+                    .iter()
+                    .map(|e| Edge::new(e.i(), e.j(), (e.w() * 8.0 + r.f()).floor() / 8.0))
+                    .collect();
+                edges.sort_unstable();
+            }
+            let root = union_find(lines.len(), &edges, 1.5);
+            let mut members: Vec<Vec<usize>> = Vec::new();
+            let mut id = std::collections::HashMap::new();
+            let mut cluster_of = vec![0u32; lines.len()];
+            for (k, r) in root.iter().enumerate() {
+                let c = *id.entry(*r).or_insert_with(|| {
+                    members.push(Vec::new());
+                    members.len() - 1
+                });
+                members[c].push(k);
+                cluster_of[k] = c as u32;
+            }
+            assert!(
+                members.iter().any(|m| m.len() > 3),
+                "scene {scene}: no cluster"
+            );
+            let want: Vec<Vec<usize>> = members
+                .iter()
+                .enumerate()
+                .map(|(c, m)| {
+                    let inner: Vec<Edge> = edges
+                        .iter()
+                        .filter(|e| cluster_of[e.i()] == c as u32 && cluster_of[e.j()] == c as u32)
+                        .copied()
+                        .collect();
+                    greedy_order(m, &inner)
+                })
+                .collect();
+            assert_eq!(
+                greedy_orders(&members, &cluster_of, &edges),
+                want,
+                "scene {scene}"
+            );
+        }
+    }
+
+    #[test]
+    fn edges_order_by_weight_then_indices() {
+        let mut e = [
+            e(3, 4, 0.5),
+            e(1, 9, 0.5),
+            e(0, 2, 0.75),
+            e(7, 8, 0.0),
+            e(1, 2, 0.5),
+            e(5, 6, 1e-300),
+        ];
+        e.sort();
+        let got: Vec<(usize, usize, f64)> = e.iter().map(|e| (e.i(), e.j(), e.w())).collect();
+        assert_eq!(
+            got,
+            [
+                (7, 8, 0.0),
+                (5, 6, 1e-300),
+                (1, 2, 0.5),
+                (1, 9, 0.5),
+                (3, 4, 0.5),
+                (0, 2, 0.75)
+            ]
+        );
+        assert_eq!(Edge::new(0, 1, -0.0), Edge::new(0, 1, 0.0));
     }
 
     #[test]
@@ -852,7 +1053,7 @@ mod tests {
                 let b = distance_bound(r_c, w_min).unwrap();
                 let mut hashed = edges_hashed(&lines, r_c, b, w_min, 0.5, usize::MAX);
                 let mut all = edges_all_pairs(&lines, r_c, true, w_min, 0.5);
-                let order = |a: &Edge, b: &Edge| (a.i, a.j).cmp(&(b.i, b.j));
+                let order = |a: &Edge, b: &Edge| (a.i(), a.j()).cmp(&(b.i(), b.j()));
                 hashed.sort_by(order);
                 all.sort_by(order);
                 assert!(all.len() > n / 4, "scene too sparse: {} edges", all.len());
@@ -895,7 +1096,7 @@ mod tests {
         for r_c in [0.03, 0.05, 0.2] {
             let b = distance_bound(r_c, 0.4).unwrap();
             let mut hashed = edges_hashed(&lines, r_c, b, 0.4, 0.5, usize::MAX);
-            hashed.sort_by_key(|e| (e.i, e.j));
+            hashed.sort_by_key(|e| (e.i(), e.j()));
             let all = edges_all_pairs(&lines, r_c, true, 0.4, 0.5);
             assert!(all.len() > 100, "{} edges at r_c {r_c}", all.len());
             assert_eq!(hashed, all, "r_c {r_c}");
@@ -920,12 +1121,15 @@ mod tests {
         for (lines, r_c) in scenes {
             let b = distance_bound(r_c, 0.4).unwrap();
             let mut bounded = edges_hashed(&lines, r_c, b, 0.4, 0.5, MAX_NEIGHBOURS);
-            bounded.sort_by_key(|e| (e.i, e.j));
+            bounded.sort_by_key(|e| (e.i(), e.j()));
             let all = edges_all_pairs(&lines, r_c, true, 0.4, 0.5);
             let mut degree = vec![0usize; lines.len()];
             for e in &all {
-                let (li, lj) = (lines.segments[e.i].length(), lines.segments[e.j].length());
-                degree[if li >= lj { e.i } else { e.j }] += 1;
+                let (li, lj) = (
+                    lines.segments[e.i()].length(),
+                    lines.segments[e.j()].length(),
+                );
+                degree[if li >= lj { e.i() } else { e.j() }] += 1;
             }
             let most = degree.iter().max().copied().unwrap_or(0);
             assert!(
@@ -960,10 +1164,10 @@ mod tests {
         let all = edges_hashed(&lines, 0.03, b, 0.4, 0.5, usize::MAX);
         assert!(all.len() > 50 * lines.len(), "{} edges", all.len());
         let long = |e: &Edge| {
-            if lines.segments[e.i].length() >= lines.segments[e.j].length() {
-                e.i
+            if lines.segments[e.i()].length() >= lines.segments[e.j()].length() {
+                e.i()
             } else {
-                e.j
+                e.j()
             }
         };
         let mut per: Vec<Vec<Edge>> = vec![Vec::new(); lines.len()];
@@ -972,12 +1176,12 @@ mod tests {
         }
         let mut want: Vec<Edge> = Vec::new();
         for (g, mut es) in per.into_iter().enumerate() {
-            let other = |e: &Edge| e.i + e.j - g;
-            es.sort_by(|a, b| b.w.total_cmp(&a.w).then(other(a).cmp(&other(b))));
+            let other = |e: &Edge| e.i() + e.j() - g;
+            es.sort_by(|a, b| b.w().total_cmp(&a.w()).then(other(a).cmp(&other(b))));
             es.truncate(k);
             want.extend(es);
         }
-        let key = |e: &Edge| (e.i, e.j);
+        let key = |e: &Edge| (e.i(), e.j());
         want.sort_by_key(key);
         let mut got = bounded;
         got.sort_by_key(key);
