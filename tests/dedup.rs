@@ -1,4 +1,4 @@
-//! Copies cost once (issue #9): the [`Dedup`] wrapper that every `Refiner` puts around its
+//! Copies cost once: the [`Dedup`] wrapper that every `Refiner` puts around its
 //! engine answers a batch full of identical queries exactly as the bare engine does, and
 //! a refinement of copied segments is the same with and without it.
 

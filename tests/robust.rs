@@ -1,4 +1,4 @@
-//! Issue #14: no hostile file, geometry or option can crash, hang, exhaust memory, be
+//! No hostile file, geometry or option can crash, hang, exhaust memory, be
 //! accepted as garbage, or destroy a file. One test per finding, with the exact expected
 //! behaviour; then the crash corpus of the fuzz targets and a bounded random-mutation
 //! run of every reader.
