@@ -157,6 +157,28 @@ fn wide_gaussians_witness_a_line_that_they_do_not_place() {
 }
 
 #[test]
+fn the_report_counts_the_placing_engines_batches_too() {
+    let scene = witnessed_by_wide_scene();
+    let run = |fit| {
+        let params = Params {
+            fit: Some(fit),
+            ..Params::default().with_radius(R).params().clone()
+        };
+        let out = Job::new(params, Backend::Cpu)
+            .refine(&scene, |_| {})
+            .unwrap();
+        out.report.engine_counters.unwrap()
+    };
+    let (edge, none) = (
+        run(linegs_gpu::refine::Fit::Edge),
+        run(linegs_gpu::refine::Fit::None),
+    );
+    // The edge fit (one batch) runs on the placing engine (no normals: no gate batch).
+    assert_eq!(edge.batches, none.batches + 1, "{edge:?} {none:?}");
+    assert!(edge.queries > none.queries, "{edge:?} {none:?}");
+}
+
+#[test]
 fn the_scale_cut_is_a_warning_when_the_model_has_no_scales_or_all_are_wide() {
     let (mut scene, _) = wide_band_scene();
     let asked = Params {

@@ -208,6 +208,22 @@ impl Refiner {
         self.placement = Some(Box::new(placer));
     }
 
+    /// The work counters of this refiner's engine and of its placement engine, if any.
+    pub fn counters(&self) -> crate::engine::Counters {
+        let mut c = self.engine().counters();
+        if let Some(p) = &self.placement {
+            let q = p.engine().counters();
+            c.uploads += q.uploads;
+            c.batches += q.batches;
+            c.queries += q.queries;
+            c.cpu_batches += q.cpu_batches;
+            c.cpu_queries += q.cpu_queries;
+            c.device_fits += q.device_fits;
+            c.device_fits_refitted += q.device_fits_refitted;
+        }
+        c
+    }
+
     /// Before-evaluation, the steps of docs/method.md#the-refinement-steps and
     /// after-evaluation, calling `on_stage` after each stage.
     pub fn refine(
@@ -439,7 +455,7 @@ impl Job {
         report.refine = Some(steps);
         report.sweep = sweep;
         report.ground_truth = ground_truth;
-        report.engine_counters = Some(refiner.engine().counters());
+        report.engine_counters = Some(refiner.counters());
         report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();
         Ok(Outcome {
             lines: out.lines,
