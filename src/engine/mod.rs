@@ -243,6 +243,29 @@ pub struct Counters {
     pub device_fits_refitted: u64,
 }
 
+impl std::ops::AddAssign for Counters {
+    /// The work of two engines together (a run whose scale cut has its own engine).
+    fn add_assign(&mut self, o: Counters) {
+        // Destructured, so that a new counter cannot be left out of the sum.
+        let Counters {
+            uploads,
+            batches,
+            queries,
+            cpu_batches,
+            cpu_queries,
+            device_fits,
+            device_fits_refitted,
+        } = o;
+        self.uploads += uploads;
+        self.batches += batches;
+        self.queries += queries;
+        self.cpu_batches += cpu_batches;
+        self.cpu_queries += cpu_queries;
+        self.device_fits += device_fits;
+        self.device_fits_refitted += device_fits_refitted;
+    }
+}
+
 #[derive(thiserror::Error, Debug)]
 pub enum EngineError {
     #[error("no GPU adapter found ({0}); install a Vulkan driver (Debian: apt-get install mesa-vulkan-drivers) or use --backend cpu")]

@@ -212,14 +212,7 @@ impl Refiner {
     pub fn counters(&self) -> crate::engine::Counters {
         let mut c = self.engine().counters();
         if let Some(p) = &self.placement {
-            let q = p.engine().counters();
-            c.uploads += q.uploads;
-            c.batches += q.batches;
-            c.queries += q.queries;
-            c.cpu_batches += q.cpu_batches;
-            c.cpu_queries += q.cpu_queries;
-            c.device_fits += q.device_fits;
-            c.device_fits_refitted += q.device_fits_refitted;
+            c += p.engine().counters();
         }
         c
     }
