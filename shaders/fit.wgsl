@@ -6,7 +6,8 @@
 // the host's (`Cylinder::test`, then the segment's basis), computed in f64 from the
 // point's own f32 coordinates (`world`), so the answer agrees with the host's to f64
 // rounding: only the order of the sums differs. First the ridge's position by mean shift
-// with a Gaussian kernel whose width shrinks from r/2 by 0.8 a step to `h_min`, stopped
+// with a Gaussian kernel whose width shrinks from `h_start` (the host's `ridge_start`: r/2,
+// or `h_min` where the line is on its ridge already) by 0.8 a step to `h_min`, stopped
 // once at `h_min` when a step moves less than 1e-5 r (at most FIT_STEPS steps); then the
 // kernel-weighted line fit of offset on axial position around it, its slope only where
 // the axial spread is at least MIN_ELONGATION times the cross spread. Each sum is a
@@ -146,7 +147,7 @@ fn main(
     let e2 = vec3<f64>(fq.e2x, fq.e2y, fq.e2z);
     let r = fq.r;
     let h_min = fq.h_min;
-    var h = max(0.5lf * r, h_min);
+    var h = max(fq.h_start, h_min);
     var c = vec2<f64>(0.0lf);
     var status = FIT_OK;
     var steps = 0u;

@@ -1,6 +1,7 @@
 //! Segments, cylinders and boxes (docs/method.md#geometry). All host-side math is f64.
 
 pub mod fit;
+pub mod kernel;
 
 use glam::DVec3;
 

@@ -203,15 +203,24 @@ impl Engine for Dedup {
         ask: &FitAsk<'_>,
     ) -> Result<Vec<FitAnswer>, EngineError> {
         self.count(queries.len());
-        match Groups::of(queries, None) {
+        // A warm and a cold ridge of the same query are different steps.
+        let warm: Option<Vec<u64>> =
+            (!ask.warm.is_empty()).then(|| ask.warm.iter().map(|&w| u64::from(w)).collect());
+        match Groups::of(queries, warm.as_deref()) {
             None => self.inner.fit_lines(queries, ask),
             Some(g) => {
                 // The inner engine numbers the distinct queries.
                 let outer = ask.sensitive;
                 let first = &g.first;
                 let remap = move |d: usize, f: &LineFit| outer.is_some_and(|s| s(first[d], f));
+                let inner_warm: Vec<bool> = if ask.warm.is_empty() {
+                    Vec::new()
+                } else {
+                    first.iter().map(|&i| ask.warm[i]).collect()
+                };
                 let inner_ask = FitAsk {
                     sensitive: Some(&remap),
+                    warm: &inner_warm,
                     ..*ask
                 };
                 let a = self

@@ -14,7 +14,7 @@
 
 use super::cpu::member_list;
 use super::{Engine, EngineError, FitAnswer, FitAsk, FitJob, Query};
-use crate::geom::fit::{near_settled, step, FitResult, LineFit, Member, Track};
+use crate::geom::fit::{near_threshold, step, FitResult, LineFit, Member, Track};
 use crate::geom::{p64, Segment};
 use crate::index::Grid;
 use rayon::prelude::*;
@@ -44,6 +44,8 @@ pub fn by_batches<E: Engine + ?Sized>(
             .iter()
             .map(|&i| {
                 let (a, b) = (tracks[i].cur, tracks[i].origin);
+                // (Tracks with the same start and the same line have the same history, and so
+                // the same `warm`.)
                 let key = [a.p1, a.p2, b.p1, b.p2]
                     .map(|v| v.to_array().map(f64::to_bits))
                     .concat();
@@ -58,12 +60,14 @@ pub fn by_batches<E: Engine + ?Sized>(
         let queries: Vec<Query> = uniq.iter().map(|&i| Query::new(tracks[i].cur, r)).collect();
         let near = |j: usize, f: &LineFit| {
             let t = &tracks[uniq[j]];
-            near_settled(&t.cur, f, &t.origin, r, spec)
+            near_threshold(&t.cur, f, &t.origin, r, spec)
         };
+        let warm: Vec<bool> = uniq.iter().map(|&i| tracks[i].warm).collect();
         let ask = FitAsk {
             spec,
             points: job.points,
             sensitive: Some(&near),
+            warm: &warm,
         };
         let steps = engine.fit_lines(&queries, &ask)?;
         let mut next = Vec::with_capacity(active.len());
@@ -85,8 +89,12 @@ pub fn steps(queries: &[Query], members: &[Vec<Member>], ask: &FitAsk<'_>) -> Ve
     queries
         .par_iter()
         .zip(members)
+        .enumerate()
         .with_min_len(4)
-        .map(|(q, m)| step(&q.seg, m, &ask.points, q.r, ask.spec))
+        .map(|(i, (q, m))| {
+            let warm = ask.warm.get(i).copied().unwrap_or(false);
+            step(&q.seg, m, &ask.points, q.r, ask.spec, warm)
+        })
         .collect()
 }
 
@@ -169,7 +177,7 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
             }
             members_among(&s.near, &t.cur, r, &mut s.members);
         }
-        let answer = step(&t.cur, &s.members, &job.points, r, spec);
+        let answer = step(&t.cur, &s.members, &job.points, r, spec, t.warm);
         if !t.advance(answer, r, spec) {
             break;
         }

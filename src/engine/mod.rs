@@ -186,15 +186,19 @@ pub struct FitAsk<'a> {
     /// (the GPU engine's device ridge) fits those queries exactly on the host instead, so
     /// that every decision is the exact engine's; exact engines ignore it.
     pub sensitive: Option<&'a Sensitive<'a>>,
+    /// Per query, whether its ridge starts warm, at the final kernel width
+    /// ([`crate::geom::fit::Track::warm`]); empty: none does.
+    pub warm: &'a [bool],
 }
 
 impl<'a> FitAsk<'a> {
-    /// The ask of `spec` over `points`, without a sensitivity test.
+    /// The ask of `spec` over `points`, without a sensitivity test, every ridge cold.
     pub fn new(spec: &'a FitSpec, points: FitPoints<'a>) -> Self {
         FitAsk {
             spec,
             points,
             sensitive: None,
+            warm: &[],
         }
     }
 }

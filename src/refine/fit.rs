@@ -9,6 +9,7 @@
 use crate::engine::{Engine, EngineError, FitJob, Member, Query};
 pub use crate::geom::fit::{basis, FitResult, FitSpec, How, LineFit, MIN_ELONGATION};
 use crate::geom::fit::{families, median, FitPoints};
+use crate::geom::kernel::Columns;
 use crate::geom::Segment;
 use crate::refine::Params;
 use glam::{DVec2, DVec3};
@@ -95,14 +96,15 @@ impl Attributes {
     }
 }
 
-/// The ridge of [`crate::geom::fit::ridge`] with the kernel width of `p`.
+/// The ridge of [`crate::geom::fit::ridge`] with the kernel width of `p`, from its wide
+/// start.
 pub(crate) fn ridge(
     pts: &[(f64, DVec2)],
     pw: &[f64],
     r: f64,
     p: &Params,
 ) -> Option<(LineFit, f64)> {
-    crate::geom::fit::ridge(pts, pw, r, p.fit_bandwidth)
+    crate::geom::fit::ridge(pts, pw, r, p.fit_bandwidth, false)
 }
 
 /// The members' axial positions and cross-section offsets in the frame `(e1, e2)`, and
@@ -222,19 +224,12 @@ fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> bool {
 /// The ridge test: around the fitted line (mean shift with the kernel `h` from it), less
 /// than [`GATE_FACE_SHARE`] of the kernel weight comes from flat Gaussians (`flat`).
 fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> bool {
-    let kernel = |c: DVec2, p: &(f64, DVec2), w: f64| {
-        w * (-(p.1 - c).length_squared() / (2.0 * h * h)).exp()
-    };
+    let mut cols = Columns::new(pts.iter().map(|p| p.1), pw);
     let mut c = DVec2::ZERO;
     let mut sw = 0.0;
     for _ in 0..50 {
-        let mut s = DVec2::ZERO;
-        sw = 0.0;
-        for (p, w) in pts.iter().zip(pw) {
-            let k = kernel(c, p, *w);
-            s += p.1 * k;
-            sw += k;
-        }
+        let s;
+        (sw, s) = cols.round(c, h);
         if sw <= 0.0 {
             break;
         }
@@ -245,12 +240,14 @@ fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> bool {
             break;
         }
     }
-    let faces: f64 = pts
+    cols.kernel(c, h);
+    let faces: f64 = cols
+        .k
         .iter()
         .zip(pw)
         .zip(flat)
         .filter(|(_, f)| **f)
-        .map(|((p, w), _)| kernel(c, p, *w))
+        .map(|((k, w), _)| w * k)
         .sum();
     sw > 0.0 && faces / sw < GATE_FACE_SHARE
 }

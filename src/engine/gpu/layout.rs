@@ -227,6 +227,8 @@ shared! {
         e2x: f64 => "f64", e2y: f64 => "f64", e2z: f64 => "f64",
         r: f64 => "f64",
         h_min: f64 => "f64",
+        /// The ridge's first kernel width (r/2, or `h_min` where it starts warm).
+        h_start: f64 => "f64",
     }
 }
 

@@ -356,10 +356,11 @@ impl GpuEngine {
         use crate::geom::fit::{How, LineFit};
         let grid = &*self.grid;
         let p = ask.spec;
-        // The host's own values (`Cylinder::new`, `basis`, `ridge`'s h_min).
+        // The host's own values (`Cylinder::new`, `basis`, `ridge`'s widths).
         let frames: Vec<layout::FitQuery> = queries
             .iter()
-            .map(|q| {
+            .enumerate()
+            .map(|(i, q)| {
                 let d = q.seg.dir();
                 let (e1, e2) = crate::geom::fit::basis(d);
                 let p1 = q.seg.p1;
@@ -378,6 +379,11 @@ impl GpuEngine {
                     e2z: e2.z,
                     r: q.r,
                     h_min: p.bandwidth * q.r,
+                    h_start: crate::geom::fit::ridge_start(
+                        q.r,
+                        p.bandwidth,
+                        ask.warm.get(i).copied().unwrap_or(false),
+                    ),
                 }
             })
             .collect();
@@ -439,7 +445,11 @@ impl GpuEngine {
                             fallbacks.fetch_add(1, Ordering::Relaxed);
                             refitted.fetch_add(1, Ordering::Relaxed);
                             let m = super::cpu::member_list(grid, q);
-                            super::fit::steps(std::slice::from_ref(q), &[m], ask)[0]
+                            let one = FitAsk {
+                                warm: ask.warm.get(first + i..=first + i).unwrap_or(&[]),
+                                ..*ask
+                            };
+                            super::fit::steps(std::slice::from_ref(q), &[m], &one)[0]
                         }
                     };
                 });
@@ -533,8 +543,14 @@ impl Engine for GpuEngine {
         let sensitive = ask
             .sensitive
             .map(|s| move |j: usize, line: &crate::geom::fit::LineFit| s(by_caller.index(j), line));
+        let warm: Vec<bool> = if ask.warm.is_empty() {
+            Vec::new()
+        } else {
+            (0..sent.len()).map(|j| ask.warm[order.index(j)]).collect()
+        };
         let ask = FitAsk {
             sensitive: sensitive.as_ref().map(|s| s as &super::Sensitive<'_>),
+            warm: &warm,
             ..*ask
         };
         let answers = self.fit_batch(&mut self.lock(), &sent, &ask)?;
