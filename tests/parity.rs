@@ -10,7 +10,9 @@ use common::*;
 use glam::DVec3;
 use linegs_gpu::engine::cpu::CpuEngine;
 use linegs_gpu::engine::gpu::{GpuEngine, GpuOptions};
-use linegs_gpu::engine::{Ask, Coverage, Engine, EngineError, Nearest, NearestSum, Query, Want};
+use linegs_gpu::engine::{
+    sorted_axial, Ask, Coverage, Engine, EngineError, Nearest, NearestSum, Query, Want,
+};
 use linegs_gpu::geom::Segment;
 use linegs_gpu::index::Grid;
 use std::sync::Arc;
@@ -37,6 +39,7 @@ fn close_vec(a: DVec3, b: DVec3, n: u64, sum_d2: f64, r: f64) -> bool {
 /// lists equal, sums to float precision.
 fn check_parity(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
     check_members(reference, tested, queries);
+    check_axial(reference, tested, queries);
     for want in [Want::COUNT, Want::SUMS, Want::SIDES, Want::ALL] {
         let a = reference.stats(queries, want).unwrap();
         let b = tested.stats(queries, want).unwrap();
@@ -169,6 +172,27 @@ fn check_members(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query])
             );
         }
     }
+}
+
+/// The axial positions the same, bit for bit, both engines' and those of the member
+/// lists (`Engine::axial`: the CPU engine's straight from its walk, the GPU engine's from
+/// its device lists or, for small batches, the CPU engine's walk).
+fn check_axial(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
+    let from_members: Vec<Vec<f64>> = reference
+        .members(queries)
+        .unwrap()
+        .iter()
+        .zip(queries)
+        .map(|(m, q)| sorted_axial(m.iter().map(|m| m.t), q.seg.length()))
+        .collect();
+    let bits = |v: &[Vec<f64>]| -> Vec<Vec<u64>> {
+        v.iter()
+            .map(|t| t.iter().map(|x| x.to_bits()).collect())
+            .collect()
+    };
+    let want = bits(&from_members);
+    assert_eq!(bits(&reference.axial(queries).unwrap()), want);
+    assert_eq!(bits(&tested.axial(queries).unwrap()), want);
 }
 
 fn nearest_close(x: &NearestSum, y: &NearestSum, r: f64) -> bool {

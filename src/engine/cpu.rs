@@ -227,6 +227,31 @@ impl Engine for CpuEngine {
         Ok(members_of(&self.grid, queries))
     }
 
+    /// Only the axial positions, straight from the walk: no member records, no sort by
+    /// id (the positions are sorted by value).
+    fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
+        self.count_batch(queries.len());
+        let grid = &*self.grid;
+        Ok(queries
+            .par_iter()
+            .with_min_len(8)
+            .map(|q| {
+                let mut t = Vec::new();
+                if q.seg.is_valid() {
+                    let cyl = Cylinder::new(&q.seg, q.r);
+                    grid.visit_rows(&q.seg, q.r, |row| {
+                        for p in &grid.points[grid.row_range(&row)] {
+                            if let Some((u, _)) = cyl.test(p64(*p)) {
+                                t.push(u);
+                            }
+                        }
+                    });
+                }
+                super::sorted_axial(t.into_iter(), q.seg.length())
+            })
+            .collect())
+    }
+
     /// Each segment's neighbourhood gathered once and iterated on in cache
     /// ([`super::fit::gathered`]): one batch, a query per step.
     fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {

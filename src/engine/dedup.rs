@@ -181,6 +181,20 @@ impl Engine for Dedup {
         }
     }
 
+    fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
+        self.count(queries.len());
+        match Groups::of(queries, None) {
+            None => self.inner.axial(queries),
+            Some(g) => {
+                let a = self
+                    .inner
+                    .axial(&g.queries(queries))
+                    .map_err(|e| g.error(e))?;
+                Ok(g.fan_out(&a))
+            }
+        }
+    }
+
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
         self.count(queries.len());
         match Groups::of(queries, None) {

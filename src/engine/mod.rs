@@ -210,6 +210,13 @@ pub type Sensitive<'a> = dyn Fn(usize, &LineFit) -> bool + Sync + 'a;
 /// and how it was decided.
 pub type FitAnswer = (Option<LineFit>, How);
 
+/// Axial positions `t` clamped to `[0, l]` and sorted ascending ([`Engine::axial`]).
+pub fn sorted_axial(t: impl Iterator<Item = f64>, l: f64) -> Vec<f64> {
+    let mut t: Vec<f64> = t.map(|t| t.clamp(0.0, l)).collect();
+    t.sort_unstable_by(f64::total_cmp);
+    t
+}
+
 /// The whole edge fit, as [`Engine::fit_edges`] takes it: the segments (each also its
 /// own start), the radius, the parameters and the per-point attributes.
 #[derive(Clone, Copy)]
@@ -311,6 +318,16 @@ pub trait Engine: Send + Sync {
     /// same for every thread count, both engines and every grid layout). Per-point output is O(members), not O(queries): use it only
     /// where sums cannot answer (the edge fit's robust estimates).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError>;
+    /// Every query's members' axial positions `t`, each clamped to `[0, length]` and
+    /// sorted ascending (what `--split-gaps` reads): by default from [`Self::members`].
+    fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
+        Ok(self
+            .members(queries)?
+            .iter()
+            .zip(queries)
+            .map(|(m, q)| sorted_axial(m.iter().map(|m| m.t), q.seg.length()))
+            .collect())
+    }
     /// The edge fit's step (`--fit edge`) for every query's segment (`query.seg`, radius
     /// `query.r`) from its members: by default [`Self::members`], then the host's
     /// [`fit::steps`]. An engine may fit on its device instead (the GPU engine's ridge),

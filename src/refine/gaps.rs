@@ -104,17 +104,15 @@ pub fn split_gaps(
         return Ok((lines.clone(), total));
     }
     let queries: Vec<Query> = lines.segments.iter().map(|s| Query::new(*s, r)).collect();
-    let members = engine.members(&queries)?;
+    let axial = engine.axial(&queries)?;
     let mut segments = Vec::with_capacity(lines.len());
     let mut groups = lines
         .groups
         .as_ref()
         .map(|_| Vec::with_capacity(lines.len()));
-    for (i, (s, m)) in lines.segments.iter().zip(&members).enumerate() {
+    for (i, (s, t)) in lines.segments.iter().zip(&axial).enumerate() {
         let l = s.length();
-        let mut t: Vec<f64> = m.iter().map(|x| x.t.clamp(0.0, l)).collect();
-        t.sort_by(f64::total_cmp);
-        let (kept, notes) = pieces(&t, l, alpha, r, min_points, interior);
+        let (kept, notes) = pieces(t, l, alpha, r, min_points, interior);
         total.ends_cut += notes.ends_cut;
         total.split += notes.split;
         total.pieces_dropped += notes.pieces_dropped;

@@ -498,6 +498,23 @@ impl Engine for GpuEngine {
             coverage: out.coverage,
         }))
     }
+    /// Where member lists are the host's (a small batch, or [`GpuOptions::members`] on
+    /// the host), the CPU engine's positions straight from the walk; otherwise the
+    /// device's member lists.
+    fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
+        if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
+            self.count_batch(queries.len());
+            return self.on_cpu(queries.len(), || self.cpu.axial(queries));
+        }
+        let members = self.members(queries)?;
+        Ok(self.on_host(|| {
+            members
+                .iter()
+                .zip(queries)
+                .map(|(m, q)| super::sorted_axial(m.iter().map(|m| m.t), q.seg.length()))
+                .collect()
+        }))
+    }
 
     /// One device batch: the walk and the stats pass, a scan of the items' member counts
     /// and a member pass that writes each query's sure members contiguously; the host
