@@ -101,7 +101,7 @@ fn remove_if_unlocked(path: &Path, dir: bool) -> bool {
 
 /// Removes the stale temporary files of killed runs in `dir` (see the module comment) and
 /// returns how many. A folder that still holds the journal of an unfinished output set
-/// (see [`super::journal`]) is left alone: its temporary files are that set's outputs.
+/// (see `io::journal`) is left alone: its temporary files are that set's outputs.
 pub fn clean_stale_temps(dir: &Path) -> usize {
     let Ok(rd) = std::fs::read_dir(dir) else {
         return 0;

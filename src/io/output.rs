@@ -278,7 +278,7 @@ impl OutputSet {
     }
 
     /// Renames every written output into place, as one set (each a rename within its own
-    /// folder; see [`super::journal`]). Dropping the set without a commit removes the
+    /// folder; see `io::journal`). Dropping the set without a commit removes the
     /// temporary files and leaves the targets as they were.
     pub fn commit(mut self) -> Result<(), Error> {
         journal::commit(std::mem::take(&mut self.staged))

@@ -254,7 +254,7 @@ fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> bool {
 
 /// The move gate (`--fit-gate`): each segment the edge fit moved (`fitted`, from `input`)
 /// keeps its move only where the Gaussians within r of its new line explain it (a corner
-/// by [`gate_corner`], a ridge by [`gate_ridge`]); the others go back to their input and
+/// by `gate_corner`, a ridge by `gate_ridge`); the others go back to their input and
 /// are marked [`How::Kept`]. One engine batch of members, none without normals (every
 /// ridge then stands); the decision is the host's, so both engines agree. Returns how
 /// many moves it undid.

@@ -8,7 +8,7 @@ use std::fmt;
 use std::str::FromStr;
 
 /// `reference` reproduces the authors' published code (quirks included); `default`
-/// follows the paper's intent with every **[fix]** of docs/method.md#profiles on.
+/// follows the paper's intent with every **\[fix\]** of docs/method.md#profiles on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum Profile {

@@ -27,8 +27,8 @@ pub const MAX_QUERY_ITEMS: u32 = 60_000;
 pub const NBINS: u32 = 64;
 /// `Plan::cut` meaning "every member is below the cut".
 pub const ALL_BELOW: u32 = NBINS;
-/// Words of the control buffer before the flag entries: [0] items needed by the batch,
-/// [1] flags appended, [2] a members batch's miscount (`CTL_MEMBERS_BAD`), [3] unused.
+/// Words of the control buffer before the flag entries: word 0: items needed by the batch,
+/// 1: flags appended, 2: a members batch's miscount (`CTL_MEMBERS_BAD`), 3: unused.
 pub const CTL_HEAD: u32 = 4;
 /// Flag kinds (bit 31 of a flag's first word): the point lies within the f32 error bound
 /// of a boundary (membership or side for the host to decide in f64), or it is a member in

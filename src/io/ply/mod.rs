@@ -15,7 +15,7 @@ use super::chunked::{Chunked, CHUNK};
 use super::error::{Error, Position};
 use super::input::{open_input, Input};
 
-/// Options for [`read_gaussians`].
+/// Options for [`crate::io::read_gaussians`].
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PlyOptions {
     /// Keep only Gaussians with `sigmoid(opacity) >= min_opacity` (3DGS stores the logit).
@@ -135,7 +135,7 @@ pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, E
     }
 }
 
-/// [`read_gaussians`] on bytes already in memory; `path` names them in messages.
+/// [`crate::io::read_gaussians`] on bytes already in memory; `path` names them in messages.
 pub fn parse_gaussians(
     path: &Path,
     bytes: &[u8],
