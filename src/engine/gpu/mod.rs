@@ -498,6 +498,7 @@ impl Engine for GpuEngine {
             coverage: out.coverage,
         }))
     }
+
     /// Where member lists are the host's (a small batch, or [`GpuOptions::members`] on
     /// the host), the CPU engine's positions straight from the walk; otherwise the
     /// device's member lists.
