@@ -131,7 +131,8 @@ fn read(
 
 /// [`read_gaussians`] and [`super::read_gaussian_attributes`] of one model: a pipe is read
 /// once and both are parsed from memory (a second open of a pipe would wait for a writer
-/// that is gone); a regular file is read twice.
+/// that is gone); a 3DGS PLY file in f32 is walked once for both
+/// ([`ply::read_gaussians_with_attributes`]), any other file twice.
 pub fn read_gaussians_and_attributes(
     path: &Path,
     opts: &PlyOptions,
@@ -141,10 +142,24 @@ pub fn read_gaussians_and_attributes(
             read_bytes(path, &b, opts, false)?.0,
             super::normals::parse_gaussian_attributes(path, &b, opts.min_opacity)?,
         )),
-        Input::File { .. } => Ok((
-            read(path, opts, false)?.0,
-            super::read_gaussian_attributes(path, opts.min_opacity)?,
-        )),
+        Input::File { .. } => {
+            let (head, len) = head_of(path)?;
+            if detect_gaussians(path, &head, len)? == GaussianFormat::Ply {
+                // One walk for both where the PLY has the 3DGS layout in f32.
+                let (cloud, attributes) = ply::read_gaussians_with_attributes(path, opts)?;
+                if let Some(a) = attributes {
+                    return Ok((cloud, Some(a)));
+                }
+                return Ok((
+                    cloud,
+                    super::read_gaussian_attributes(path, opts.min_opacity)?,
+                ));
+            }
+            Ok((
+                read(path, opts, false)?.0,
+                super::read_gaussian_attributes(path, opts.min_opacity)?,
+            ))
+        }
     }
 }
 

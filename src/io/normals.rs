@@ -1,6 +1,7 @@
 //! The surface normals of a 3DGS model: each Gaussian's shortest axis (rotation
-//! `rot_0..3` = w x y z, log scales `scale_0..2`), for the edge fit. Kept apart from the
-//! center reader: it is needed only by `--fit edge`, and it reads three times the data.
+//! `rot_0..3` = w x y z, log scales `scale_0..2`), for the edge fit. A 3DGS PLY in f32
+//! gets them from the center reader's own walk (`ply::read_gaussians_with_attributes`);
+//! this reader is the pass of their own for every other layout.
 
 use std::io::Read;
 use std::path::Path;
@@ -109,37 +110,55 @@ fn attributes_from(
     for elem in &header.elements[..vi] {
         body.skip(path, elem)?;
     }
-    let mut out = GaussianAttributes {
-        normals: Vec::with_capacity(vertex.count),
-        max_scale: Vec::with_capacity(vertex.count),
-        min_scale: Vec::with_capacity(vertex.count),
-        opacity: has_opacity.then(|| Vec::with_capacity(vertex.count)),
-    };
+    let mut out = GaussianAttributes::with_capacity(vertex.count, has_opacity);
     body.for_each(path, vertex, &wanted, |_, v| {
         let c = [v[0] as f32, v[1] as f32, v[2] as f32];
         if !c.iter().all(|x| x.is_finite()) {
             return Ok(());
         }
-        let alpha = has_opacity.then(|| 1.0 / (1.0 + (-(v[10] as f32 as f64)).exp()));
+        let alpha = has_opacity.then(|| opacity_of(v[10] as f32));
         if let (Some(t), Some(a)) = (min_opacity, alpha) {
             if a.is_nan() || a < t {
                 return Ok(());
             }
         }
-        out.normals
-            .push(shortest_axis([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]]));
-        let s = v[7].max(v[8]).max(v[9]).exp();
-        out.max_scale
-            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
-        let s = v[7].min(v[8]).min(v[9]).exp();
-        out.min_scale
-            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
-        if let (Some(o), Some(a)) = (&mut out.opacity, alpha) {
-            o.push(if a.is_nan() { 0.0 } else { a as f32 });
-        }
+        out.push([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]], alpha);
         Ok(())
     })?;
     Ok(Some(out))
+}
+
+impl GaussianAttributes {
+    /// Empty, with room for `n` Gaussians; opacities where `has_opacity`.
+    pub(crate) fn with_capacity(n: usize, has_opacity: bool) -> Self {
+        GaussianAttributes {
+            normals: Vec::with_capacity(n),
+            max_scale: Vec::with_capacity(n),
+            min_scale: Vec::with_capacity(n),
+            opacity: has_opacity.then(|| Vec::with_capacity(n)),
+        }
+    }
+
+    /// One kept Gaussian's attributes from its rotation (w x y z), log scales and opacity
+    /// (`sigmoid` of the stored logit, where the file has one).
+    pub(crate) fn push(&mut self, rot: [f64; 4], log_scale: [f64; 3], alpha: Option<f64>) {
+        self.normals.push(shortest_axis(rot, log_scale));
+        let [a, b, c] = log_scale;
+        let s = a.max(b).max(c).exp();
+        self.max_scale
+            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
+        let s = a.min(b).min(c).exp();
+        self.min_scale
+            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
+        if let (Some(o), Some(a)) = (&mut self.opacity, alpha) {
+            o.push(if a.is_nan() { 0.0 } else { a as f32 });
+        }
+    }
+}
+
+/// `sigmoid` of an opacity logit as the file stores it (f32), as the attributes take it.
+pub(crate) fn opacity_of(logit: f32) -> f64 {
+    1.0 / (1.0 + (-(logit as f64)).exp())
 }
 
 /// The rotation's column of the smallest scale (log scales, as 3DGS stores them); zero for a

@@ -14,6 +14,7 @@ use std::path::Path;
 use super::chunked::{Chunked, CHUNK};
 use super::error::{Error, Position};
 use super::input::{open_input, Input};
+use super::normals::{opacity_of, GaussianAttributes};
 
 /// Options for [`crate::io::read_gaussians`].
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -129,9 +130,65 @@ fn f32_le(rec: &[u8], o: usize) -> f32 {
 /// decoded straight out of the buffer. NaN/Inf centers are skipped and counted with one
 /// warning (an error with `strict`); a file with no usable Gaussian is an error.
 pub fn read_gaussians(path: &Path, opts: &PlyOptions) -> Result<GaussianCloud, Error> {
+    Ok(match open_input(path)? {
+        Input::File { file, len } => gaussians_from(path, file.take(len), len, opts, false)?,
+        Input::Bytes(b) => gaussians_from(path, &b[..], b.len() as u64, opts, false)?,
+    }
+    .0)
+}
+
+/// [`read_gaussians`] and the Gaussians' [`GaussianAttributes`] from the same walk over
+/// the file, where it is a binary little-endian 3DGS PLY whose rotations, scales (and
+/// opacities) are f32, as trainers write them; `None` attributes otherwise (then
+/// [`crate::io::read_gaussian_attributes`] reads them in a pass of its own). The
+/// attributes are those of exactly the Gaussians kept, in their order.
+pub fn read_gaussians_with_attributes(
+    path: &Path,
+    opts: &PlyOptions,
+) -> Result<(GaussianCloud, Option<GaussianAttributes>), Error> {
     match open_input(path)? {
-        Input::File { file, len } => gaussians_from(path, file.take(len), len, opts),
-        Input::Bytes(b) => gaussians_from(path, &b[..], b.len() as u64, opts),
+        Input::File { file, len } => gaussians_from(path, file.take(len), len, opts, true),
+        Input::Bytes(b) => gaussians_from(path, &b[..], b.len() as u64, opts, true),
+    }
+}
+
+/// Byte offsets in a vertex record (little-endian f32 values) of what
+/// [`GaussianAttributes`] holds.
+struct AttrPlan {
+    rot: [usize; 4],
+    scale: [usize; 3],
+    opacity: Option<usize>,
+}
+
+impl AttrPlan {
+    /// The plan for `vertex`, where every property it reads is an f32 scalar.
+    fn of(vertex: &Element) -> Option<AttrPlan> {
+        let f32_at = |name: &str| {
+            let i = vertex.prop(name)?;
+            (vertex.props[i].kind == PropKind::Scalar(Scalar::F32)).then(|| vertex.offset(i))
+        };
+        let rot = ["rot_0", "rot_1", "rot_2", "rot_3"].map(f32_at);
+        let scale = ["scale_0", "scale_1", "scale_2"].map(f32_at);
+        let opacity = match vertex.prop("opacity") {
+            Some(_) => Some(f32_at("opacity")?),
+            None => None,
+        };
+        Some(AttrPlan {
+            rot: [rot[0]?, rot[1]?, rot[2]?, rot[3]?],
+            scale: [scale[0]?, scale[1]?, scale[2]?],
+            opacity,
+        })
+    }
+
+    /// Record `rec`'s attributes into `out`.
+    #[inline]
+    fn push(&self, rec: &[u8], out: &mut GaussianAttributes) {
+        let v = |o: usize| f64::from(f32_le(rec, o));
+        out.push(
+            self.rot.map(v),
+            self.scale.map(v),
+            self.opacity.map(|o| opacity_of(f32_le(rec, o))),
+        );
     }
 }
 
@@ -141,7 +198,7 @@ pub fn parse_gaussians(
     bytes: &[u8],
     opts: &PlyOptions,
 ) -> Result<GaussianCloud, Error> {
-    gaussians_from(path, bytes, bytes.len() as u64, opts)
+    Ok(gaussians_from(path, bytes, bytes.len() as u64, opts, false)?.0)
 }
 
 /// The Gaussian reader over a stream of exactly `file_len` bytes.
@@ -150,7 +207,8 @@ fn gaussians_from<R: Read>(
     input: R,
     file_len: u64,
     opts: &PlyOptions,
-) -> Result<GaussianCloud, Error> {
+    want_attributes: bool,
+) -> Result<(GaussianCloud, Option<GaussianAttributes>), Error> {
     if file_len == 0 {
         return Err(Error::Empty {
             path: path.to_path_buf(),
@@ -264,6 +322,12 @@ fn gaussians_from<R: Read>(
             .iter()
             .flatten()
             .all(|p| p.1 == Scalar::F32);
+    let plan = (want_attributes && fast)
+        .then(|| AttrPlan::of(vertex))
+        .flatten();
+    let mut attributes = plan
+        .as_ref()
+        .map(|p| GaussianAttributes::with_capacity(capacity, p.opacity.is_some()));
     let mut body = Body::new(ch, &header, header_lines);
     for elem in &header.elements[..vi] {
         body.skip(path, elem)?;
@@ -273,7 +337,8 @@ fn gaussians_from<R: Read>(
             let stride = vertex.stride().unwrap_or(0);
             let offs = [x.0, y.0, z.0].map(|i| vertex.offset(i));
             let oo = opacity.map(|o| vertex.offset(o.0));
-            read_fast_le(path, ch, vertex, stride, offs, oo, &mut col)?;
+            let attrs = plan.as_ref().zip(attributes.as_mut());
+            read_fast_le(path, ch, vertex, stride, (offs, oo), &mut col, attrs)?;
         }
         _ => {
             let mut wanted = vec![x.0, y.0, z.0];
@@ -308,15 +373,18 @@ fn gaussians_from<R: Read>(
         ));
     }
     col.centers.shrink_to_fit();
-    Ok(GaussianCloud {
-        centers: col.centers,
-        format: header.format(),
-        vertex_count: vertex.count,
-        properties: vertex.props.iter().map(|p| p.name.clone()).collect(),
-        skipped_nonfinite: col.nonfinite,
-        dropped_low_opacity: col.low,
-        warnings,
-    })
+    Ok((
+        GaussianCloud {
+            centers: col.centers,
+            format: header.format(),
+            vertex_count: vertex.count,
+            properties: vertex.props.iter().map(|p| p.name.clone()).collect(),
+            skipped_nonfinite: col.nonfinite,
+            dropped_low_opacity: col.low,
+            warnings,
+        },
+        attributes,
+    ))
 }
 
 /// The 3DGS hot loop: fixed stride, little-endian f32 x/y/z (and opacity) at offsets
@@ -326,9 +394,9 @@ fn read_fast_le<R: Read>(
     ch: &mut Chunked<R>,
     vertex: &Element,
     stride: usize,
-    [ox, oy, oz]: [usize; 3],
-    oo: Option<usize>,
+    ([ox, oy, oz], oo): ([usize; 3], Option<usize>),
     col: &mut Collect,
+    mut attrs: Option<(&AttrPlan, &mut GaussianAttributes)>,
 ) -> Result<(), Error> {
     let mut index = 0usize;
     while index < vertex.count {
@@ -348,9 +416,15 @@ fn read_fast_le<R: Read>(
                 Some(o) => f32_le(rec, o),
                 None => 0.0,
             };
+            let kept = col.centers.len();
             col.push(c, op, || {
                 Position::record("vertex", index + k, Some(base + (k * stride) as u64))
             })?;
+            if let Some((plan, out)) = attrs.as_mut() {
+                if col.centers.len() > kept {
+                    plan.push(rec, out);
+                }
+            }
         }
         ch.consume(n * stride);
         index += n;
@@ -414,6 +488,36 @@ pub(crate) fn open_in_memory<'a>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn one_walk_gives_the_attributes_of_two() {
+        // A model OpenSplat trained (62 f32 properties): the centers and the attributes
+        // from one walk equal the center reader's and the attribute reader's, with and
+        // without an opacity cut.
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/real_pairs/abc00000006/point_cloud.ply");
+        for min_opacity in [None, Some(0.3)] {
+            let opts = PlyOptions {
+                min_opacity,
+                ..Default::default()
+            };
+            let (cloud, fused) = read_gaussians_with_attributes(&path, &opts).unwrap();
+            let fused = fused.expect("a 3DGS PLY in f32 is read in one walk");
+            assert_eq!(cloud, read_gaussians(&path, &opts).unwrap());
+            let apart = crate::io::read_gaussian_attributes(&path, min_opacity)
+                .unwrap()
+                .unwrap();
+            assert_eq!(fused, apart);
+            assert_eq!(fused.normals.len(), cloud.centers.len());
+            assert!(fused
+                .opacity
+                .as_ref()
+                .is_some_and(|o| o.len() == cloud.centers.len()));
+            if min_opacity.is_some() {
+                assert!(cloud.dropped_low_opacity > 0);
+            }
+        }
+    }
 
     #[test]
     fn header_with_lists_and_comments() {
