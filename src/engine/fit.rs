@@ -14,7 +14,9 @@
 
 use super::cpu::member_list;
 use super::{Engine, EngineError, FitAnswer, FitAsk, FitJob, Query};
-use crate::geom::fit::{near_threshold, step, FitResult, LineFit, Member, Track};
+use crate::geom::fit::{
+    basis, near_threshold, step, step_section, FitResult, LineFit, Member, Section, Track,
+};
 use crate::geom::{p64, Segment};
 use crate::index::Grid;
 use rayon::prelude::*;
@@ -131,14 +133,17 @@ fn end_move(a: &Segment, b: &Segment) -> f64 {
     (a.p1 - b.p1).length().max((a.p2 - b.p2).length())
 }
 
-/// The members of `X(s, r)` among `near` (which holds every point within `r` of `s`),
-/// in their order: the test and arithmetic of a walk ([`member_list`]).
-fn members_among(near: &[Gathered], s: &Segment, r: f64, out: &mut Vec<Member>) {
+/// The cross-section of the members of `X(s, r)` among `near` (which holds every point
+/// within `r` of `s`), in their order: the test and arithmetic of a walk
+/// ([`member_list`]), then those of [`Section::push`].
+fn section_among(near: &[Gathered], s: &Segment, r: f64, job: &FitJob<'_>, out: &mut Section) {
     out.clear();
     let cyl = crate::geom::Cylinder::new(s, r);
+    let frame = basis(s.dir());
+    let ow = job.spec.opacity_weight;
     for &(id, p) in near {
         if let Some((t, offset)) = cyl.test(p64(p)) {
-            out.push(Member { id, t, offset });
+            out.push(id, t, offset, frame, &job.points, ow);
         }
     }
 }
@@ -147,7 +152,7 @@ fn members_among(near: &[Gathered], s: &Segment, r: f64, out: &mut Vec<Member>) 
 #[derive(Default)]
 struct Scratch {
     near: Vec<Gathered>,
-    members: Vec<Member>,
+    section: Section,
 }
 
 /// One segment's iterations, its neighbourhood gathered once (and again only after it
@@ -164,9 +169,14 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
     let mut at: Option<Segment> = None;
     while t.steps < spec.iterations {
         if direct {
-            s.members = member_list(grid, &Query::new(t.cur, r));
+            s.section.clear();
+            let frame = basis(t.cur.dir());
+            for m in member_list(grid, &Query::new(t.cur, r)) {
+                let ow = spec.opacity_weight;
+                s.section.push(m.id, m.t, m.offset, frame, &job.points, ow);
+            }
         } else if !t.cur.is_valid() {
-            s.members.clear();
+            s.section.clear();
         } else {
             // Every point of X(cur, r) lies within r of cur, and cur within the margin
             // of `at` (end by end, so every point of it): within r + margin of `at`.
@@ -175,9 +185,9 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
                 gather(grid, &t.cur, r + margin, &mut s.near);
                 at = Some(t.cur);
             }
-            members_among(&s.near, &t.cur, r, &mut s.members);
+            section_among(&s.near, &t.cur, r, job, &mut s.section);
         }
-        let answer = step(&t.cur, &s.members, &job.points, r, spec, t.warm);
+        let answer = step_section(&t.cur, &s.section, &job.points, r, spec, t.warm);
         if !t.advance(answer, r, spec) {
             break;
         }

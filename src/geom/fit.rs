@@ -399,30 +399,87 @@ pub fn step(
     spec: &FitSpec,
     warm: bool,
 ) -> (Option<LineFit>, How) {
-    let d = s.dir();
-    let (e1, e2) = basis(d);
-    let (pts, pw) = cross_section(members, (e1, e2), points, spec.opacity_weight);
+    let mut sec = Section::default();
+    let frame = basis(s.dir());
+    for m in members {
+        sec.push(m.id, m.t, m.offset, frame, points, spec.opacity_weight);
+    }
+    step_section(s, &sec, points, r, spec, warm)
+}
+
+/// One step's cross-section: per member of `X(s, r)` (working-set order), its axial
+/// position and its offset in the frame ([`basis`]) of the segment's direction, its
+/// weight (opacity with [`FitSpec::opacity_weight`], else 1) and its working-set id.
+#[derive(Clone, Debug, Default)]
+pub struct Section {
+    pub pts: Vec<(f64, DVec2)>,
+    pub pw: Vec<f64>,
+    pub ids: Vec<u32>,
+}
+
+impl Section {
+    /// Empty, keeping its room.
+    pub fn clear(&mut self) {
+        self.pts.clear();
+        self.pw.clear();
+        self.ids.clear();
+    }
+
+    /// Member `id` at axial position `t` and perpendicular offset `offset`: the values
+    /// of [`cross_section`].
+    #[inline]
+    pub fn push(
+        &mut self,
+        id: u32,
+        t: f64,
+        offset: DVec3,
+        (e1, e2): (DVec3, DVec3),
+        points: &FitPoints<'_>,
+        opacity_weight: bool,
+    ) {
+        self.pts
+            .push((t, DVec2::new(offset.dot(e1), offset.dot(e2))));
+        self.pw.push(if opacity_weight {
+            points.weight(id)
+        } else {
+            1.0
+        });
+        self.ids.push(id);
+    }
+}
+
+/// [`step`] from the cross-section `sec` of the members of `X(s, r)`.
+pub fn step_section(
+    s: &Segment,
+    sec: &Section,
+    points: &FitPoints<'_>,
+    r: f64,
+    spec: &FitSpec,
+    warm: bool,
+) -> (Option<LineFit>, How) {
+    let (e1, e2) = basis(s.dir());
+    let (pts, pw) = (&sec.pts[..], &sec.pw[..]);
     let min_points = spec.min_points as usize;
     if let Some(ns) = points.normals {
         // Normals across the line (a face through the edge): |n·d| < sin 30°; a Gaussian
         // with no normal (zero) is left out.
         let mut keep = Vec::new();
         let mut n2 = Vec::new();
-        for (i, m) in members.iter().enumerate() {
-            let n = super::p64(ns[m.id as usize]);
+        for (i, &id) in sec.ids.iter().enumerate() {
+            let n = super::p64(ns[id as usize]);
             let across = DVec2::new(n.dot(e1), n.dot(e2));
             if across.length() > 0.866 {
                 keep.push(i);
                 n2.push(across.normalize());
             }
         }
-        if let Some(f) = two_planes(&pts, &pw, &n2, &keep, s.length(), min_points) {
+        if let Some(f) = two_planes(pts, pw, &n2, &keep, s.length(), min_points) {
             if f.a.length() <= r {
                 return (Some(f), How::Corner);
             }
         }
     }
-    match ridge(&pts, &pw, r, spec.bandwidth, warm) {
+    match ridge(pts, pw, r, spec.bandwidth, warm) {
         Some((f, weight)) if weight >= min_points as f64 => (Some(f), How::Ridge),
         _ => (None, How::Unclear),
     }
