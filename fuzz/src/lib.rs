@@ -1,10 +1,10 @@
-//! The readers of linegs-gpu, compiled from the package's own sources (`src/geom.rs` and
+//! The readers of linegs-gpu, compiled from the package's own sources (`src/geom/` and
 //! `src/io/`) without the GPU stack: an instrumented build of wgpu and naga takes longer
 //! than a fuzz run on a small machine, and the readers need none of it. The modules are
 //! the same files the package builds, so what is fuzzed is what ships.
 
 #[allow(unused)]
-#[path = "../../src/geom.rs"]
+#[path = "../../src/geom/mod.rs"]
 pub mod geom;
 
 #[allow(unused)]
@@ -36,10 +36,26 @@ pub fn check_gaussians(data: &[u8]) {
             strict: true,
         },
     ] {
-        if let Ok(c) = io::parse_gaussians(Path::new("fuzz.ply"), data, &opts) {
+        let path = Path::new("fuzz.ply");
+        let centers = io::parse_gaussians(path, data, &opts);
+        if let Ok(c) = &centers {
             assert!(!c.centers.is_empty());
             assert!(c.centers.len() <= c.vertex_count);
             assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+        }
+        // The 3DGS reader with its attributes (one walk where the layout allows): the same
+        // centers, and one attribute record per center.
+        match io::parse_gaussians_and_attributes(path, data, &opts) {
+            Ok((c, a)) => {
+                assert_eq!(Some(&c), centers.as_ref().ok());
+                if let Some(a) = a {
+                    assert_eq!(a.normals.len(), c.centers.len());
+                    assert_eq!(a.max_scale.len(), c.centers.len());
+                    assert_eq!(a.min_scale.len(), c.centers.len());
+                    assert!(a.opacity.is_none_or(|o| o.len() == c.centers.len()));
+                }
+            }
+            Err(_) => assert!(centers.is_err()),
         }
     }
 }

@@ -138,10 +138,7 @@ pub fn read_gaussians_and_attributes(
     opts: &PlyOptions,
 ) -> Result<(GaussianCloud, Option<super::GaussianAttributes>), Error> {
     match open_input(path)? {
-        Input::Bytes(b) => Ok((
-            read_bytes(path, &b, opts, false)?.0,
-            super::normals::parse_gaussian_attributes(path, &b, opts.min_opacity)?,
-        )),
+        Input::Bytes(b) => parse_gaussians_and_attributes(path, &b, opts),
         Input::File { .. } => {
             let (head, len) = head_of(path)?;
             if detect_gaussians(path, &head, len)? == GaussianFormat::Ply {
@@ -161,6 +158,27 @@ pub fn read_gaussians_and_attributes(
             ))
         }
     }
+}
+
+/// [`read_gaussians_and_attributes`] of bytes already in memory (any model format); `path`
+/// names them in messages.
+pub fn parse_gaussians_and_attributes(
+    path: &Path,
+    bytes: &[u8],
+    opts: &PlyOptions,
+) -> Result<(GaussianCloud, Option<super::GaussianAttributes>), Error> {
+    let head = bytes.strip_prefix(BOM).unwrap_or(bytes);
+    let head = &head[..head.len().min(1 << 20)];
+    let apart = || super::normals::parse_gaussian_attributes(path, bytes, opts.min_opacity);
+    if detect_gaussians(path, head, bytes.len() as u64)? == GaussianFormat::Ply {
+        let (cloud, attributes) = ply::parse_gaussians_with_attributes(path, bytes, opts)?;
+        let attributes = match attributes {
+            Some(a) => Some(a),
+            None => apart()?,
+        };
+        return Ok((cloud, attributes));
+    }
+    Ok((read_bytes(path, bytes, opts, false)?.0, apart()?))
 }
 
 /// [`read_gaussians`] on bytes already in memory (any model format); `path` names them

@@ -26,8 +26,8 @@ mod write;
 pub use edges_json::{Curves, POLYLINE_PIECES};
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
-    detect_gaussians, is_gaussian_model, parse_gaussian_model, read_gaussians,
-    read_gaussians_and_attributes, read_gaussians_with_opacity, GaussianFormat,
+    detect_gaussians, is_gaussian_model, parse_gaussian_model, parse_gaussians_and_attributes,
+    read_gaussians, read_gaussians_and_attributes, read_gaussians_with_opacity, GaussianFormat,
 };
 pub use info::{info, info_with, FileInfo, FileKind};
 pub use input::STREAM_LIMIT;

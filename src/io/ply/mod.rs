@@ -152,6 +152,15 @@ pub fn read_gaussians_with_attributes(
     }
 }
 
+/// [`read_gaussians_with_attributes`] of bytes already in memory.
+pub fn parse_gaussians_with_attributes(
+    path: &Path,
+    bytes: &[u8],
+    opts: &PlyOptions,
+) -> Result<(GaussianCloud, Option<GaussianAttributes>), Error> {
+    gaussians_from(path, bytes, bytes.len() as u64, opts, true)
+}
+
 /// Byte offsets in a vertex record (little-endian f32 values) of what
 /// [`GaussianAttributes`] holds.
 struct AttrPlan {
