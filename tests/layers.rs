@@ -257,3 +257,41 @@ fn the_reader_resolves_relative_and_grouped_paths() {
     assert_eq!(module_of(Path::new("src/io/mod.rs")), ["io"]);
     assert_eq!(module_of(Path::new("src/geom.rs")), ["geom"]);
 }
+
+/// The fuzz crate compiles `src/geom/` and `src/io/` itself, each root file included with
+/// `#[path]` (fuzz/src/lib.rs). A file included that way looks for its own `mod x;` in
+/// its own folder (`x.rs` or `x/mod.rs`) whatever its name, where the package looks in
+/// `name/` for a `name.rs`: the two builds find the same files only where each included
+/// root is a `mod.rs`, or has no modules of its own.
+#[test]
+fn the_fuzz_crate_finds_every_module_it_includes() {
+    let lib = root().join("fuzz/src/lib.rs");
+    let text = std::fs::read_to_string(&lib).unwrap();
+    let mut roots = 0;
+    for line in text.lines() {
+        let Some(rest) = line.trim().strip_prefix("#[path = \"") else {
+            continue;
+        };
+        let rel = rest.split('"').next().unwrap();
+        let file = lib.parent().unwrap().join(rel);
+        let src =
+            std::fs::read_to_string(&file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let dir = file.parent().unwrap();
+        for l in code_lines(&src) {
+            let l = l.1.trim().to_string();
+            let l = l.strip_prefix("pub ").unwrap_or(&l);
+            let l = l.strip_prefix("pub(crate) ").unwrap_or(l);
+            if let Some(name) = l.strip_prefix("mod ").and_then(|m| m.strip_suffix(';')) {
+                assert!(
+                    dir.join(format!("{name}.rs")).exists()
+                        || dir.join(name).join("mod.rs").exists(),
+                    "{}: `mod {name};` is not in {} (the fuzz crate's #[path] include looks there)",
+                    file.display(),
+                    dir.display()
+                );
+            }
+        }
+        roots += 1;
+    }
+    assert!(roots >= 2, "fuzz/src/lib.rs includes {roots} roots");
+}
