@@ -11,7 +11,7 @@ use glam::DVec3;
 use linegs_gpu::engine::cpu::CpuEngine;
 use linegs_gpu::engine::gpu::{GpuEngine, GpuOptions};
 use linegs_gpu::engine::{
-    sorted_axial, Ask, Coverage, Engine, EngineError, Nearest, NearestSum, Query, Want,
+    axial_of_members, Ask, Coverage, Engine, EngineError, Nearest, NearestSum, Query, Want,
 };
 use linegs_gpu::geom::Segment;
 use linegs_gpu::index::Grid;
@@ -178,13 +178,7 @@ fn check_members(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query])
 /// lists (`Engine::axial`: the CPU engine's straight from its walk, the GPU engine's from
 /// its device lists or, for small batches, the CPU engine's walk).
 fn check_axial(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
-    let from_members: Vec<Vec<f64>> = reference
-        .members(queries)
-        .unwrap()
-        .iter()
-        .zip(queries)
-        .map(|(m, q)| sorted_axial(m.iter().map(|m| m.t), q.seg.length()))
-        .collect();
+    let from_members = axial_of_members(&reference.members(queries).unwrap(), queries);
     let bits = |v: &[Vec<f64>]| -> Vec<Vec<u64>> {
         v.iter()
             .map(|t| t.iter().map(|x| x.to_bits()).collect())

@@ -231,22 +231,12 @@ impl Engine for CpuEngine {
     /// id (the positions are sorted by value).
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
         self.count_batch(queries.len());
-        let grid = &*self.grid;
         Ok(queries
             .par_iter()
             .with_min_len(8)
             .map(|q| {
                 let mut t = Vec::new();
-                if q.seg.is_valid() {
-                    let cyl = Cylinder::new(&q.seg, q.r);
-                    grid.visit_rows(&q.seg, q.r, |row| {
-                        for p in &grid.points[grid.row_range(&row)] {
-                            if let Some((u, _)) = cyl.test(p64(*p)) {
-                                t.push(u);
-                            }
-                        }
-                    });
-                }
+                self.for_each_member(q, |_, t1, _| t.push(t1));
                 super::sorted_axial(t.into_iter(), q.seg.length())
             })
             .collect())

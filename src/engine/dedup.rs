@@ -125,6 +125,23 @@ impl Dedup {
     fn count(&self, n: usize) {
         self.asked.fetch_add(n as u64, Ordering::Relaxed);
     }
+
+    /// `ask` of the inner engine for each distinct query once, its answer copied to the
+    /// query's copies: for answers that are a function of the query alone.
+    fn per_distinct<T: Clone>(
+        &self,
+        queries: &[Query],
+        ask: impl FnOnce(&dyn Engine, &[Query]) -> Result<Vec<T>, EngineError>,
+    ) -> Result<Vec<T>, EngineError> {
+        self.count(queries.len());
+        match Groups::of(queries, None) {
+            None => ask(&*self.inner, queries),
+            Some(g) => {
+                let a = ask(&*self.inner, &g.queries(queries)).map_err(|e| g.error(e))?;
+                Ok(g.fan_out(&a))
+            }
+        }
+    }
 }
 
 impl Engine for Dedup {
@@ -182,31 +199,11 @@ impl Engine for Dedup {
     }
 
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
-        self.count(queries.len());
-        match Groups::of(queries, None) {
-            None => self.inner.axial(queries),
-            Some(g) => {
-                let a = self
-                    .inner
-                    .axial(&g.queries(queries))
-                    .map_err(|e| g.error(e))?;
-                Ok(g.fan_out(&a))
-            }
-        }
+        self.per_distinct(queries, |e, q| e.axial(q))
     }
 
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
-        self.count(queries.len());
-        match Groups::of(queries, None) {
-            None => self.inner.members(queries),
-            Some(g) => {
-                let a = self
-                    .inner
-                    .members(&g.queries(queries))
-                    .map_err(|e| g.error(e))?;
-                Ok(g.fan_out(&a))
-            }
-        }
+        self.per_distinct(queries, |e, q| e.members(q))
     }
 
     /// The step of a segment is a function of its query's bits (and the batch-wide ask):

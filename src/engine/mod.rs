@@ -210,6 +210,15 @@ pub type Sensitive<'a> = dyn Fn(usize, &LineFit) -> bool + Sync + 'a;
 /// and how it was decided.
 pub type FitAnswer = (Option<LineFit>, How);
 
+/// [`Engine::axial`] of member lists (`members[i]` those of `queries[i]`).
+pub fn axial_of_members(members: &[Vec<Member>], queries: &[Query]) -> Vec<Vec<f64>> {
+    members
+        .iter()
+        .zip(queries)
+        .map(|(m, q)| sorted_axial(m.iter().map(|m| m.t), q.seg.length()))
+        .collect()
+}
+
 /// Axial positions `t` clamped to `[0, l]` and sorted ascending ([`Engine::axial`]).
 pub fn sorted_axial(t: impl Iterator<Item = f64>, l: f64) -> Vec<f64> {
     let mut t: Vec<f64> = t.map(|t| t.clamp(0.0, l)).collect();
@@ -321,12 +330,7 @@ pub trait Engine: Send + Sync {
     /// Every query's members' axial positions `t`, each clamped to `[0, length]` and
     /// sorted ascending (what `--split-gaps` reads): by default from [`Self::members`].
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
-        Ok(self
-            .members(queries)?
-            .iter()
-            .zip(queries)
-            .map(|(m, q)| sorted_axial(m.iter().map(|m| m.t), q.seg.length()))
-            .collect())
+        Ok(axial_of_members(&self.members(queries)?, queries))
     }
     /// The edge fit's step (`--fit edge`) for every query's segment (`query.seg`, radius
     /// `query.r`) from its members: by default [`Self::members`], then the host's

@@ -508,13 +508,7 @@ impl Engine for GpuEngine {
             return self.on_cpu(queries.len(), || self.cpu.axial(queries));
         }
         let members = self.members(queries)?;
-        Ok(self.on_host(|| {
-            members
-                .iter()
-                .zip(queries)
-                .map(|(m, q)| super::sorted_axial(m.iter().map(|m| m.t), q.seg.length()))
-                .collect()
-        }))
+        Ok(self.on_host(|| super::axial_of_members(&members, queries)))
     }
 
     /// One device batch: the walk and the stats pass, a scan of the items' member counts
