@@ -19,6 +19,7 @@ use crate::geom::fit::{
 };
 use crate::geom::{p64, Segment};
 use crate::index::Grid;
+use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 use std::collections::HashMap;
 
@@ -133,25 +134,129 @@ fn end_move(a: &Segment, b: &Segment) -> f64 {
     (a.p1 - b.p1).length().max((a.p2 - b.p2).length())
 }
 
+/// A segment's gathered neighbourhood in columns (working-set order): ids and
+/// coordinates (widened to f64 once, at the gather, rather than at every step).
+#[derive(Default)]
+struct Near {
+    ids: Vec<u32>,
+    x: Vec<f64>,
+    y: Vec<f64>,
+    z: Vec<f64>,
+    /// Per point, from the last [`section_among`]: axial position, cross-section offset
+    /// in the frame and whether it is a member.
+    t: Vec<f64>,
+    qx: Vec<f64>,
+    qy: Vec<f64>,
+    inside: Vec<bool>,
+}
+
+impl Near {
+    /// The gathered points `g` (sorted by id).
+    fn fill(&mut self, g: &[Gathered]) {
+        self.ids.clear();
+        self.x.clear();
+        self.y.clear();
+        self.z.clear();
+        for &(id, p) in g {
+            self.ids.push(id);
+            self.x.push(f64::from(p[0]));
+            self.y.push(f64::from(p[1]));
+            self.z.push(f64::from(p[2]));
+        }
+        let n = g.len();
+        self.t.resize(n, 0.0);
+        self.qx.resize(n, 0.0);
+        self.qy.resize(n, 0.0);
+        self.inside.resize(n, false);
+    }
+
+    fn len(&self) -> usize {
+        self.ids.len()
+    }
+}
+
+/// Every near point's cylinder test against `cyl` and its offset in the frame
+/// `(e1, e2)`: the arithmetic of [`crate::geom::Cylinder::test`] and [`Section::push`],
+/// one point per vector lane (no branch).
+#[inline(always)]
+fn test_body(n: &mut Near, cyl: &crate::geom::Cylinder, (e1, e2): (DVec3, DVec3)) {
+    let m = n.len();
+    let (xs, ys, zs) = (&n.x[..m], &n.y[..m], &n.z[..m]);
+    let (ts, qx, qy, ins) = (
+        &mut n.t[..m],
+        &mut n.qx[..m],
+        &mut n.qy[..m],
+        &mut n.inside[..m],
+    );
+    for i in 0..m {
+        let p = DVec3::new(xs[i], ys[i], zs[i]);
+        let w = p - cyl.p1;
+        let t1 = w.dot(cyl.d);
+        let beyond = (cyl.p2 - p).dot(cyl.d);
+        let v = w - cyl.d * t1;
+        ts[i] = t1;
+        qx[i] = v.dot(e1);
+        qy[i] = v.dot(e2);
+        let past_an_end = (t1 < 0.0) | (beyond < 0.0);
+        ins[i] = !past_an_end & (v.length_squared() <= cyl.r2);
+    }
+}
+
+/// # Safety
+/// The CPU has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn test_avx2(n: &mut Near, cyl: &crate::geom::Cylinder, frame: (DVec3, DVec3)) {
+    test_body(n, cyl, frame)
+}
+
 /// The cross-section of the members of `X(s, r)` among `near` (which holds every point
 /// within `r` of `s`), in their order: the test and arithmetic of a walk
 /// ([`member_list`]), then those of [`Section::push`].
-fn section_among(near: &[Gathered], s: &Segment, r: f64, job: &FitJob<'_>, out: &mut Section) {
+fn section_among(near: &mut Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &mut Section) {
     out.clear();
     let cyl = crate::geom::Cylinder::new(s, r);
     let frame = basis(s.dir());
-    let ow = job.spec.opacity_weight;
-    for &(id, p) in near {
-        if let Some((t, offset)) = cyl.test(p64(p)) {
-            out.push(id, t, offset, frame, &job.points, ow);
-        }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2.
+        unsafe { test_avx2(near, &cyl, frame) }
+    } else {
+        test_body(near, &cyl, frame)
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    test_body(near, &cyl, frame);
+    // Every point is written at the next free place, which advances only past members:
+    // no branch on the test (points near the cylinder's surface defeat prediction).
+    let n = near.len();
+    out.pts.resize(n, (0.0, DVec2::ZERO));
+    out.pw.resize(n, 0.0);
+    out.ids.resize(n, 0);
+    let weight = |id: u32| {
+        if job.spec.opacity_weight {
+            job.points.weight(id)
+        } else {
+            1.0
+        }
+    };
+    let mut k = 0;
+    for i in 0..n {
+        let id = near.ids[i];
+        out.pts[k] = (near.t[i], DVec2::new(near.qx[i], near.qy[i]));
+        out.pw[k] = weight(id);
+        out.ids[k] = id;
+        k += usize::from(near.inside[i]);
+    }
+    out.pts.truncate(k);
+    out.pw.truncate(k);
+    out.ids.truncate(k);
 }
 
 /// Buffers one thread reuses from segment to segment.
 #[derive(Default)]
 struct Scratch {
-    near: Vec<Gathered>,
+    gathered: Vec<Gathered>,
+    near: Near,
     section: Section,
 }
 
@@ -182,10 +287,11 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
             // of `at` (end by end, so every point of it): within r + margin of `at`.
             let covers = |g: Segment| end_move(&g, &t.cur) <= margin;
             if !at.is_some_and(covers) {
-                gather(grid, &t.cur, r + margin, &mut s.near);
+                gather(grid, &t.cur, r + margin, &mut s.gathered);
+                s.near.fill(&s.gathered);
                 at = Some(t.cur);
             }
-            section_among(&s.near, &t.cur, r, job, &mut s.section);
+            section_among(&mut s.near, &t.cur, r, job, &mut s.section);
         }
         let answer = step_section(&t.cur, &s.section, &job.points, r, spec, t.warm);
         if !t.advance(answer, r, spec) {
