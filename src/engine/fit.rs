@@ -101,8 +101,10 @@ pub fn steps(queries: &[Query], members: &[Vec<Member>], ask: &FitAsk<'_>) -> Ve
         .collect()
 }
 
-/// One gathered point: its working-set id and its coordinates.
-type Gathered = (u32, [f32; 3]);
+/// One gathered point: its working-set id in the high half, its place in the grid's
+/// point array in the low half, so that sorting the keys as integers sorts the points
+/// into working-set order (8-byte keys sort faster than id-and-coordinate records).
+type Gathered = u64;
 
 /// The points of `grid` within `reach` of segment `g` (and a few more: the test is
 /// generous by a relative 1e-7), in working-set order.
@@ -122,11 +124,12 @@ fn gather(grid: &Grid, g: &Segment, reach: f64, out: &mut Vec<Gathered>) {
             let w = p64(*p) - g.p1;
             let t = w.dot(d).clamp(0.0, l);
             if (w - d * t).length_squared() <= r2 {
-                out.push((grid.ids[start + j], *p));
+                let at = start + j;
+                out.push(u64::from(grid.ids[at]) << 32 | at as u64);
             }
         }
     });
-    out.sort_unstable_by_key(|x| x.0);
+    out.sort_unstable();
 }
 
 /// Largest move of an end from `a` to `b`.
@@ -151,14 +154,15 @@ struct Near {
 }
 
 impl Near {
-    /// The gathered points `g` (sorted by id).
-    fn fill(&mut self, g: &[Gathered]) {
+    /// The gathered points `g` of `grid` (sorted keys).
+    fn fill(&mut self, grid: &Grid, g: &[Gathered]) {
         self.ids.clear();
         self.x.clear();
         self.y.clear();
         self.z.clear();
-        for &(id, p) in g {
-            self.ids.push(id);
+        for &key in g {
+            let p = grid.points[(key & 0xFFFF_FFFF) as usize];
+            self.ids.push((key >> 32) as u32);
             self.x.push(f64::from(p[0]));
             self.y.push(f64::from(p[1]));
             self.z.push(f64::from(p[2]));
@@ -288,7 +292,7 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
             let covers = |g: Segment| end_move(&g, &t.cur) <= margin;
             if !at.is_some_and(covers) {
                 gather(grid, &t.cur, r + margin, &mut s.gathered);
-                s.near.fill(&s.gathered);
+                s.near.fill(grid, &s.gathered);
                 at = Some(t.cur);
             }
             section_among(&mut s.near, &t.cur, r, job, &mut s.section);
