@@ -856,3 +856,44 @@ fn uploads_through_staging_memory_give_the_same_answers() {
     };
     check_parity(&cpu, &gpu, &qs);
 }
+
+#[test]
+fn a_large_device_fit_batch_matches_the_cpu() {
+    // More than 256 queries (two levels in the counts' scan) and more than 65,536 work
+    // items (three in the member scan), members and fit on the device: the batch records
+    // more dispatches than a small one (it once ran out of its planned uniform slots, a
+    // panic on every hardware adapter at 10^6 Gaussians x 10^4 segments).
+    use linegs_gpu::engine::gpu::{FitOn, MembersOn};
+    use linegs_gpu::engine::FitAsk;
+    let pts = random_scene(200_000, 91);
+    let qs = random_queries(3_000, 92, 0.05);
+    let opts = GpuOptions {
+        fit: FitOn::Device,
+        members: MembersOn::Device,
+        ..GpuOptions::default()
+    };
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, opts) else {
+        return;
+    };
+    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default());
+    let ask = FitAsk::new(&spec, Default::default());
+    let want = cpu.fit_lines(&qs, &ask).unwrap();
+    let got = gpu.fit_lines(&qs, &ask).unwrap();
+    let c = gpu.counters();
+    assert!(c.device_fits > qs.len() as u64 / 2, "{c:?}");
+    assert_eq!(c.cpu_batches, 0, "{c:?}");
+    let mut moved = 0;
+    for ((w, g), q) in want.iter().zip(&got).zip(&qs) {
+        assert_eq!(w.1, g.1);
+        let (Some(w), Some(g)) = (w.0, g.0) else {
+            assert_eq!(w.0.is_some(), g.0.is_some());
+            continue;
+        };
+        moved += 1;
+        for t in [0.0, q.seg.length()] {
+            let d = (w.a + w.b * (t - w.t0)) - (g.a + g.b * (t - g.t0));
+            assert!(d.length() <= 1e-9 * q.r, "{w:?} vs {g:?}");
+        }
+    }
+    assert!(moved > qs.len() / 2, "{moved}");
+}

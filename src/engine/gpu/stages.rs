@@ -57,10 +57,12 @@ pub fn member_scan_max(lim: &Limits) -> u32 {
 }
 
 /// Most uniform slots a try records: the walk's two passes, the args, the members'
-/// gather, the cut, the reduction and the fit; a slot per scan level of each scan; and
-/// three evaluation passes per point-store part (stats, then below-the-cut or members).
+/// gather and scatter, the cut, the reduction and the fit (8); two slots per scan level
+/// of each scan, less one (up the levels, then back down but the top); and three
+/// evaluation passes per point-store part (stats, then below-the-cut or members).
 pub fn most_slots(sz: &Sizes, parts: usize) -> usize {
-    8 + sz.levels.len() + sz.mlevels.len() + 3 * parts
+    let scan = |levels: usize| (2 * levels).saturating_sub(1);
+    8 + scan(sz.levels.len()) + scan(sz.mlevels.len()) + 3 * parts
 }
 
 /// The uniform slot `i` of `buf`, for binding 0.
