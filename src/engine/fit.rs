@@ -120,14 +120,18 @@ fn gather(grid: &Grid, g: &Segment, reach: f64, out: &mut Vec<Gathered>) {
     grid.visit_rows(&long, reach, |row| {
         let range = grid.row_range(&row);
         let start = range.start;
+        // Every point is written at the next free place, which advances only past the
+        // points within reach: no branch on the test.
+        let mut k = out.len();
+        out.resize(k + range.len(), 0);
         for (j, p) in grid.points[range].iter().enumerate() {
             let w = p64(*p) - g.p1;
             let t = w.dot(d).clamp(0.0, l);
-            if (w - d * t).length_squared() <= r2 {
-                let at = start + j;
-                out.push(u64::from(grid.ids[at]) << 32 | at as u64);
-            }
+            let at = start + j;
+            out[k] = u64::from(grid.ids[at]) << 32 | at as u64;
+            k += usize::from((w - d * t).length_squared() <= r2);
         }
+        out.truncate(k);
     });
     out.sort_unstable();
 }
