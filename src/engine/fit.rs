@@ -17,6 +17,7 @@ use super::{Engine, EngineError, FitAnswer, FitAsk, FitJob, Query};
 use crate::geom::fit::{
     basis, near_threshold, step, step_section, FitResult, LineFit, Member, Section, Track,
 };
+use crate::geom::kernel::avx2;
 use crate::geom::{p64, Segment};
 use crate::index::Grid;
 use glam::{DVec2, DVec3};
@@ -218,6 +219,11 @@ unsafe fn test_avx2(n: &mut Near, cyl: &crate::geom::Cylinder, frame: (DVec3, DV
     test_body(n, cyl, frame)
 }
 
+#[cfg(not(target_arch = "x86_64"))]
+unsafe fn test_avx2(n: &mut Near, cyl: &crate::geom::Cylinder, frame: (DVec3, DVec3)) {
+    test_body(n, cyl, frame)
+}
+
 /// The cross-section of the members of `X(s, r)` among `near` (which holds every point
 /// within `r` of `s`), in their order: the test and arithmetic of a walk
 /// ([`member_list`]), then those of [`Section::push`].
@@ -225,33 +231,23 @@ fn section_among(near: &mut Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &m
     out.clear();
     let cyl = crate::geom::Cylinder::new(s, r);
     let frame = basis(s.dir());
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if avx2() {
         // SAFETY: the CPU has AVX2.
         unsafe { test_avx2(near, &cyl, frame) }
     } else {
         test_body(near, &cyl, frame)
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    test_body(near, &cyl, frame);
     // Every point is written at the next free place, which advances only past members:
     // no branch on the test (points near the cylinder's surface defeat prediction).
     let n = near.len();
     out.pts.resize(n, (0.0, DVec2::ZERO));
     out.pw.resize(n, 0.0);
     out.ids.resize(n, 0);
-    let weight = |id: u32| {
-        if job.spec.opacity_weight {
-            job.points.weight(id)
-        } else {
-            1.0
-        }
-    };
     let mut k = 0;
     for i in 0..n {
         let id = near.ids[i];
         out.pts[k] = (near.t[i], DVec2::new(near.qx[i], near.qy[i]));
-        out.pw[k] = weight(id);
+        out.pw[k] = job.points.weight_if(job.spec.opacity_weight, id);
         out.ids[k] = id;
         k += usize::from(near.inside[i]);
     }

@@ -72,6 +72,17 @@ impl FitPoints<'_> {
     pub fn weight(&self, id: u32) -> f64 {
         self.opacity.map_or(1.0, |o| f64::from(o[id as usize]))
     }
+
+    /// The fit's weight of point `id`: [`FitPoints::weight`] with
+    /// [`FitSpec::opacity_weight`], else 1.
+    #[inline]
+    pub fn weight_if(&self, opacity_weight: bool, id: u32) -> f64 {
+        if opacity_weight {
+            self.weight(id)
+        } else {
+            1.0
+        }
+    }
 }
 
 /// What the fit did to one segment.
@@ -381,11 +392,10 @@ pub fn cross_section(
         .iter()
         .map(|m| (m.t, DVec2::new(m.offset.dot(e1), m.offset.dot(e2))))
         .collect();
-    let pw = if opacity_weight {
-        members.iter().map(|m| points.weight(m.id)).collect()
-    } else {
-        vec![1.0; members.len()]
-    };
+    let pw = members
+        .iter()
+        .map(|m| points.weight_if(opacity_weight, m.id))
+        .collect();
     (pts, pw)
 }
 
@@ -439,11 +449,7 @@ impl Section {
     ) {
         self.pts
             .push((t, DVec2::new(offset.dot(e1), offset.dot(e2))));
-        self.pw.push(if opacity_weight {
-            points.weight(id)
-        } else {
-            1.0
-        });
+        self.pw.push(points.weight_if(opacity_weight, id));
         self.ids.push(id);
     }
 }

@@ -120,7 +120,7 @@ impl Columns {
 
 /// Whether the CPU has AVX2 (the standard library caches the answer).
 #[inline(always)]
-fn avx2() -> bool {
+pub(crate) fn avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx2")
