@@ -7,12 +7,12 @@
 // point's own f32 coordinates (`world`), so the answer agrees with the host's to f64
 // rounding: only the order of the sums differs. First the ridge's position by mean shift
 // with a Gaussian kernel whose width shrinks from `h_start` (the host's `ridge_start`: r/2,
-// or `h_min` where the line is on its ridge already) by 0.8 a step to `h_min`, stopped
-// once at `h_min` when a step moves less than 1e-5 r (at most FIT_STEPS steps); then the
-// kernel-weighted line fit of offset on axial position around it, its slope only where
-// the axial spread is at least MIN_ELONGATION times the cross spread. Each sum is a
-// fixed-order tree reduction in workgroup memory (no float atomics: repeat runs are
-// identical). Decisions within 1e-9 (relative) of their threshold (the stop rule, the
+// or `h_min` where the line is on its ridge already) by RIDGE_SHRINK a step to `h_min`,
+// stopped once at `h_min` when a step moves less than RIDGE_STOP r (at most FIT_STEPS
+// steps); then the kernel-weighted line fit of offset on axial position around it, its
+// slope only where the axial spread is at least MIN_ELONGATION times the cross spread.
+// Each sum is a fixed-order tree reduction in workgroup memory (no float atomics: repeat
+// runs are identical). Decisions within 1e-9 (relative) of their threshold (the stop rule, the
 // elongation rule) and degenerate sums, which f64 rounding could turn, and queries with
 // more than MAX_FIT_MEMBERS members are left to the host (FIT_HOST), which also refits
 // the queries with flagged boundary members.
@@ -151,7 +151,7 @@ fn main(
     var c = vec2<f64>(0.0lf);
     var status = FIT_OK;
     var steps = 0u;
-    let stop = 1e-5lf * r;
+    let stop = RIDGE_STOP * r;
     for (var it = 0u; it < FIT_STEPS; it++) {
         let k2 = 2.0lf * h * h;
         var acc = vec4<f64>(0.0lf);
@@ -171,7 +171,7 @@ fn main(
         let moved = length(next - c);
         c = next;
         if h > h_min {
-            h = max(h * 0.8lf, h_min);
+            h = max(h * RIDGE_SHRINK, h_min);
         } else {
             if abs(moved - stop) <= 1e-9lf * stop {
                 status = FIT_HOST;

@@ -302,8 +302,12 @@ pub fn prelude() -> String {
 pub fn fit_prelude() -> String {
     format!(
         "// Generated from src/engine/gpu/layout.rs: do not edit here.\n\
-         const MIN_ELONGATION: f64 = {:?}lf;\n{}{}",
+         const MIN_ELONGATION: f64 = {:?}lf;\n\
+         const RIDGE_SHRINK: f64 = {:?}lf;\n\
+         const RIDGE_STOP: f64 = {:?}lf;\n{}{}",
         crate::geom::fit::MIN_ELONGATION,
+        crate::geom::fit::RIDGE_SHRINK,
+        crate::geom::fit::RIDGE_STOP,
         FitQuery::WGSL,
         FitOut::WGSL
     )
