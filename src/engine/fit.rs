@@ -297,7 +297,7 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
             }
             section_among(&mut s.near, &t.cur, r, job, &mut s.section);
         }
-        let answer = step_section(&t.cur, &s.section, &job.points, r, spec, t.warm);
+        let answer = step_section(&t.cur, &mut s.section, &job.points, r, spec, t.warm);
         if !t.advance(answer, r, spec) {
             break;
         }

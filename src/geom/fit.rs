@@ -140,19 +140,21 @@ pub struct LineFit {
 /// difference; below it the line keeps its direction and only moves onto the ridge.
 pub const MIN_ELONGATION: f64 = 4.0;
 
-/// Weighted least squares of `q` on `t`; `None` without weight. No slope (`b = 0`)
-/// without axial spread, or with less than [`MIN_ELONGATION`] times the cross spread.
-fn weighted_line(pts: &[(f64, DVec2)], w: &[f64]) -> Option<LineFit> {
-    let sw: f64 = w.iter().sum();
+/// Weighted least squares of `q` on `t`, each point weighted `pw x k`; `None` without
+/// weight. No slope (`b = 0`) without axial spread, or with less than [`MIN_ELONGATION`]
+/// times the cross spread.
+fn weighted_line(pts: &[(f64, DVec2)], pw: &[f64], k: &[f64]) -> Option<LineFit> {
+    let w = || pw.iter().zip(k).map(|(pw, k)| pw * k);
+    let sw: f64 = w().sum();
     if sw <= 0.0 {
         return None;
     }
-    let t0 = pts.iter().zip(w).map(|(p, w)| p.0 * w).sum::<f64>() / sw;
-    let a = pts.iter().zip(w).map(|(p, w)| p.1 * *w).sum::<DVec2>() / sw;
+    let t0 = pts.iter().zip(w()).map(|(p, w)| p.0 * w).sum::<f64>() / sw;
+    let a = pts.iter().zip(w()).map(|(p, w)| p.1 * w).sum::<DVec2>() / sw;
     let mut stt = 0.0;
     let mut sqq = 0.0;
     let mut stq = DVec2::ZERO;
-    for (p, w) in pts.iter().zip(w) {
+    for (p, w) in pts.iter().zip(w()) {
         let dt = p.0 - t0;
         stt += w * dt * dt;
         sqq += w * (p.1 - a).length_squared();
@@ -206,12 +208,24 @@ pub fn ridge(
     bandwidth: f64,
     warm: bool,
 ) -> Option<(LineFit, f64)> {
+    ridge_in(&mut Columns::default(), pts, pw, r, bandwidth, warm)
+}
+
+/// [`ridge`] with `cols` as its room for the points' columns (kept between calls).
+pub fn ridge_in(
+    cols: &mut Columns,
+    pts: &[(f64, DVec2)],
+    pw: &[f64],
+    r: f64,
+    bandwidth: f64,
+    warm: bool,
+) -> Option<(LineFit, f64)> {
     if pts.is_empty() {
         return None;
     }
     let h_min = bandwidth * r;
     let mut h = ridge_start(r, bandwidth, warm);
-    let mut cols = Columns::new(pts.iter().map(|p| p.1), pw);
+    cols.fill(pts.iter().map(|p| p.1), pw);
     let mut c = DVec2::ZERO;
     for _ in 0..100 {
         let (sw, sq) = cols.round(c, h);
@@ -235,8 +249,7 @@ pub fn ridge(
     cols.kernel(c, h_min);
     let k = &cols.k[..pts.len()];
     let weight: f64 = k.iter().sum();
-    let w: Vec<f64> = k.iter().zip(pw).map(|(k, pw)| pw * k).collect();
-    if let Some(f) = weighted_line(pts, &w) {
+    if let Some(f) = weighted_line(pts, &pw[..pts.len()], k) {
         fit = f;
     }
     Some((fit, weight))
@@ -436,7 +449,7 @@ pub fn step(
     for m in members {
         sec.push(m.id, m.t, m.offset, frame, points, spec.opacity_weight);
     }
-    step_section(s, &sec, points, r, spec, warm)
+    step_section(s, &mut sec, points, r, spec, warm)
 }
 
 /// One step's cross-section: per member of `X(s, r)` (working-set order), its axial
@@ -447,6 +460,8 @@ pub struct Section {
     pub pts: Vec<(f64, DVec2)>,
     pub pw: Vec<f64>,
     pub ids: Vec<u32>,
+    /// Room for the ridge's columns ([`ridge_in`]), kept from step to step.
+    cols: Columns,
 }
 
 impl Section {
@@ -479,7 +494,7 @@ impl Section {
 /// [`step`] from the cross-section `sec` of the members of `X(s, r)`.
 pub fn step_section(
     s: &Segment,
-    sec: &Section,
+    sec: &mut Section,
     points: &FitPoints<'_>,
     r: f64,
     spec: &FitSpec,
@@ -507,7 +522,7 @@ pub fn step_section(
             }
         }
     }
-    match ridge(pts, pw, r, spec.bandwidth, warm) {
+    match ridge_in(&mut sec.cols, pts, pw, r, spec.bandwidth, warm) {
         Some((f, weight)) if weight >= min_points as f64 => (Some(f), How::Ridge),
         _ => (None, How::Unclear),
     }

@@ -70,24 +70,30 @@ pub struct Columns {
 impl Columns {
     /// The offsets `q` with per-point weights `pw`.
     pub fn new(q: impl ExactSizeIterator<Item = DVec2>, pw: &[f64]) -> Columns {
+        let mut c = Columns::default();
+        c.fill(q, pw);
+        c
+    }
+
+    /// Holds the offsets `q` with per-point weights `pw` instead, keeping its room (the
+    /// edge fit fills one per thread, step after step).
+    pub fn fill(&mut self, q: impl ExactSizeIterator<Item = DVec2>, pw: &[f64]) {
         let n = q.len();
         let m = n.div_ceil(LANES) * LANES;
-        let mut c = Columns {
-            x: Vec::with_capacity(m),
-            y: Vec::with_capacity(m),
-            w: Vec::with_capacity(m),
-            k: vec![0.0; m],
-            n,
-        };
+        self.x.clear();
+        self.y.clear();
+        self.w.clear();
         for q in q {
-            c.x.push(q.x);
-            c.y.push(q.y);
+            self.x.push(q.x);
+            self.y.push(q.y);
         }
-        c.w.extend_from_slice(&pw[..n]);
-        c.x.resize(m, 0.0);
-        c.y.resize(m, 0.0);
-        c.w.resize(m, 0.0);
-        c
+        self.w.extend_from_slice(&pw[..n]);
+        self.x.resize(m, 0.0);
+        self.y.resize(m, 0.0);
+        self.w.resize(m, 0.0);
+        // Every kernel value is written before it is read.
+        self.k.resize(m, 0.0);
+        self.n = n;
     }
 
     /// The kernel `exp(-|q - c|² / 2h²)` of every point into `k` (padding included).
