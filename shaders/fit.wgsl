@@ -9,14 +9,15 @@
 // with a Gaussian kernel whose width shrinks from `h_start` (the host's `ridge_start`: r/2,
 // or `h_min` where the line is on its ridge already) by RIDGE_SHRINK a step to `h_min`,
 // stopped once at `h_min` when a step moves less than RIDGE_STOP r (at most FIT_STEPS
-// steps); then the kernel-weighted line fit of offset on axial position around it, its
-// slope only where the axial spread is at least MIN_ELONGATION times the cross spread.
+// steps); then the line fit of offset on axial position weighted by the last step's
+// kernel (at `h_min`, around the position before that step's move), its slope only where
+// the axial spread is at least MIN_ELONGATION times the cross spread.
 // Each sum is a fixed-order tree reduction in workgroup memory (no float atomics: repeat
 // runs are identical). Decisions within 1e-9 (relative) of their threshold (the stop rule, the
 // elongation rule) and degenerate sums, which f64 rounding could turn, and queries with
 // more than MAX_FIT_MEMBERS members are left to the host (FIT_HOST), which also refits
 // the queries with flagged boundary members.
-// Loop bound: (FIT_STEPS + 2) passes of at most MAX_FIT_MEMBERS / FIT_WG member steps and
+// Loop bound: (FIT_STEPS + 1) passes of at most MAX_FIT_MEMBERS / FIT_WG member steps and
 // log2(FIT_WG) reduction steps: 26,724 iterations, below lavapipe's 65,535 (`exp64` has
 // no loop).
 
@@ -152,15 +153,21 @@ fn main(
     var status = FIT_OK;
     var steps = 0u;
     let stop = RIDGE_STOP * r;
+    // The last step's kernel centre and sums (weight, offset, axial position): the
+    // direction fit's weights.
+    var kc = c;
+    var last = vec4<f64>(0.0lf);
     for (var it = 0u; it < FIT_STEPS; it++) {
         let k2 = 2.0lf * h * h;
         var acc = vec4<f64>(0.0lf);
         for (var j = lane; j < n; j += FIT_WG) {
             let m = member(first + j, p1, d, e1, e2);
             let w = weight(m, c, k2);
-            acc = acc + vec4<f64>(w, m.q.x * w, m.q.y * w, 0.0lf);
+            acc = acc + vec4<f64>(w, m.q.x * w, m.q.y * w, m.t * w);
         }
         let s = reduce4(lane, acc);
+        kc = c;
+        last = s;
         steps = it + 1u;
         if !(s.x > 1e-250lf) {
             // No weight (the host answers "unclear"), or so little that rounding decides.
@@ -186,41 +193,33 @@ fn main(
     out.ax = c.x;
     out.ay = c.y;
     if status == FIT_OK {
+        // The stop rule acts only at `h_min`: the last step's kernel is at that width, and
+        // its weight is above 1e-250 (the loop leaves no other way with FIT_OK).
         let k2 = 2.0lf * h_min * h_min;
-        var acc = vec4<f64>(0.0lf);
+        let s = last;
+        out.weight = s.x;
+        let t0 = s.w / s.x;
+        let a = s.yz / s.x;
+        var acc2 = vec4<f64>(0.0lf);
         for (var j = lane; j < n; j += FIT_WG) {
             let m = member(first + j, p1, d, e1, e2);
-            let w = weight(m, c, k2);
-            acc = acc + vec4<f64>(w, m.t * w, m.q.x * w, m.q.y * w);
+            let w = weight(m, kc, k2);
+            let dt = m.t - t0;
+            let da = m.q - a;
+            let wdt = w * dt;
+            acc2 = acc2 + vec4<f64>(wdt * dt, da.x * wdt, da.y * wdt, w * dot(da, da));
         }
-        let s = reduce4(lane, acc);
-        out.weight = s.x;
-        if s.x > 1e-250lf {
-            let t0 = s.y / s.x;
-            let a = s.zw / s.x;
-            var acc2 = vec4<f64>(0.0lf);
-            for (var j = lane; j < n; j += FIT_WG) {
-                let m = member(first + j, p1, d, e1, e2);
-                let w = weight(m, c, k2);
-                let dt = m.t - t0;
-                let da = m.q - a;
-                let wdt = w * dt;
-                acc2 = acc2 + vec4<f64>(wdt * dt, da.x * wdt, da.y * wdt, w * dot(da, da));
-            }
-            let s2 = reduce4(lane, acc2);
-            out.t0 = t0;
-            out.ax = a.x;
-            out.ay = a.y;
-            let lim = MIN_ELONGATION * s2.w;
-            if !(s2.x > 1e-280lf) || abs(s2.x - lim) <= 1e-9lf * s2.x {
-                // A spread within rounding of none, or of the elongation rule: the host.
-                status = FIT_HOST;
-            } else if s2.x >= lim {
-                out.bx = s2.y / s2.x;
-                out.by = s2.z / s2.x;
-            }
-        } else if s.x != 0.0lf {
+        let s2 = reduce4(lane, acc2);
+        out.t0 = t0;
+        out.ax = a.x;
+        out.ay = a.y;
+        let lim = MIN_ELONGATION * s2.w;
+        if !(s2.x > 1e-280lf) || abs(s2.x - lim) <= 1e-9lf * s2.x {
+            // A spread within rounding of none, or of the elongation rule: the host.
             status = FIT_HOST;
+        } else if s2.x >= lim {
+            out.bx = s2.y / s2.x;
+            out.by = s2.z / s2.x;
         }
     }
     out.status = status;

@@ -145,12 +145,19 @@ pub const MIN_ELONGATION: f64 = 4.0;
 /// times the cross spread.
 fn weighted_line(pts: &[(f64, DVec2)], pw: &[f64], k: &[f64]) -> Option<LineFit> {
     let w = || pw.iter().zip(k).map(|(pw, k)| pw * k);
-    let sw: f64 = w().sum();
+    // The three sums in one pass, each in point order as three passes would add them.
+    // (Starting values as `Sum` starts: -0.0 for f64, zero for glam's vectors.)
+    let (mut sw, mut st, mut sq) = (-0.0, -0.0, DVec2::ZERO);
+    for (p, w) in pts.iter().zip(w()) {
+        sw += w;
+        st += p.0 * w;
+        sq += p.1 * w;
+    }
     if sw <= 0.0 {
         return None;
     }
-    let t0 = pts.iter().zip(w()).map(|(p, w)| p.0 * w).sum::<f64>() / sw;
-    let a = pts.iter().zip(w()).map(|(p, w)| p.1 * w).sum::<DVec2>() / sw;
+    let t0 = st / sw;
+    let a = sq / sw;
     let mut stt = 0.0;
     let mut sqq = 0.0;
     let mut stq = DVec2::ZERO;
@@ -191,12 +198,15 @@ pub const RIDGE_SHRINK: f64 = 0.7;
 pub const RIDGE_STOP: f64 = 1e-3;
 
 /// The ridge: first its position by mean shift of the cross-section offsets (a Gaussian
-/// kernel whose width shrinks to `bandwidth x r`), then its direction by a kernel-weighted
-/// fit of offset against axial position around that position. Returns the fit and the
-/// number of points under the final kernel (kernel weights summed, without the per-point
-/// weights `pw`, so that a weighting never turns "too few points" into enough). Each
-/// point counts with its weight `pw` (1, or its opacity) times the kernel's. Position
-/// first: a line fitted freely through two parallel ridges can settle crossing them.
+/// kernel whose width shrinks to `bandwidth x r`), then its direction by a fit of offset
+/// against axial position weighted by the mean shift's last round: the kernel at the
+/// width `bandwidth x r` around the position before the last move (less than
+/// [`RIDGE_STOP`] r from the position found, which is the weighted mean of those
+/// weights). Returns the fit and the number of points under that kernel (kernel weights
+/// summed, without the per-point weights `pw`, so that a weighting never turns "too few
+/// points" into enough). Each point counts with its weight `pw` (1, or its opacity)
+/// times the kernel's. Position first: a line fitted freely through two parallel ridges
+/// can settle crossing them.
 ///
 /// `warm`: the line is already on its ridge (the step before it was this fit's ridge,
 /// taken whole, [`Track::warm`]), and the mean shift starts at the final width
@@ -246,7 +256,7 @@ pub fn ridge_in(
         a: c,
         b: DVec2::ZERO,
     };
-    cols.kernel(c, h_min);
+    // The last round's kernel, at the final width (the stop rule acts only there).
     let k = &cols.k[..pts.len()];
     let weight: f64 = k.iter().sum();
     if let Some(f) = weighted_line(pts, &pw[..pts.len()], k) {

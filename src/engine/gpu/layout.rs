@@ -57,7 +57,7 @@ pub const FIT_WG: u32 = 64;
 /// Most mean-shift steps of the ridge (`ridge()`'s schedule in src/geom/fit.rs).
 pub const FIT_STEPS: u32 = 100;
 /// Most members of a query the fit kernel takes; a query with more is fitted on the host.
-/// The kernel's loops then stay below FIT_STEPS + 2 passes of
+/// The kernel's loops then stay below FIT_STEPS + 1 passes of
 /// `MAX_FIT_MEMBERS / FIT_WG + log2(FIT_WG)` iterations (26,724), far below lavapipe's
 /// 65,535.
 pub const MAX_FIT_MEMBERS: u32 = 16_384;
