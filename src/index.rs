@@ -1,7 +1,7 @@
 //! The working set and the uniform grid shared by both engines (docs/method.md#geometry,
 //! docs/architecture.md#the-engine-contract).
 //!
-//! Centers are sorted by cell with a counting sort; cells are numbered x-fastest, so the
+//! Centers are sorted by cell with a radix sort; cells are numbered x-fastest, so the
 //! cells `x0..=x1` of one `(y, z)` row hold one contiguous range of the sorted points. A
 //! cylinder query is answered by visiting only the rows its capped cylinder can touch,
 //! each as one point range.
@@ -154,27 +154,30 @@ impl Grid {
             ids: Vec::new(),
         };
         let total = dims[0] as usize * dims[1] as usize * dims[2] as usize;
-        let keys: Vec<u32> = points.par_iter().map(|p| grid.cell_of(p64(*p))).collect();
-        let mut start = vec![0u32; total + 1];
-        for &k in &keys {
-            start[k as usize + 1] += 1;
+        // (cell << 32 | id) per point, then sorted by cell with a stable radix sort: ids
+        // stay ascending within a cell. Every pass streams through memory; scattering
+        // each point straight to its cell's place (a counting sort) touched the cell
+        // table and the output at random, a cache miss or three per point (0.92 s of
+        // 1.18 s at 10^7 points and 1.3 x 10^7 cells).
+        let mut items: Vec<u64> = points
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| u64::from(grid.cell_of(p64(*p))) << 32 | i as u64)
+            .collect();
+        radix_sort_high(&mut items, total);
+        // The first point of each cell (and the end), in one sequential walk: every cell
+        // up to a point's own starts where the first point beyond them is.
+        let mut start: Vec<u32> = Vec::with_capacity(total + 1);
+        for (j, &it) in items.iter().enumerate() {
+            let cell = (it >> 32) as usize;
+            if start.len() <= cell {
+                start.resize(cell + 1, j as u32);
+            }
         }
-        for c in 0..total {
-            start[c + 1] += start[c];
-        }
-        // Scattered with `start` itself as the cursors (no second table of the grid's
-        // size: fresh pages cost more than the pass): cell k's cursor runs from its start
-        // to the next cell's start, so afterwards `start[k]` holds `start[k + 1]`.
-        let mut sorted = vec![[0f32; 3]; points.len()];
-        let mut ids = vec![0u32; points.len()];
-        for (i, &k) in keys.iter().enumerate() {
-            let slot = start[k as usize] as usize;
-            start[k as usize] += 1;
-            sorted[slot] = points[i];
-            ids[slot] = i as u32;
-        }
-        start.copy_within(0..total, 1);
-        start[0] = 0;
+        start.resize(total + 1, items.len() as u32);
+        let ids: Vec<u32> = items.iter().map(|&it| it as u32).collect();
+        drop(items);
+        let sorted: Vec<[f32; 3]> = ids.par_iter().map(|&i| points[i as usize]).collect();
         grid.cell_start = start;
         grid.points = sorted;
         grid.ids = ids;
@@ -317,6 +320,44 @@ impl Grid {
         let a = lo.floor().max(0.0) as u32;
         let b = (hi.floor().min(n - 1.0)) as u32;
         Some((a, b))
+    }
+}
+
+/// Sorts `items` by their high 32 bits (all below `bound`), stably: a least significant
+/// digit radix sort, 12 bits a pass (two passes for the grid's 2^24 cells at most), a pass
+/// skipped where every item has the same digit.
+fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
+    const BITS: u32 = 12;
+    const BUCKETS: usize = 1 << BITS;
+    let passes = (usize::BITS - bound.saturating_sub(1).leading_zeros()).div_ceil(BITS);
+    if items.len() < 2 || passes == 0 {
+        return;
+    }
+    let digit = |it: u64, pass: u32| ((it >> (32 + pass * BITS)) as usize) & (BUCKETS - 1);
+    // Every pass's counts in one read.
+    let mut counts = vec![[0usize; BUCKETS]; passes as usize];
+    for &it in items.iter() {
+        for (pass, c) in counts.iter_mut().enumerate() {
+            c[digit(it, pass as u32)] += 1;
+        }
+    }
+    let mut other = vec![0u64; items.len()];
+    for (pass, c) in counts.iter().enumerate() {
+        if c.contains(&items.len()) {
+            continue;
+        }
+        let mut next = [0usize; BUCKETS];
+        let mut at = 0;
+        for (n, k) in next.iter_mut().zip(c) {
+            *n = at;
+            at += k;
+        }
+        for &it in items.iter() {
+            let d = digit(it, pass as u32);
+            other[next[d]] = it;
+            next[d] += 1;
+        }
+        std::mem::swap(items, &mut other);
     }
 }
 
