@@ -437,7 +437,7 @@ mod tests {
     }
 
     #[test]
-    fn counting_sort_keeps_every_point_in_its_cell() {
+    fn the_sort_keeps_every_point_in_its_cell_in_input_order() {
         let mut s = Rng::new(7);
         let pts: Vec<[f32; 3]> = (0..5000)
             .map(|_| {
@@ -459,10 +459,35 @@ mod tests {
             for i in g.cell_start[c] as usize..g.cell_start[c + 1] as usize {
                 assert_eq!(g.cell_of(p64(g.points[i])) as usize, c);
                 assert_eq!(g.points[i], pts[g.ids[i] as usize]);
+                if i > g.cell_start[c] as usize {
+                    assert!(g.ids[i - 1] < g.ids[i], "cell {c}: ids out of order");
+                }
                 seen[g.ids[i] as usize] = true;
             }
         }
         assert!(seen.iter().all(|&x| x));
+    }
+
+    #[test]
+    fn the_radix_sort_is_a_stable_sort_by_the_high_half() {
+        let mut s = Rng::new(3);
+        // One pass, two, three (a bound beyond 2^24), and two passes of which the second
+        // is skipped (every key below 2^12: the same high digit).
+        for (bound, n, below) in [
+            (1usize, 10, 1u64),
+            (300, 1000, 300),
+            (5_000_000, 3000, 5_000_000),
+            (1 << 30, 3000, 1 << 30),
+            (1 << 20, 3000, 1 << 12),
+        ] {
+            let mut items: Vec<u64> = (0..n)
+                .map(|i| ((uni(&mut s) * below as f64) as u64).min(below - 1) << 32 | i)
+                .collect();
+            let mut want = items.clone();
+            want.sort_by_key(|it| it >> 32);
+            radix_sort_high(&mut items, bound);
+            assert_eq!(items, want, "bound {bound}");
+        }
     }
 
     #[test]
