@@ -142,16 +142,40 @@ impl GaussianAttributes {
     /// One kept Gaussian's attributes from its rotation (w x y z), log scales and opacity
     /// (`sigmoid` of the stored logit, where the file has one).
     pub(crate) fn push(&mut self, rot: [f64; 4], log_scale: [f64; 3], alpha: Option<f64>) {
-        self.normals.push(shortest_axis(rot, log_scale));
+        self.push_one(Attribute::of(rot, log_scale, alpha));
+    }
+
+    /// One kept Gaussian's attributes, computed already.
+    pub(crate) fn push_one(&mut self, a: Attribute) {
+        self.normals.push(a.normal);
+        self.max_scale.push(a.max_scale);
+        self.min_scale.push(a.min_scale);
+        if let (Some(o), Some(a)) = (&mut self.opacity, a.opacity) {
+            o.push(a);
+        }
+    }
+}
+
+/// One Gaussian's entry of each of [`GaussianAttributes`]' columns.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Attribute {
+    normal: [f32; 3],
+    max_scale: f32,
+    min_scale: f32,
+    opacity: Option<f32>,
+}
+
+impl Attribute {
+    /// From its rotation (w x y z), log scales and opacity (`sigmoid` of the stored logit,
+    /// where the file has one).
+    pub(crate) fn of(rot: [f64; 4], log_scale: [f64; 3], alpha: Option<f64>) -> Attribute {
         let [a, b, c] = log_scale;
-        let s = a.max(b).max(c).exp();
-        self.max_scale
-            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
-        let s = a.min(b).min(c).exp();
-        self.min_scale
-            .push(if s.is_nan() { f32::INFINITY } else { s as f32 });
-        if let (Some(o), Some(a)) = (&mut self.opacity, alpha) {
-            o.push(if a.is_nan() { 0.0 } else { a as f32 });
+        let scale = |s: f64| if s.is_nan() { f32::INFINITY } else { s as f32 };
+        Attribute {
+            normal: shortest_axis(rot, log_scale),
+            max_scale: scale(a.max(b).max(c).exp()),
+            min_scale: scale(a.min(b).min(c).exp()),
+            opacity: alpha.map(|a| if a.is_nan() { 0.0 } else { a as f32 }),
         }
     }
 }

@@ -14,7 +14,8 @@ use std::path::Path;
 use super::chunked::{Chunked, CHUNK};
 use super::error::{Error, Position};
 use super::input::{open_input, Input};
-use super::normals::{opacity_of, GaussianAttributes};
+use super::normals::{opacity_of, Attribute, GaussianAttributes};
+use rayon::prelude::*;
 
 /// Options for [`crate::io::read_gaussians`].
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -189,15 +190,15 @@ impl AttrPlan {
         })
     }
 
-    /// Record `rec`'s attributes into `out`.
+    /// Record `rec`'s attributes.
     #[inline]
-    fn push(&self, rec: &[u8], out: &mut GaussianAttributes) {
+    fn attribute(&self, rec: &[u8]) -> Attribute {
         let v = |o: usize| f64::from(f32_le(rec, o));
-        out.push(
+        Attribute::of(
             self.rot.map(v),
             self.scale.map(v),
             self.opacity.map(|o| opacity_of(f32_le(rec, o))),
-        );
+        )
     }
 }
 
@@ -408,6 +409,9 @@ fn read_fast_le<R: Read>(
     mut attrs: Option<(&AttrPlan, &mut GaussianAttributes)>,
 ) -> Result<(), Error> {
     let mut index = 0usize;
+    // The records of a chunk whose centers were kept (their attributes are computed on
+    // every thread: three `exp`s and a rotation each, most of the reading time otherwise).
+    let mut kept_recs: Vec<u32> = Vec::new();
     while index < vertex.count {
         let avail = ch.available().len() / stride;
         if avail == 0 {
@@ -419,6 +423,7 @@ fn read_fast_le<R: Read>(
         let n = avail.min(vertex.count - index);
         let base = ch.offset();
         let bytes = &ch.available()[..n * stride];
+        kept_recs.clear();
         for (k, rec) in bytes.chunks_exact(stride).enumerate() {
             let c = [f32_le(rec, ox), f32_le(rec, oy), f32_le(rec, oz)];
             let op = match oo {
@@ -429,10 +434,18 @@ fn read_fast_le<R: Read>(
             col.push(c, op, || {
                 Position::record("vertex", index + k, Some(base + (k * stride) as u64))
             })?;
-            if let Some((plan, out)) = attrs.as_mut() {
-                if col.centers.len() > kept {
-                    plan.push(rec, out);
-                }
+            if attrs.is_some() && col.centers.len() > kept {
+                kept_recs.push(k as u32);
+            }
+        }
+        if let Some((plan, out)) = attrs.as_mut() {
+            let computed: Vec<Attribute> = kept_recs
+                .par_iter()
+                .with_min_len(512)
+                .map(|&k| plan.attribute(&bytes[k as usize * stride..][..stride]))
+                .collect();
+            for a in computed {
+                out.push_one(a);
             }
         }
         ch.consume(n * stride);
