@@ -1,6 +1,8 @@
-//! The CPU engine: rayon over queries, exact f64 tests on the grid's rows. Each query sums
-//! its points in grid order, so results do not depend on the thread count.
+//! The CPU engine: rayon over queries, taken along a Morton curve through their midpoints
+//! ([`super::order`]), exact f64 tests on the grid's rows. Each query sums its points in grid
+//! order, so results do not depend on the thread count or the order of work.
 
+use super::order::SpatialOrder;
 use super::{
     Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, FitJob, Member, Nearest,
     NearestSum, Query,
@@ -135,15 +137,18 @@ pub(crate) fn add_nearest<I: Ord + Copy>(
 
 /// [`Engine::members`] over `grid` on the host, f64.
 pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
-    queries
-        .par_iter()
-        .with_min_len(8)
-        .map_init(Vec::new, |buf, q| {
-            // Listed into a buffer the thread reuses, then copied once at its size.
-            members_into(grid, q, buf);
-            buf.clone()
-        })
-        .collect()
+    let order = SpatialOrder::new(grid, queries);
+    order.restore(
+        (0..queries.len())
+            .into_par_iter()
+            .with_min_len(8)
+            .map_init(Vec::new, |buf, j| {
+                // Listed into a buffer the thread reuses, then copied once at its size.
+                members_into(grid, &queries[order.index(j)], buf);
+                buf.clone()
+            })
+            .collect(),
+    )
 }
 
 /// The members of one query on the host, in working-set order.
@@ -200,14 +205,17 @@ impl Engine for CpuEngine {
                 .map(|_| AtomicU64::new(0))
                 .collect()
         });
-        let both: Vec<(CylStats, NearestSum)> = queries
-            .par_iter()
-            .enumerate()
-            .with_min_len(8)
-            .map_init(Vec::new, |members, (i, q)| {
-                self.one(i, q, ask, mask.as_deref(), members)
-            })
-            .collect();
+        let order = SpatialOrder::new(&self.grid, queries);
+        let both: Vec<(CylStats, NearestSum)> = order.restore(
+            (0..queries.len())
+                .into_par_iter()
+                .with_min_len(8)
+                .map_init(Vec::new, |members, j| {
+                    let i = order.index(j);
+                    self.one(i, &queries[i], ask, mask.as_deref(), members)
+                })
+                .collect(),
+        );
         let (stats, nearest): (Vec<CylStats>, Vec<NearestSum>) = both.into_iter().unzip();
         Ok(Answers {
             stats,
@@ -231,15 +239,19 @@ impl Engine for CpuEngine {
     /// id (the positions are sorted by value).
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
         self.count_batch(queries.len());
-        Ok(queries
-            .par_iter()
-            .with_min_len(8)
-            .map(|q| {
-                let mut t = Vec::new();
-                self.for_each_member(q, |_, t1, _| t.push(t1));
-                super::sorted_axial(t.into_iter(), q.seg.length())
-            })
-            .collect())
+        let order = SpatialOrder::new(&self.grid, queries);
+        Ok(order.restore(
+            (0..queries.len())
+                .into_par_iter()
+                .with_min_len(8)
+                .map(|j| {
+                    let q = &queries[order.index(j)];
+                    let mut t = Vec::new();
+                    self.for_each_member(q, |_, t1, _| t.push(t1));
+                    super::sorted_axial(t.into_iter(), q.seg.length())
+                })
+                .collect(),
+        ))
     }
 
     /// Each segment's neighbourhood gathered once and iterated on in cache

@@ -13,6 +13,7 @@
 //!   [`Engine::fit_lines`] batch per iteration for all segments still moving.
 
 use super::cpu::member_list;
+use super::order::SpatialOrder;
 use super::{Engine, EngineError, FitAnswer, FitAsk, FitJob, Query};
 use crate::geom::fit::{
     basis, near_threshold, step, step_section, FitResult, LineFit, Member, Section, Track,
@@ -309,27 +310,15 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
 /// cache: the answers of [`by_batches`] over an exact engine of the same grid. Also
 /// returns the steps taken (cylinders answered), all segments together.
 pub fn gathered(grid: &Grid, job: &FitJob<'_>) -> (FitResult, u64) {
-    // Segments in the order of their midpoints' cells (`cell_of` clamps into the grid),
-    // so that neighbouring segments, which share points, run close together in time:
-    // only an order of work, never part of an answer.
-    let mut order: Vec<(u32, usize)> = job
-        .segments
-        .iter()
-        .enumerate()
-        .map(|(i, s)| {
-            let cell = if grid.is_empty() {
-                0
-            } else {
-                grid.cell_of(s.midpoint())
-            };
-            (cell, i)
-        })
-        .collect();
-    order.sort_unstable();
-    let done: Vec<(usize, Track)> = order
-        .par_iter()
+    // Segments along a Morton curve through their midpoints' cells, so that neighbouring
+    // segments, which share points, run close together in time: only an order of work,
+    // never part of an answer.
+    let order = SpatialOrder::of_segments(grid, job.segments);
+    let done: Vec<(usize, Track)> = (0..job.segments.len())
+        .into_par_iter()
         .with_min_len(4)
-        .map_init(Scratch::default, |s, &(_, i)| {
+        .map_init(Scratch::default, |s, j| {
+            let i = order.index(j);
             (i, track_gathered(grid, job, job.segments[i], s))
         })
         .collect();

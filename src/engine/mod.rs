@@ -7,6 +7,7 @@ pub mod cpu;
 pub mod dedup;
 pub mod fit;
 pub mod gpu;
+pub mod order;
 pub mod select;
 
 use crate::geom::Segment;

@@ -43,7 +43,6 @@ mod host;
 mod kernels;
 pub mod layout;
 mod options;
-mod order;
 mod query;
 mod resources;
 mod stages;
@@ -58,12 +57,12 @@ use super::{
     Answers, Ask, Counters, CylStats, Engine, EngineError, FitAnswer, FitAsk, FitJob, Nearest,
     Query, Want,
 };
+use crate::engine::order::SpatialOrder;
 use crate::geom::fit::{FitPoints, FitResult, FitSpec};
 use crate::index::Grid;
 use batch::Kind;
 use device::Context;
 use glam::DVec3;
-use order::SpatialOrder;
 use rayon::prelude::*;
 use resources::Buffers;
 use std::sync::atomic::{AtomicU64, Ordering};
