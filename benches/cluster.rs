@@ -15,6 +15,10 @@ use linegs_gpu::refine::{cluster::cluster, Params};
 use linegs_gpu::synth::Rng;
 use std::time::Instant;
 
+/// The command line's huge-page advice for large blocks, so that the numbers are its own.
+#[global_allocator]
+static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+
 fn scene(edges: usize) -> LineSet {
     let mut r = Rng::new(11);
     let mut v = || DVec3::new(r.uniform(), r.uniform(), r.uniform());

@@ -13,6 +13,10 @@ use linegs_gpu::pipeline::{Job, Scene};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
 
+/// The command line's huge-page advice for large blocks, so that the numbers are its own.
+#[global_allocator]
+static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+
 fn bench(c: &mut Criterion) {
     let toy = synth::toy_scene(&Default::default());
     let mut segs = toy.lines.segments.clone();

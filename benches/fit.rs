@@ -19,6 +19,10 @@ use linegs_gpu::refine::fit::FitSpec;
 use linegs_gpu::refine::Params;
 use std::time::Duration;
 
+/// The command line's huge-page advice for large blocks, so that the numbers are its own.
+#[global_allocator]
+static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+
 fn size() -> (usize, usize) {
     let s = std::env::var("LINEGS_BENCH_FIT_SIZE").unwrap_or_else(|_| "1000000x10000".into());
     let (a, b) = s.split_once('x').expect("LINEGS_BENCH_FIT_SIZE: NxM");

@@ -12,6 +12,10 @@ use linegs_gpu::refine::{run_steps, Params};
 use linegs_gpu::{io, synth};
 use std::path::Path;
 
+/// The command line's huge-page advice for large blocks, so that the numbers are its own.
+#[global_allocator]
+static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+
 fn refine(points: &[[f32; 3]], lines: &LineSet, p: &Params) -> usize {
     let r = Refiner::new(points, &lines.segments, p, Backend::Cpu).unwrap();
     // `LINEGS_BENCH_STAGES=1` prints each step's time.

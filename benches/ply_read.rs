@@ -11,6 +11,10 @@ use criterion::{criterion_group, Criterion, Throughput};
 use linegs_gpu::io::{read_gaussians, write_gaussians_3dgs, PlyOptions};
 use linegs_gpu::mem;
 
+/// The command line's huge-page advice for large blocks, so that the numbers are its own.
+#[global_allocator]
+static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+
 const N: usize = 1_000_000;
 
 /// Deterministic centers in a 10 m box (xorshift), with opacity logits around 0.

@@ -14,6 +14,10 @@ use linegs_gpu::engine::{Engine, Want};
 use std::sync::Arc;
 use std::time::Duration;
 
+/// The command line's huge-page advice for large blocks, so that the numbers are its own.
+#[global_allocator]
+static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+
 const RADIUS: f64 = 0.03;
 
 fn bench_queries(c: &mut Criterion) {

@@ -7,6 +7,7 @@
 //! A failed allocation always ends the process here, also one a library would have
 //! handled with `try_reserve`: the same end, with a message, as any other.
 
+use linegs_gpu::mem::advise_huge;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::io::Write;
 use std::sync::Mutex;
@@ -63,7 +64,8 @@ fn out_of_memory(size: usize) -> ! {
     std::process::exit(1)
 }
 
-/// The system allocator, with [`out_of_memory`] instead of an abort.
+/// The system allocator, with [`out_of_memory`] instead of an abort, and large blocks on
+/// huge pages where the system has them ([`linegs_gpu::mem::advise_huge`]).
 pub struct Checked;
 
 // SAFETY: every call is passed to `System` unchanged; only a null result is acted on.
@@ -73,6 +75,7 @@ unsafe impl GlobalAlloc for Checked {
         if p.is_null() {
             out_of_memory(layout.size());
         }
+        advise_huge(p, layout.size());
         p
     }
 
@@ -81,6 +84,7 @@ unsafe impl GlobalAlloc for Checked {
         if p.is_null() {
             out_of_memory(layout.size());
         }
+        advise_huge(p, layout.size());
         p
     }
 
@@ -89,6 +93,7 @@ unsafe impl GlobalAlloc for Checked {
         if p.is_null() {
             out_of_memory(new_size);
         }
+        advise_huge(p, new_size);
         p
     }
 

@@ -15,6 +15,10 @@ use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 use std::path::PathBuf;
 
+/// Large blocks (the Gaussians, the grid) on huge pages, as in the command line.
+#[global_allocator]
+static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+
 create_exception!(
     _linegs,
     InputError,
