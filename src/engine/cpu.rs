@@ -15,6 +15,11 @@ use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
+thread_local! {
+    /// Each thread's scratch rows for [`Grid::visit_ranges`].
+    static ROWS: std::cell::RefCell<Vec<(u32, u32)>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
 pub struct CpuEngine {
     grid: Arc<Grid>,
     batches: AtomicU64,
@@ -57,14 +62,15 @@ impl CpuEngine {
         }
         let cyl = Cylinder::new(&q.seg, q.r);
         let g = &*self.grid;
-        g.visit_rows(&q.seg, q.r, |row| {
-            let range = g.row_range(&row);
-            let start = range.start;
-            for (j, p) in g.points[range].iter().enumerate() {
-                if let Some((t1, v)) = cyl.test(p64(*p)) {
-                    f(start + j, t1, v);
+        ROWS.with_borrow_mut(|rows| {
+            g.visit_ranges(&q.seg, q.r, rows, |range| {
+                let start = range.start;
+                for (j, p) in g.points[range].iter().enumerate() {
+                    if let Some((t1, v)) = cyl.test(p64(*p)) {
+                        f(start + j, t1, v);
+                    }
                 }
-            }
+            })
         });
     }
 
@@ -165,18 +171,19 @@ fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
         return;
     }
     let cyl = Cylinder::new(&q.seg, q.r);
-    grid.visit_rows(&q.seg, q.r, |row| {
-        let range = grid.row_range(&row);
-        let start = range.start;
-        for (j, p) in grid.points[range].iter().enumerate() {
-            if let Some((t, offset)) = cyl.test(p64(*p)) {
-                out.push(Member {
-                    id: grid.ids[start + j],
-                    t,
-                    offset,
-                });
+    ROWS.with_borrow_mut(|rows| {
+        grid.visit_ranges(&q.seg, q.r, rows, |range| {
+            let start = range.start;
+            for (j, p) in grid.points[range].iter().enumerate() {
+                if let Some((t, offset)) = cyl.test(p64(*p)) {
+                    out.push(Member {
+                        id: grid.ids[start + j],
+                        t,
+                        offset,
+                    });
+                }
             }
-        }
+        })
     });
     // Working-set order, not grid order: the grid's layout follows the working
     // box, so a far segment would otherwise reorder the members (and the fit's

@@ -110,7 +110,13 @@ type Gathered = u64;
 
 /// The points of `grid` within `reach` of segment `g` (and a few more: the test is
 /// generous by a relative 1e-7), in working-set order.
-fn gather(grid: &Grid, g: &Segment, reach: f64, out: &mut Vec<Gathered>) {
+fn gather(
+    grid: &Grid,
+    g: &Segment,
+    reach: f64,
+    rows: &mut Vec<(u32, u32)>,
+    out: &mut Vec<Gathered>,
+) {
     out.clear();
     let d = g.dir();
     let scale = g.p1.abs().max_element().max(g.p2.abs().max_element()) + 1.0;
@@ -119,8 +125,7 @@ fn gather(grid: &Grid, g: &Segment, reach: f64, out: &mut Vec<Gathered>) {
     // lengthened by `reach` at each end, whose rows the grid visits.
     let long = Segment::new(g.p1 - d * reach, g.p2 + d * reach);
     let (l, r2) = (g.length(), reach * reach);
-    grid.visit_rows(&long, reach, |row| {
-        let range = grid.row_range(&row);
+    grid.visit_ranges(&long, reach, rows, |range| {
         let start = range.start;
         // Every point is written at the next free place, which advances only past the
         // points within reach: no branch on the test.
@@ -260,6 +265,7 @@ fn section_among(near: &mut Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &m
 /// Buffers one thread reuses from segment to segment.
 #[derive(Default)]
 struct Scratch {
+    rows: Vec<(u32, u32)>,
     gathered: Vec<Gathered>,
     near: Near,
     section: Section,
@@ -292,7 +298,7 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
             // of `at` (end by end, so every point of it): within r + margin of `at`.
             let covers = |g: Segment| end_move(&g, &t.cur) <= margin;
             if !at.is_some_and(covers) {
-                gather(grid, &t.cur, r + margin, &mut s.gathered);
+                gather(grid, &t.cur, r + margin, &mut s.rows, &mut s.gathered);
                 s.near.fill(grid, &s.gathered);
                 at = Some(t.cur);
             }
