@@ -277,3 +277,37 @@ fn the_gate_lets_a_ridge_of_small_round_gaussians_be_reached() {
     assert_eq!(f.how[0], How::Ridge);
     assert!(off_axis(&f.segments[0]) < 0.1 * R, "{:?}", f.segments[0]);
 }
+
+#[test]
+fn the_gate_decides_each_distinct_segment_once_and_every_copy_alike() {
+    use linegs_gpu::engine::Engine;
+    let mut rng = TestRng::new(21);
+    let (pts, attrs) = faces(8000, 0.5 * R, 2.0 * R, &mut rng);
+    // A move the gate lets stand and one it undoes (the two tests above), 25 copies each.
+    let corner = seg([0.0, 0.35 * R, 0.35 * R], [1.0, 0.35 * R, 0.35 * R]);
+    let inside = seg([0.0, 0.005 * R, 0.005 * R], [1.0, 0.005 * R, 0.005 * R]);
+    let input: Vec<Segment> = (0..50)
+        .map(|i| if i % 2 == 0 { corner } else { inside })
+        .collect();
+    let e = cpu_engine(&pts, &input, R);
+    let mut f = fit_edges(&e, &input, &attrs, R, &edge_params()).unwrap();
+    let moved = (0..2).filter(|&i| f.segments[i] != input[i]).count();
+    assert!(moved >= 1);
+    let before = e.counters().queries;
+    gate(&e, &input, &mut f, &attrs, R, &edge_params()).unwrap();
+    // One member list per distinct moved segment, not one per copy.
+    assert_eq!(e.counters().queries - before, moved as u64);
+    let alone = [
+        fit_and_gate(&e, corner, &attrs),
+        fit_and_gate(&e, inside, &attrs),
+    ];
+    assert_eq!(alone[0].how[0], How::Corner);
+    assert_eq!(alone[1].how[0], How::Kept);
+    for (i, (s, how)) in f.segments.iter().zip(&f.how).enumerate() {
+        assert_eq!(
+            (*s, *how),
+            (alone[i % 2].segments[0], alone[i % 2].how[0]),
+            "copy {i}"
+        );
+    }
+}
