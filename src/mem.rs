@@ -41,7 +41,7 @@ const HUGE_FROM: usize = 4 << 20;
 /// default, or `always`; elsewhere, for small blocks, or when refused, nothing changes).
 /// A pass over the cylinders reads the point and cell arrays (hundreds of MiB at 10^7
 /// Gaussians) at random; on 4 KiB pages nearly every such read misses the TLB as well as
-/// the cache. Called by [`HugeBlocks`] and by the command line's allocator.
+/// the cache. Called by [`HugeBlocks`].
 #[inline]
 pub fn advise_huge(p: *mut u8, size: usize) {
     #[cfg(target_os = "linux")]
@@ -62,8 +62,8 @@ pub fn advise_huge(p: *mut u8, size: usize) {
 }
 
 /// The system allocator with large blocks on huge pages ([`advise_huge`]): the Python
-/// module's and the benchmarks' global allocator (the command line's adds an
-/// out-of-memory message to the same).
+/// module's and the benchmarks' global allocator, and the one the command line's wraps
+/// with an out-of-memory message.
 pub struct HugeBlocks;
 
 // SAFETY: every call is passed to `System` unchanged; the advice never changes contents.

@@ -1,14 +1,14 @@
 //! Running out of memory ends the process with one line that says what did not fit and
 //! what to try, and exit code 1, instead of Rust's abort ("memory allocation of N bytes
-//! failed", SIGABRT, no file named). The allocator is the system's; only a failed
-//! allocation takes the new path. Commands name what they are doing with [`doing`] before
+//! failed", SIGABRT, no file named). The allocator is the system's (through
+//! `linegs_gpu::mem::HugeBlocks`); only a failed allocation takes the new path. Commands name what they are doing with [`doing`] before
 //! each large phase (reading a model, drawing a picture), so the message can name it.
 //!
 //! A failed allocation always ends the process here, also one a library would have
 //! handled with `try_reserve`: the same end, with a message, as any other.
 
-use linegs_gpu::mem::advise_huge;
-use std::alloc::{GlobalAlloc, Layout, System};
+use linegs_gpu::mem::HugeBlocks;
+use std::alloc::{GlobalAlloc, Layout};
 use std::io::Write;
 use std::sync::Mutex;
 
@@ -64,40 +64,37 @@ fn out_of_memory(size: usize) -> ! {
     std::process::exit(1)
 }
 
-/// The system allocator, with [`out_of_memory`] instead of an abort, and large blocks on
-/// huge pages where the system has them ([`linegs_gpu::mem::advise_huge`]).
+/// The library's [`HugeBlocks`] (the system allocator, large blocks on huge pages where
+/// the system has them), with [`out_of_memory`] instead of an abort.
 pub struct Checked;
 
-// SAFETY: every call is passed to `System` unchanged; only a null result is acted on.
+// SAFETY: every call is passed to `HugeBlocks` unchanged; only a null result is acted on.
 unsafe impl GlobalAlloc for Checked {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        let p = unsafe { System.alloc(layout) };
+        let p = unsafe { HugeBlocks.alloc(layout) };
         if p.is_null() {
             out_of_memory(layout.size());
         }
-        advise_huge(p, layout.size());
         p
     }
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        let p = unsafe { System.alloc_zeroed(layout) };
+        let p = unsafe { HugeBlocks.alloc_zeroed(layout) };
         if p.is_null() {
             out_of_memory(layout.size());
         }
-        advise_huge(p, layout.size());
         p
     }
 
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        let p = unsafe { System.realloc(ptr, layout, new_size) };
+        let p = unsafe { HugeBlocks.realloc(ptr, layout, new_size) };
         if p.is_null() {
             out_of_memory(new_size);
         }
-        advise_huge(p, new_size);
         p
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
+        unsafe { HugeBlocks.dealloc(ptr, layout) }
     }
 }

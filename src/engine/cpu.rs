@@ -56,22 +56,8 @@ impl CpuEngine {
 
     /// Calls `f(sorted index, t1, offset)` for each member of `X(q)`, in grid order.
     #[inline]
-    fn for_each_member(&self, q: &Query, mut f: impl FnMut(usize, f64, DVec3)) {
-        if !q.seg.is_valid() {
-            return;
-        }
-        let cyl = Cylinder::new(&q.seg, q.r);
-        let g = &*self.grid;
-        ROWS.with_borrow_mut(|rows| {
-            g.visit_ranges(&q.seg, q.r, rows, |range| {
-                let start = range.start;
-                for (j, p) in g.points[range].iter().enumerate() {
-                    if let Some((t1, v)) = cyl.test(p64(*p)) {
-                        f(start + j, t1, v);
-                    }
-                }
-            })
-        });
+    fn for_each_member(&self, q: &Query, f: impl FnMut(usize, f64, DVec3)) {
+        for_each_member(&self.grid, q, f)
     }
 
     /// One query of a fused batch: one walk over its rows gives the stats, the members'
@@ -141,6 +127,26 @@ pub(crate) fn add_nearest<I: Ord + Copy>(
     }
 }
 
+/// Calls `f(sorted index, t1, offset)` for each member of `X(q)` in `grid`, in grid order:
+/// the walk of every CPU-engine answer.
+#[inline]
+fn for_each_member(grid: &Grid, q: &Query, mut f: impl FnMut(usize, f64, DVec3)) {
+    if !q.seg.is_valid() {
+        return;
+    }
+    let cyl = Cylinder::new(&q.seg, q.r);
+    ROWS.with_borrow_mut(|rows| {
+        grid.visit_ranges(&q.seg, q.r, rows, |range| {
+            let start = range.start;
+            for (j, p) in grid.points[range].iter().enumerate() {
+                if let Some((t1, v)) = cyl.test(p64(*p)) {
+                    f(start + j, t1, v);
+                }
+            }
+        })
+    });
+}
+
 /// [`Engine::members`] over `grid` on the host, f64.
 pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
     let order = SpatialOrder::new(grid, queries);
@@ -167,22 +173,11 @@ pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
 /// [`member_list`] into `out` (cleared first).
 fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
     out.clear();
-    if !q.seg.is_valid() {
-        return;
-    }
-    let cyl = Cylinder::new(&q.seg, q.r);
-    ROWS.with_borrow_mut(|rows| {
-        grid.visit_ranges(&q.seg, q.r, rows, |range| {
-            let start = range.start;
-            for (j, p) in grid.points[range].iter().enumerate() {
-                if let Some((t, offset)) = cyl.test(p64(*p)) {
-                    out.push(Member {
-                        id: grid.ids[start + j],
-                        t,
-                        offset,
-                    });
-                }
-            }
+    for_each_member(grid, q, |j, t, offset| {
+        out.push(Member {
+            id: grid.ids[j],
+            t,
+            offset,
         })
     });
     // Working-set order, not grid order: the grid's layout follows the working
