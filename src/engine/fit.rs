@@ -21,7 +21,7 @@ use crate::geom::fit::{
 use crate::geom::kernel::avx2;
 use crate::geom::{p64, Segment};
 use crate::index::Grid;
-use glam::{DVec2, DVec3};
+use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::HashMap;
 
@@ -234,7 +234,6 @@ unsafe fn test_avx2(n: &mut Near, cyl: &crate::geom::Cylinder, frame: (DVec3, DV
 /// within `r` of `s`), in their order: the test and arithmetic of a walk
 /// ([`member_list`]), then those of [`Section::push`].
 fn section_among(near: &mut Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &mut Section) {
-    out.clear();
     let cyl = crate::geom::Cylinder::new(s, r);
     let frame = basis(s.dir());
     if avx2() {
@@ -245,20 +244,30 @@ fn section_among(near: &mut Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &m
     }
     // Every point is written at the next free place, which advances only past members:
     // no branch on the test (points near the cylinder's surface defeat prediction).
+    // Straight into the ridge's columns: the step reads them as they are.
     let n = near.len();
-    out.pts.resize(n, (0.0, DVec2::ZERO));
-    out.pw.resize(n, 0.0);
+    out.t.resize(n, 0.0);
+    out.cols.x.resize(n, 0.0);
+    out.cols.y.resize(n, 0.0);
+    out.cols.w.resize(n, 0.0);
     out.ids.resize(n, 0);
+    let (ot, ox, oy) = (&mut out.t[..n], &mut out.cols.x[..n], &mut out.cols.y[..n]);
+    let (ow, oi) = (&mut out.cols.w[..n], &mut out.ids[..n]);
+    let (ow_on, points) = (job.spec.opacity_weight, &job.points);
     let mut k = 0;
     for i in 0..n {
         let id = near.ids[i];
-        out.pts[k] = (near.t[i], DVec2::new(near.qx[i], near.qy[i]));
-        out.pw[k] = job.points.weight_if(job.spec.opacity_weight, id);
-        out.ids[k] = id;
+        ot[k] = near.t[i];
+        ox[k] = near.qx[i];
+        oy[k] = near.qy[i];
+        ow[k] = points.weight_if(ow_on, id);
+        oi[k] = id;
         k += usize::from(near.inside[i]);
     }
-    out.pts.truncate(k);
-    out.pw.truncate(k);
+    out.t.truncate(k);
+    out.cols.x.truncate(k);
+    out.cols.y.truncate(k);
+    out.cols.w.truncate(k);
     out.ids.truncate(k);
 }
 

@@ -143,15 +143,20 @@ pub const MIN_ELONGATION: f64 = 4.0;
 /// Weighted least squares of `q` on `t`, each point weighted `pw x k`; `None` without
 /// weight. No slope (`b = 0`) without axial spread, or with less than [`MIN_ELONGATION`]
 /// times the cross spread.
-fn weighted_line(pts: &[(f64, DVec2)], pw: &[f64], k: &[f64]) -> Option<LineFit> {
-    let w = || pw.iter().zip(k).map(|(pw, k)| pw * k);
+fn weighted_line(t: &[f64], cols: &Columns) -> Option<LineFit> {
+    let n = t.len();
+    let (qx, qy) = (&cols.x[..n], &cols.y[..n]);
+    let (pw, k) = (&cols.w[..n], &cols.k[..n]);
+    let w = |i: usize| pw[i] * k[i];
+    let q = |i: usize| DVec2::new(qx[i], qy[i]);
     // The three sums in one pass, each in point order as three passes would add them.
     // (Starting values as `Sum` starts: -0.0 for f64, zero for glam's vectors.)
     let (mut sw, mut st, mut sq) = (-0.0, -0.0, DVec2::ZERO);
-    for (p, w) in pts.iter().zip(w()) {
+    for i in 0..n {
+        let w = w(i);
         sw += w;
-        st += p.0 * w;
-        sq += p.1 * w;
+        st += t[i] * w;
+        sq += q(i) * w;
     }
     if sw <= 0.0 {
         return None;
@@ -161,11 +166,12 @@ fn weighted_line(pts: &[(f64, DVec2)], pw: &[f64], k: &[f64]) -> Option<LineFit>
     let mut stt = 0.0;
     let mut sqq = 0.0;
     let mut stq = DVec2::ZERO;
-    for (p, w) in pts.iter().zip(w()) {
-        let dt = p.0 - t0;
+    for i in 0..n {
+        let w = w(i);
+        let dt = t[i] - t0;
         stt += w * dt * dt;
-        sqq += w * (p.1 - a).length_squared();
-        stq += (p.1 - a) * (w * dt);
+        sqq += w * (q(i) - a).length_squared();
+        stq += (q(i) - a) * (w * dt);
     }
     let b = if stt > 1e-300 && stt >= MIN_ELONGATION * sqq {
         stq / stt
@@ -218,24 +224,26 @@ pub fn ridge(
     bandwidth: f64,
     warm: bool,
 ) -> Option<(LineFit, f64)> {
-    ridge_in(&mut Columns::default(), pts, pw, r, bandwidth, warm)
+    let t: Vec<f64> = pts.iter().map(|p| p.0).collect();
+    let mut cols = Columns::new(pts.iter().map(|p| p.1), pw);
+    ridge_in(&mut cols, &t, r, bandwidth, warm)
 }
 
-/// [`ridge`] with `cols` as its room for the points' columns (kept between calls).
+/// [`ridge`] of the points at axial positions `t` whose offsets and weights `cols`
+/// holds (one per position, sealed: [`Columns::seal`]).
 pub fn ridge_in(
     cols: &mut Columns,
-    pts: &[(f64, DVec2)],
-    pw: &[f64],
+    t: &[f64],
     r: f64,
     bandwidth: f64,
     warm: bool,
 ) -> Option<(LineFit, f64)> {
-    if pts.is_empty() {
+    debug_assert_eq!(cols.n, t.len());
+    if t.is_empty() {
         return None;
     }
     let h_min = bandwidth * r;
     let mut h = ridge_start(r, bandwidth, warm);
-    cols.fill(pts.iter().map(|p| p.1), pw);
     let mut c = DVec2::ZERO;
     for _ in 0..100 {
         let (sw, sq) = cols.round(c, h);
@@ -257,9 +265,8 @@ pub fn ridge_in(
         b: DVec2::ZERO,
     };
     // The last round's kernel, at the final width (the stop rule acts only there).
-    let k = &cols.k[..pts.len()];
-    let weight: f64 = k.iter().sum();
-    if let Some(f) = weighted_line(pts, &pw[..pts.len()], k) {
+    let weight: f64 = cols.k[..t.len()].iter().sum();
+    if let Some(f) = weighted_line(t, cols) {
         fit = f;
     }
     Some((fit, weight))
@@ -395,17 +402,20 @@ fn corner(
 /// The corner line of two face families, from the corners of the two halves (a single
 /// corner, no turn, when a half has too few points).
 fn two_planes(
-    pts: &[(f64, DVec2)],
-    pw: &[f64],
+    t: &[f64],
+    cols: &Columns,
     normals: &[DVec2],
     keep: &[usize],
     len: f64,
     min_points: usize,
 ) -> Option<LineFit> {
-    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
+    let sub_w: Vec<f64> = keep.iter().map(|&i| cols.w[i]).collect();
     let fam = families(normals, &sub_w, min_points)?;
     // Family members index `normals`, which are the points `keep`.
-    let sub: Vec<(f64, DVec2)> = keep.iter().map(|&i| pts[i]).collect();
+    let sub: Vec<(f64, DVec2)> = keep
+        .iter()
+        .map(|&i| (t[i], DVec2::new(cols.x[i], cols.y[i])))
+        .collect();
     let all = corner(&sub, &sub_w, &fam, |_| true, min_points)?;
     let half = 0.5 * len;
     match (
@@ -463,23 +473,33 @@ pub fn step(
 }
 
 /// One step's cross-section: per member of `X(s, r)` (working-set order), its axial
-/// position and its offset in the frame ([`basis`]) of the segment's direction, its
-/// weight (opacity with [`FitSpec::opacity_weight`], else 1) and its working-set id.
+/// position `t`, and in `cols` its offset in the frame ([`basis`]) of the segment's
+/// direction and its weight (opacity with [`FitSpec::opacity_weight`], else 1), and its
+/// working-set id. Columns, so that the ridge's mean shift reads them as they are.
 #[derive(Clone, Debug, Default)]
 pub struct Section {
-    pub pts: Vec<(f64, DVec2)>,
-    pub pw: Vec<f64>,
+    pub t: Vec<f64>,
+    /// Offsets and weights (the ridge's columns, [`ridge_in`]); room kept step to step.
+    pub cols: Columns,
     pub ids: Vec<u32>,
-    /// Room for the ridge's columns ([`ridge_in`]), kept from step to step.
-    cols: Columns,
 }
 
 impl Section {
     /// Empty, keeping its room.
     pub fn clear(&mut self) {
-        self.pts.clear();
-        self.pw.clear();
+        self.t.clear();
+        self.cols.clear();
         self.ids.clear();
+    }
+
+    /// Members so far.
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+
+    /// Whether it has no members.
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
     }
 
     /// Member `id` at axial position `t` and perpendicular offset `offset`: the values
@@ -494,9 +514,9 @@ impl Section {
         points: &FitPoints<'_>,
         opacity_weight: bool,
     ) {
-        self.pts
-            .push((t, DVec2::new(offset.dot(e1), offset.dot(e2))));
-        self.pw.push(points.weight_if(opacity_weight, id));
+        self.t.push(t);
+        let q = DVec2::new(offset.dot(e1), offset.dot(e2));
+        self.cols.push(q, points.weight_if(opacity_weight, id));
         self.ids.push(id);
     }
 }
@@ -511,7 +531,7 @@ pub fn step_section(
     warm: bool,
 ) -> (Option<LineFit>, How) {
     let (e1, e2) = basis(s.dir());
-    let (pts, pw) = (&sec.pts[..], &sec.pw[..]);
+    sec.cols.seal(sec.t.len());
     let min_points = spec.min_points as usize;
     if let Some(ns) = points.normals {
         // Normals across the line (a face through the edge): |n·d| < sin 30°; a Gaussian
@@ -526,13 +546,13 @@ pub fn step_section(
                 n2.push(across.normalize());
             }
         }
-        if let Some(f) = two_planes(pts, pw, &n2, &keep, s.length(), min_points) {
+        if let Some(f) = two_planes(&sec.t, &sec.cols, &n2, &keep, s.length(), min_points) {
             if f.a.length() <= r {
                 return (Some(f), How::Corner);
             }
         }
     }
-    match ridge_in(&mut sec.cols, pts, pw, r, spec.bandwidth, warm) {
+    match ridge_in(&mut sec.cols, &sec.t, r, spec.bandwidth, warm) {
         Some((f, weight)) if weight >= min_points as f64 => (Some(f), How::Ridge),
         _ => (None, How::Unclear),
     }

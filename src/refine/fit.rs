@@ -240,7 +240,7 @@ fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> bool {
             break;
         }
     }
-    cols.kernel(c, h);
+    cols.round(c, h);
     let faces: f64 = cols
         .k
         .iter()
