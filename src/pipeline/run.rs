@@ -302,8 +302,9 @@ pub struct Outcome {
     pub report: Report,
 }
 
-/// `--max-scale`'s scene and what it did: how many Gaussians were left out, or why none.
-type ScaleCut = (Scene, Result<usize, String>);
+/// `--max-scale`'s scene (only where it left some Gaussians out) and what it did: how
+/// many Gaussians were left out, or why none.
+type ScaleCut = (Option<Scene>, Result<usize, String>);
 
 impl Job {
     /// The job with `params` on `backend`, nothing extra.
@@ -340,7 +341,7 @@ impl Job {
                 return Ok(None);
             }
             return Ok(Some((
-                scene.clone(),
+                None,
                 Err(format!(
                     "--max-scale {k}: the Gaussians carry no scales (or a frame transform is \
                      given); nothing was left out"
@@ -358,6 +359,21 @@ impl Job {
         };
         let limit = k * r;
         let keep: Vec<bool> = sc.iter().map(|&s| f64::from(s) <= limit).collect();
+        let kept = keep.iter().filter(|&&k| k).count();
+        let cut = keep.len() - kept;
+        if cut == 0 {
+            // Nothing to leave out: no copy of the scene.
+            return Ok(Some((None, Ok(0))));
+        }
+        if kept == 0 {
+            return Ok(Some((
+                None,
+                Err(format!(
+                    "--max-scale {k}: every Gaussian is wider than {limit} (largest standard \
+                     deviation); none was left out"
+                )),
+            )));
+        }
         fn pick_of<T: Copy>(v: &[T], keep: &[bool]) -> Vec<T> {
             v.iter()
                 .zip(keep)
@@ -367,16 +383,6 @@ impl Job {
         }
         let pick = |v: &[[f32; 3]]| pick_of(v, &keep);
         let gaussians = pick(&scene.gaussians);
-        let cut = scene.gaussians.len() - gaussians.len();
-        if gaussians.is_empty() {
-            return Ok(Some((
-                scene.clone(),
-                Err(format!(
-                    "--max-scale {k}: every Gaussian is wider than {limit} (largest standard \
-                     deviation); none was left out"
-                )),
-            )));
-        }
         let out = Scene {
             gaussians,
             normals: scene.normals.as_deref().map(pick),
@@ -389,7 +395,7 @@ impl Job {
             load_seconds: scene.load_seconds,
             description: scene.description.clone(),
         };
-        Ok(Some((out, Ok(cut))))
+        Ok(Some((Some(out), Ok(cut))))
     }
 
     /// Refines `scene` (docs/method.md#the-refinement-steps) and reports
@@ -397,9 +403,9 @@ impl Job {
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
         let t = Instant::now();
         let cut = self.scale_cut(scene)?;
-        let (placing, cut_note) = match &cut {
-            Some((s, n)) => (s, Some(n.clone())),
-            None => (scene, None),
+        let (placing, cut_note) = match cut {
+            Some((s, n)) => (s, Some(n)),
+            None => (None, None),
         };
         // The whole model witnesses the lines (outliers, merges, crop, gaps, the metrics
         // as `eval` measures them); the scale cut's Gaussians place them (the edge fit).
@@ -412,14 +418,14 @@ impl Job {
                 Some((_, msg)) => Some(msg),
                 None => None,
             };
-        let normals_unused = match &cut_note {
-            Some(Ok(n)) if *n > 0 => {
+        let normals_unused = match &placing {
+            Some(placing) => {
                 let mut placer = self.refiner(placing)?;
                 let unused = placer.set_scene_attributes(placing);
                 refiner.set_placement(placer);
                 unused
             }
-            _ => refiner.set_scene_attributes(scene),
+            None => refiner.set_scene_attributes(scene),
         };
         let out = refiner.refine(&scene.lines, on_stage)?;
         let n_box = refiner.n_box();
