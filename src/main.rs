@@ -116,6 +116,8 @@ fn quiet_stdio_errors() {
 static ALLOCATOR: oom::Checked = oom::Checked;
 
 fn main() -> ExitCode {
+    // Before the first large block.
+    linegs_gpu::mem::huge_heap();
     quiet_stdio_errors();
     // After parsing: clap exits the process on `--help` and usage errors, which would
     // leave the folder behind.
