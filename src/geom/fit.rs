@@ -152,10 +152,10 @@ fn weighted_line(t: &[f64], cols: &Columns) -> Option<LineFit> {
     // The three sums in one pass, each in point order as three passes would add them.
     // (Starting values as `Sum` starts: -0.0 for f64, zero for glam's vectors.)
     let (mut sw, mut st, mut sq) = (-0.0, -0.0, DVec2::ZERO);
-    for i in 0..n {
+    for (i, &ti) in t.iter().enumerate() {
         let w = w(i);
         sw += w;
-        st += t[i] * w;
+        st += ti * w;
         sq += q(i) * w;
     }
     if sw <= 0.0 {
@@ -166,9 +166,9 @@ fn weighted_line(t: &[f64], cols: &Columns) -> Option<LineFit> {
     let mut stt = 0.0;
     let mut sqq = 0.0;
     let mut stq = DVec2::ZERO;
-    for i in 0..n {
+    for (i, &ti) in t.iter().enumerate() {
         let w = w(i);
-        let dt = t[i] - t0;
+        let dt = ti - t0;
         stt += w * dt * dt;
         sqq += w * (q(i) - a).length_squared();
         stq += (q(i) - a) * (w * dt);
