@@ -194,35 +194,96 @@ pub fn shortest_axis(q: [f64; 4], scale: [f64; 3]) -> [f32; 3] {
         return [0.0; 3];
     }
     let [w, x, y, z] = q.map(|c| c / n);
-    // Columns of the rotation matrix of (w, x, y, z).
-    let cols = [
-        [
+    // The axes ordered by scale: a stable sort of three (ties keep their order), as
+    // adjacent swaps of strictly greater neighbours; NaN as `total_cmp` places it.
+    let mut order = [0usize, 1, 2];
+    let mut swap_if_greater = |i: usize| {
+        if scale[order[i]].total_cmp(&scale[order[i + 1]]).is_gt() {
+            order.swap(i, i + 1);
+        }
+    };
+    swap_if_greater(0);
+    swap_if_greater(1);
+    swap_if_greater(0);
+    if scale[order[0]].is_nan() || scale[order[0]] + 1.5f64.ln() > scale[order[1]] {
+        return [0.0; 3];
+    }
+    // That axis's column of the rotation matrix of (w, x, y, z).
+    let col = match order[0] {
+        0 => [
             1.0 - 2.0 * (y * y + z * z),
             2.0 * (x * y + w * z),
             2.0 * (x * z - w * y),
         ],
-        [
+        1 => [
             2.0 * (x * y - w * z),
             1.0 - 2.0 * (x * x + z * z),
             2.0 * (y * z + w * x),
         ],
-        [
+        _ => [
             2.0 * (x * z + w * y),
             2.0 * (y * z - w * x),
             1.0 - 2.0 * (x * x + y * y),
         ],
-    ];
-    let mut order = [0usize, 1, 2];
-    order.sort_by(|&a, &b| scale[a].total_cmp(&scale[b]));
-    if scale[order[0]].is_nan() || scale[order[0]] + 1.5f64.ln() > scale[order[1]] {
-        return [0.0; 3];
-    }
-    cols[order[0]].map(|c| c as f32)
+    };
+    col.map(|c| c as f32)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The axis by a full sort and the whole rotation matrix: what `shortest_axis` must
+    /// equal bit for bit.
+    fn by_sort(q: [f64; 4], scale: [f64; 3]) -> [f32; 3] {
+        let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+        if n.is_nan() || n <= 0.0 || !n.is_finite() {
+            return [0.0; 3];
+        }
+        let [w, x, y, z] = q.map(|c| c / n);
+        let cols = [
+            [
+                1.0 - 2.0 * (y * y + z * z),
+                2.0 * (x * y + w * z),
+                2.0 * (x * z - w * y),
+            ],
+            [
+                2.0 * (x * y - w * z),
+                1.0 - 2.0 * (x * x + z * z),
+                2.0 * (y * z + w * x),
+            ],
+            [
+                2.0 * (x * z + w * y),
+                2.0 * (y * z - w * x),
+                1.0 - 2.0 * (x * x + y * y),
+            ],
+        ];
+        let mut order = [0usize, 1, 2];
+        order.sort_by(|&a, &b| scale[a].total_cmp(&scale[b]));
+        if scale[order[0]].is_nan() || scale[order[0]] + 1.5f64.ln() > scale[order[1]] {
+            return [0.0; 3];
+        }
+        cols[order[0]].map(|c| c as f32)
+    }
+
+    #[test]
+    fn the_axis_is_the_full_sorts_bit_for_bit() {
+        let mut rng = crate::synth::Rng::new(3);
+        let picks = [-3.0, -2.0, -1.0, 0.0, f64::NAN, -f64::NAN, f64::INFINITY];
+        for i in 0..20_000 {
+            let q = [0; 4].map(|_| rng.normal());
+            // Ties, NaNs (of both signs) and infinities as well as spread values.
+            let scale = [0; 3].map(|_| {
+                if i % 3 == 0 {
+                    picks[(rng.uniform() * picks.len() as f64) as usize % picks.len()]
+                } else {
+                    -4.0 * rng.uniform()
+                }
+            });
+            let (a, b) = (shortest_axis(q, scale), by_sort(q, scale));
+            assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "{q:?} {scale:?}");
+        }
+    }
 
     #[test]
     fn the_normal_is_the_rotated_shortest_axis() {
