@@ -29,6 +29,6 @@ printf '%s\n' "${times[@]}" | sort -g | awk '{a[NR]=$1} END {printf "median %.3f
 python3 -c '
 import json, sys
 r = json.load(open(sys.argv[1]))
-print("segments", r["input"].get("segments"), "n_box", r["input"].get("n_box"))
+print("segments", r["input"].get("segments_read"), "n_box", r["input"].get("n_box"))
 print(" ".join("%s %.4f" % (s["name"], s["seconds"]) for s in r["stages"]))
 ' "$work/r.json"
