@@ -492,16 +492,6 @@ impl Section {
         self.ids.clear();
     }
 
-    /// Members so far.
-    pub fn len(&self) -> usize {
-        self.t.len()
-    }
-
-    /// Whether it has no members.
-    pub fn is_empty(&self) -> bool {
-        self.t.is_empty()
-    }
-
     /// Member `id` at axial position `t` and perpendicular offset `offset`: the values
     /// of [`cross_section`].
     #[inline]
