@@ -46,16 +46,10 @@ const HUGE_FROM: usize = 4 << 20;
 pub fn advise_huge(p: *mut u8, size: usize) {
     #[cfg(target_os = "linux")]
     if size >= HUGE_FROM && !p.is_null() {
-        const HUGE: usize = 2 << 20;
-        let start = (p as usize).next_multiple_of(HUGE);
-        let end = (p as usize).saturating_add(size) & !(HUGE - 1);
-        if end > start {
-            // SAFETY: the range lies inside the block just allocated; the advice changes
-            // how its pages are backed, never their contents. A refusal is harmless.
-            unsafe {
-                libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE);
-            }
-        }
+        let start = (p as usize).next_multiple_of(HUGE_PAGE);
+        let end = (p as usize).saturating_add(size) & !(HUGE_PAGE - 1);
+        // The range lies inside the block just allocated.
+        advise_range(start, end);
     }
     #[cfg(not(target_os = "linux"))]
     let _ = (p, size);
@@ -64,6 +58,20 @@ pub fn advise_huge(p: *mut u8, size: usize) {
 /// Size of a transparent huge page on x86-64 and most 64-bit Arm kernels.
 #[cfg(target_os = "linux")]
 const HUGE_PAGE: usize = 2 << 20;
+
+/// `madvise(MADV_HUGEPAGE)` on `start..end` (nothing when empty). The caller passes memory
+/// of this process's own, mapped; the advice changes how its pages are backed, never
+/// their contents, and a refusal is harmless.
+#[cfg(target_os = "linux")]
+#[inline]
+fn advise_range(start: usize, end: usize) {
+    if end > start {
+        // SAFETY: as above: our own mapped range; only its backing changes.
+        unsafe {
+            libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE);
+        }
+    }
+}
 
 /// The main heap's start of the part not yet advised ([`huge_heap`]); 0 while off.
 static HEAP_FROM: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
@@ -127,13 +135,10 @@ fn advise_heap_growth() {
             && HEAP_FROM
                 .compare_exchange(from, to, Relaxed, Relaxed)
                 .is_ok()
-            && to > from
         {
-            // SAFETY: the range is the heap's own, mapped and ours; the advice changes
-            // how its pages are backed, never their contents. A refusal is harmless.
-            unsafe {
-                libc::madvise(from as *mut libc::c_void, to - from, libc::MADV_HUGEPAGE);
-            }
+            // The heap's own part between the last advice and its end (empty when the
+            // heap shrank).
+            advise_range(from, to);
         }
     }
 }

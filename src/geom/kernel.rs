@@ -22,29 +22,14 @@ pub const LANES: usize = 4;
 /// then the Taylor polynomial of degree 12 of `exp(f)` and `2^k` by its exponent bits.
 #[inline(always)]
 pub fn exp_neg(x: f64) -> f64 {
-    const LOG2E: f64 = std::f64::consts::LOG2_E;
-    // ln 2 in two parts (the high part exact in 32 bits), so that `k ln 2` is exact.
-    const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
-    const LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
-    // 1.5 x 2^52: adding it rounds to an integer, which then sits in the low mantissa bits.
-    const SHIFT: f64 = 6_755_399_441_055_744.0;
     let xc = if x < -700.0 { -700.0 } else { x };
     let y = xc * LOG2E + SHIFT;
     let k = y - SHIFT;
     let f = (xc - k * LN2_HI) - k * LN2_LO;
-    let mut p = 1.0 / 479_001_600.0;
-    p = p * f + 1.0 / 39_916_800.0;
-    p = p * f + 1.0 / 3_628_800.0;
-    p = p * f + 1.0 / 362_880.0;
-    p = p * f + 1.0 / 40_320.0;
-    p = p * f + 1.0 / 5_040.0;
-    p = p * f + 1.0 / 720.0;
-    p = p * f + 1.0 / 120.0;
-    p = p * f + 1.0 / 24.0;
-    p = p * f + 1.0 / 6.0;
-    p = p * f + 0.5;
-    p = p * f + 1.0;
-    p = p * f + 1.0;
+    let mut p = TAYLOR[0];
+    for c in &TAYLOR[1..] {
+        p = p * f + c;
+    }
     // k in [-1010, 0]: 2^k is a normal number.
     let ki = (y.to_bits() as i64).wrapping_sub(SHIFT.to_bits() as i64);
     let two_k = f64::from_bits(((ki + 1023) as u64) << 52);
@@ -54,6 +39,29 @@ pub fn exp_neg(x: f64) -> f64 {
         p * two_k
     }
 }
+
+const LOG2E: f64 = std::f64::consts::LOG2_E;
+/// ln 2 in two parts (the high part exact in 32 bits), so that `k ln 2` is exact.
+const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
+const LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
+/// 1.5 x 2^52: adding it rounds to an integer, which then sits in the low mantissa bits.
+const SHIFT: f64 = 6_755_399_441_055_744.0;
+/// The Taylor coefficients of `exp` from degree 12 down to 0, for Horner's rule.
+const TAYLOR: [f64; 13] = [
+    1.0 / 479_001_600.0,
+    1.0 / 39_916_800.0,
+    1.0 / 3_628_800.0,
+    1.0 / 362_880.0,
+    1.0 / 40_320.0,
+    1.0 / 5_040.0,
+    1.0 / 720.0,
+    1.0 / 120.0,
+    1.0 / 24.0,
+    1.0 / 6.0,
+    0.5,
+    1.0,
+    1.0,
+];
 
 /// A cross-section's points in columns, padded with weight-0 points to a multiple of
 /// [`LANES`]: offsets `x`, `y`, per-point weights `w`, and room for kernel values `k`.
@@ -185,38 +193,20 @@ fn sums_body(c: &Columns) -> (f64, DVec2) {
 /// vectorizes one group at a time).
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{Columns, LANES};
+    use super::{Columns, LANES, LN2_HI, LN2_LO, LOG2E, SHIFT, TAYLOR};
     use glam::DVec2;
     use std::arch::x86_64::*;
 
     /// [`super::exp_neg`] of `G` groups of four values, side by side.
     #[inline(always)]
     unsafe fn exp4<const G: usize>(x: [__m256d; G]) -> [__m256d; G] {
-        const LOG2E: f64 = std::f64::consts::LOG2_E;
-        const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);
-        const LN2_LO: f64 = f64::from_bits(0x3DEA_39EF_3579_3C76);
-        const SHIFT: f64 = 6_755_399_441_055_744.0;
-        const C: [f64; 12] = [
-            1.0 / 39_916_800.0,
-            1.0 / 3_628_800.0,
-            1.0 / 362_880.0,
-            1.0 / 40_320.0,
-            1.0 / 5_040.0,
-            1.0 / 720.0,
-            1.0 / 120.0,
-            1.0 / 24.0,
-            1.0 / 6.0,
-            0.5,
-            1.0,
-            1.0,
-        ];
         let low = _mm256_set1_pd(-700.0);
         let shift = _mm256_set1_pd(SHIFT);
         let under = x.map(|x| _mm256_cmp_pd::<_CMP_LT_OQ>(x, low));
         let mut xc = x;
         let mut y = x;
         let mut f = x;
-        let mut p = [_mm256_set1_pd(1.0 / 479_001_600.0); G];
+        let mut p = [_mm256_set1_pd(TAYLOR[0]); G];
         for g in 0..G {
             xc[g] = _mm256_blendv_pd(x[g], low, under[g]);
             y[g] = _mm256_add_pd(_mm256_mul_pd(xc[g], _mm256_set1_pd(LOG2E)), shift);
@@ -226,7 +216,7 @@ mod x86 {
                 _mm256_mul_pd(k, _mm256_set1_pd(LN2_LO)),
             );
         }
-        for c in C {
+        for &c in &TAYLOR[1..] {
             for g in 0..G {
                 p[g] = _mm256_add_pd(_mm256_mul_pd(p[g], f[g]), _mm256_set1_pd(c));
             }
