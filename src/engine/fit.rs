@@ -156,12 +156,6 @@ struct Near {
     x: Vec<f64>,
     y: Vec<f64>,
     z: Vec<f64>,
-    /// Per point, from the last [`section_among`]: axial position, cross-section offset
-    /// in the frame and whether it is a member.
-    t: Vec<f64>,
-    qx: Vec<f64>,
-    qy: Vec<f64>,
-    inside: Vec<bool>,
 }
 
 impl Near {
@@ -178,11 +172,6 @@ impl Near {
             self.y.push(f64::from(p[1]));
             self.z.push(f64::from(p[2]));
         }
-        let n = g.len();
-        self.t.resize(n, 0.0);
-        self.qx.resize(n, 0.0);
-        self.qy.resize(n, 0.0);
-        self.inside.resize(n, false);
     }
 
     fn len(&self) -> usize {
@@ -190,85 +179,200 @@ impl Near {
     }
 }
 
-/// Every near point's cylinder test against `cyl` and its offset in the frame
-/// `(e1, e2)`: the arithmetic of [`crate::geom::Cylinder::test`] and [`Section::push`],
-/// one point per vector lane (no branch).
+/// Room past the last point that [`section_among`]'s columns keep while they are
+/// written: the vector copy stores four lanes at every place.
+const SPARE: usize = 4;
+
+/// The members among the near points `near[from..]` of the cylinder `cyl`, written in
+/// their order from place `k` on in `out`'s position and offset columns (`t`, offsets in
+/// the frame `(e1, e2)`, ids); returns the place after the last. The arithmetic of
+/// [`crate::geom::Cylinder::test`] and [`Section::push`] point by point; every point is
+/// written at the next free place, which advances only past members: no branch on the
+/// test (points near the cylinder's surface defeat prediction).
 #[inline(always)]
-fn test_body(n: &mut Near, cyl: &crate::geom::Cylinder, (e1, e2): (DVec3, DVec3)) {
-    let m = n.len();
-    let (xs, ys, zs) = (&n.x[..m], &n.y[..m], &n.z[..m]);
-    let (ts, qx, qy, ins) = (
-        &mut n.t[..m],
-        &mut n.qx[..m],
-        &mut n.qy[..m],
-        &mut n.inside[..m],
-    );
-    for i in 0..m {
+fn section_body(
+    near: &Near,
+    from: usize,
+    cyl: &crate::geom::Cylinder,
+    (e1, e2): (DVec3, DVec3),
+    out: &mut Section,
+    mut k: usize,
+) -> usize {
+    let n = near.len();
+    let (xs, ys, zs, ids) = (&near.x[..n], &near.y[..n], &near.z[..n], &near.ids[..n]);
+    let (ot, ox, oy) = (&mut out.t[..], &mut out.cols.x[..], &mut out.cols.y[..]);
+    let oi = &mut out.ids[..];
+    for i in from..n {
         let p = DVec3::new(xs[i], ys[i], zs[i]);
         let w = p - cyl.p1;
         let t1 = w.dot(cyl.d);
         let beyond = (cyl.p2 - p).dot(cyl.d);
         let v = w - cyl.d * t1;
-        ts[i] = t1;
-        qx[i] = v.dot(e1);
-        qy[i] = v.dot(e2);
+        ot[k] = t1;
+        ox[k] = v.dot(e1);
+        oy[k] = v.dot(e2);
+        oi[k] = ids[i];
         let past_an_end = (t1 < 0.0) | (beyond < 0.0);
-        ins[i] = !past_an_end & (v.length_squared() <= cyl.r2);
+        k += usize::from(!past_an_end & (v.length_squared() <= cyl.r2));
     }
-}
-
-/// # Safety
-/// The CPU has AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn test_avx2(n: &mut Near, cyl: &crate::geom::Cylinder, frame: (DVec3, DVec3)) {
-    test_body(n, cyl, frame)
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-unsafe fn test_avx2(n: &mut Near, cyl: &crate::geom::Cylinder, frame: (DVec3, DVec3)) {
-    test_body(n, cyl, frame)
+    k
 }
 
 /// The cross-section of the members of `X(s, r)` among `near` (which holds every point
 /// within `r` of `s`), in their order: the test and arithmetic of a walk
 /// ([`member_list`]), then those of [`Section::push`].
-fn section_among(near: &mut Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &mut Section) {
+fn section_among(near: &Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &mut Section) {
     let cyl = crate::geom::Cylinder::new(s, r);
     let frame = basis(s.dir());
-    if avx2() {
-        // SAFETY: the CPU has AVX2.
-        unsafe { test_avx2(near, &cyl, frame) }
-    } else {
-        test_body(near, &cyl, frame)
-    }
-    // Every point is written at the next free place, which advances only past members:
-    // no branch on the test (points near the cylinder's surface defeat prediction).
     // Straight into the ridge's columns: the step reads them as they are.
     let n = near.len();
-    out.t.resize(n, 0.0);
-    out.cols.x.resize(n, 0.0);
-    out.cols.y.resize(n, 0.0);
-    out.cols.w.resize(n, 0.0);
-    out.ids.resize(n, 0);
-    let (ot, ox, oy) = (&mut out.t[..n], &mut out.cols.x[..n], &mut out.cols.y[..n]);
-    let (ow, oi) = (&mut out.cols.w[..n], &mut out.ids[..n]);
-    let (ow_on, points) = (job.spec.opacity_weight, &job.points);
-    let mut k = 0;
-    for i in 0..n {
-        let id = near.ids[i];
-        ot[k] = near.t[i];
-        ox[k] = near.qx[i];
-        oy[k] = near.qy[i];
-        ow[k] = points.weight_if(ow_on, id);
-        oi[k] = id;
-        k += usize::from(near.inside[i]);
-    }
+    out.t.resize(n + SPARE, 0.0);
+    out.cols.x.resize(n + SPARE, 0.0);
+    out.cols.y.resize(n + SPARE, 0.0);
+    out.ids.resize(n + SPARE, 0);
+    #[cfg(target_arch = "x86_64")]
+    let k = if avx2() {
+        // SAFETY: the CPU has AVX2; every column has SPARE places past `n`.
+        unsafe { x86::section(near, &cyl, frame, out) }
+    } else {
+        section_body(near, 0, &cyl, frame, out, 0)
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let k = section_body(near, 0, &cyl, frame, out, 0);
     out.t.truncate(k);
     out.cols.x.truncate(k);
     out.cols.y.truncate(k);
-    out.cols.w.truncate(k);
     out.ids.truncate(k);
+    let (ow_on, points) = (job.spec.opacity_weight, &job.points);
+    out.cols.w.clear();
+    out.cols
+        .w
+        .extend(out.ids.iter().map(|&id| points.weight_if(ow_on, id)));
+}
+
+/// [`section_body`] four points at a time in explicit vector instructions (the same
+/// operations in the same order, so the same bits): the members of each four are packed
+/// to the front of a register by a permutation from a table and stored whole at the
+/// next free place.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::{section_body, Near, Section, SPARE};
+    use crate::geom::Cylinder;
+    use glam::DVec3;
+    use std::arch::x86_64::*;
+
+    /// Per 4-bit member mask, the 32-bit lane permutation that packs the members' lanes
+    /// to the front: of 64-bit lanes (`wide`) or of 32-bit lanes.
+    const fn pack_table(wide: bool) -> [[i32; 8]; 16] {
+        let mut t = [[0i32; 8]; 16];
+        let mut m = 0;
+        while m < 16 {
+            let mut slot = 0;
+            let mut lane: i32 = 0;
+            while lane < 4 {
+                if m & (1 << lane) != 0 {
+                    if wide {
+                        t[m][2 * slot] = 2 * lane;
+                        t[m][2 * slot + 1] = 2 * lane + 1;
+                    } else {
+                        t[m][slot] = lane;
+                    }
+                    slot += 1;
+                }
+                lane += 1;
+            }
+            m += 1;
+        }
+        t
+    }
+
+    static PACK64: [[i32; 8]; 16] = pack_table(true);
+    static PACK32: [[i32; 8]; 16] = pack_table(false);
+
+    /// The members among all of `near` from place 0 of `out`; returns their number.
+    ///
+    /// # Safety
+    /// The CPU has AVX2, and `out`'s `t`, offset and id columns hold at least
+    /// `near.len() + SPARE` places.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn section(
+        near: &Near,
+        cyl: &Cylinder,
+        (e1, e2): (DVec3, DVec3),
+        out: &mut Section,
+    ) -> usize {
+        let n = near.len();
+        debug_assert!(out.t.len() >= n + SPARE && out.cols.x.len() >= n + SPARE);
+        debug_assert!(out.cols.y.len() >= n + SPARE && out.ids.len() >= n + SPARE);
+        let (xp, yp, zp) = (near.x.as_ptr(), near.y.as_ptr(), near.z.as_ptr());
+        let ip = near.ids.as_ptr();
+        let (ot, ox, oy) = (
+            out.t.as_mut_ptr(),
+            out.cols.x.as_mut_ptr(),
+            out.cols.y.as_mut_ptr(),
+        );
+        let oi = out.ids.as_mut_ptr();
+        let s = _mm256_set1_pd;
+        let (p1x, p1y, p1z) = (s(cyl.p1.x), s(cyl.p1.y), s(cyl.p1.z));
+        let (p2x, p2y, p2z) = (s(cyl.p2.x), s(cyl.p2.y), s(cyl.p2.z));
+        let (dx, dy, dz) = (s(cyl.d.x), s(cyl.d.y), s(cyl.d.z));
+        let (ax, ay, az) = (s(e1.x), s(e1.y), s(e1.z));
+        let (bx, by, bz) = (s(e2.x), s(e2.y), s(e2.z));
+        let (r2, zero) = (s(cyl.r2), _mm256_setzero_pd());
+        let dot = |x: __m256d, y: __m256d, z: __m256d, u: __m256d, v: __m256d, w: __m256d| {
+            _mm256_add_pd(
+                _mm256_add_pd(_mm256_mul_pd(x, u), _mm256_mul_pd(y, v)),
+                _mm256_mul_pd(z, w),
+            )
+        };
+        let mut k = 0;
+        let mut i = 0;
+        while i + 4 <= n {
+            let (x, y, z) = (
+                _mm256_loadu_pd(xp.add(i)),
+                _mm256_loadu_pd(yp.add(i)),
+                _mm256_loadu_pd(zp.add(i)),
+            );
+            let (wx, wy, wz) = (
+                _mm256_sub_pd(x, p1x),
+                _mm256_sub_pd(y, p1y),
+                _mm256_sub_pd(z, p1z),
+            );
+            let t1 = dot(wx, wy, wz, dx, dy, dz);
+            let beyond = dot(
+                _mm256_sub_pd(p2x, x),
+                _mm256_sub_pd(p2y, y),
+                _mm256_sub_pd(p2z, z),
+                dx,
+                dy,
+                dz,
+            );
+            let vx = _mm256_sub_pd(wx, _mm256_mul_pd(dx, t1));
+            let vy = _mm256_sub_pd(wy, _mm256_mul_pd(dy, t1));
+            let vz = _mm256_sub_pd(wz, _mm256_mul_pd(dz, t1));
+            let qx = dot(vx, vy, vz, ax, ay, az);
+            let qy = dot(vx, vy, vz, bx, by, bz);
+            let past = _mm256_or_pd(
+                _mm256_cmp_pd::<_CMP_LT_OQ>(t1, zero),
+                _mm256_cmp_pd::<_CMP_LT_OQ>(beyond, zero),
+            );
+            let within = _mm256_cmp_pd::<_CMP_LE_OQ>(dot(vx, vy, vz, vx, vy, vz), r2);
+            let m = _mm256_movemask_pd(_mm256_andnot_pd(past, within)) as usize;
+            let p64 = _mm256_loadu_si256(PACK64[m].as_ptr().cast());
+            let pack =
+                |v: __m256d| _mm256_castps_pd(_mm256_permutevar8x32_ps(_mm256_castpd_ps(v), p64));
+            _mm256_storeu_pd(ot.add(k), pack(t1));
+            _mm256_storeu_pd(ox.add(k), pack(qx));
+            _mm256_storeu_pd(oy.add(k), pack(qy));
+            let id = _mm256_castsi128_si256(_mm_loadu_si128(ip.add(i).cast()));
+            let p32 = _mm256_loadu_si256(PACK32[m].as_ptr().cast());
+            let id = _mm256_permutevar8x32_epi32(id, p32);
+            _mm_storeu_si128(oi.add(k).cast(), _mm256_castsi256_si128(id));
+            k += (m as u32).count_ones() as usize;
+            i += 4;
+        }
+        section_body(near, i, cyl, (e1, e2), out, k)
+    }
 }
 
 /// Buffers one thread reuses from segment to segment.
@@ -311,7 +415,7 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
                 s.near.fill(grid, &s.gathered);
                 at = Some(t.cur);
             }
-            section_among(&mut s.near, &t.cur, r, job, &mut s.section);
+            section_among(&s.near, &t.cur, r, job, &mut s.section);
         }
         let answer = step_section(&t.cur, &mut s.section, &job.points, r, spec, t.warm);
         if !t.advance(answer, r, spec) {
@@ -344,4 +448,92 @@ pub fn gathered(grid: &Grid, job: &FitJob<'_>) -> (FitResult, u64) {
         tracks[i] = t;
     }
     (FitResult::of_tracks(&tracks), steps)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::Rng;
+
+    /// Near points around a segment, some exactly on the cylinder's surface or caps.
+    fn near_points(rng: &mut Rng, s: &Segment, r: f64, n: usize) -> Near {
+        let (e1, e2) = basis(s.dir());
+        let mut near = Near::default();
+        for i in 0..n {
+            let t = rng.uniform() * 1.4 - 0.2;
+            let a = rng.uniform() * std::f64::consts::TAU;
+            let rho = if i % 5 == 0 {
+                r
+            } else {
+                rng.uniform() * 1.5 * r
+            };
+            let t = if i % 7 == 0 { 0.0 } else { t };
+            let p = s.p1 + (s.p2 - s.p1) * t + (e1 * a.cos() + e2 * a.sin()) * rho;
+            let p = p.as_vec3().as_dvec3();
+            near.ids.push((rng.uniform() * 1e6) as u32);
+            near.x.push(p.x);
+            near.y.push(p.y);
+            near.z.push(p.z);
+        }
+        near
+    }
+
+    #[test]
+    fn the_vector_section_is_the_scalar_one_bit_for_bit() {
+        if !avx2() {
+            return;
+        }
+        let mut rng = Rng::new(3);
+        let slanted = Segment::new(DVec3::new(0.1, -0.2, 0.3), DVec3::new(0.9, 0.4, -0.1));
+        // Along x, r = 1/4: points exactly on the surface and on the end caps.
+        let straight = Segment::new(DVec3::ZERO, DVec3::X);
+        let mut members = 0;
+        for (s, n) in [0, 1, 3, 4, 5, 7, 8, 9, 16, 31, 200, 1001]
+            .map(|n| (slanted, n))
+            .into_iter()
+            .chain([(straight, 9), (straight, 40)])
+        {
+            let r = if s == straight { 0.25 } else { 0.05 };
+            let cyl = crate::geom::Cylinder::new(&s, r);
+            let frame = basis(s.dir());
+            let mut near = near_points(&mut rng, &s, r, n);
+            if s == straight {
+                for (i, x) in near.x.iter_mut().enumerate() {
+                    *x = [0.0, 1.0, 0.5, 1.0 + 1e-9][i % 4];
+                }
+                for (i, y) in near.y.iter_mut().enumerate() {
+                    *y = [0.25, -0.25, 0.25 + 1e-12][i % 3];
+                }
+                near.z.fill(0.0);
+            }
+            let mut a = Section::default();
+            let mut b = Section::default();
+            for o in [&mut a, &mut b] {
+                o.t.resize(n + SPARE, 0.0);
+                o.cols.x.resize(n + SPARE, 0.0);
+                o.cols.y.resize(n + SPARE, 0.0);
+                o.ids.resize(n + SPARE, 0);
+            }
+            let ka = section_body(&near, 0, &cyl, frame, &mut a, 0);
+            // SAFETY: checked above; every column has SPARE places.
+            let kb = unsafe { x86::section(&near, &cyl, frame, &mut b) };
+            assert_eq!(ka, kb, "{n} points");
+            let bits = |v: &[f64]| v[..ka].iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&a.t), bits(&b.t), "{n}");
+            assert_eq!(bits(&a.cols.x), bits(&b.cols.x), "{n}");
+            assert_eq!(bits(&a.cols.y), bits(&b.cols.y), "{n}");
+            assert_eq!(a.ids[..ka], b.ids[..kb], "{n}");
+            // The members are those of the cylinder test, in order.
+            let want: Vec<u32> = (0..n)
+                .filter(|&i| {
+                    cyl.test(DVec3::new(near.x[i], near.y[i], near.z[i]))
+                        .is_some()
+                })
+                .map(|i| near.ids[i])
+                .collect();
+            assert_eq!(a.ids[..ka], want[..], "{n}");
+            members += ka;
+        }
+        assert!(members > 300, "{members}");
+    }
 }
