@@ -142,8 +142,9 @@ pub const MIN_ELONGATION: f64 = 4.0;
 
 /// Weighted least squares of `q` on `t`, each point weighted `pw x k`; `None` without
 /// weight. No slope (`b = 0`) without axial spread, or with less than [`MIN_ELONGATION`]
-/// times the cross spread.
-fn weighted_line(t: &[f64], cols: &Columns) -> Option<LineFit> {
+/// times the cross spread. Also returns the kernel values `k` summed (in point order,
+/// as `Sum` adds them), which the first pass adds alongside its own sums.
+fn weighted_line(t: &[f64], cols: &Columns) -> (Option<LineFit>, f64) {
     let n = t.len();
     let (qx, qy) = (&cols.x[..n], &cols.y[..n]);
     let (pw, k) = (&cols.w[..n], &cols.k[..n]);
@@ -151,15 +152,16 @@ fn weighted_line(t: &[f64], cols: &Columns) -> Option<LineFit> {
     let q = |i: usize| DVec2::new(qx[i], qy[i]);
     // The three sums in one pass, each in point order as three passes would add them.
     // (Starting values as `Sum` starts: -0.0 for f64, zero for glam's vectors.)
-    let (mut sw, mut st, mut sq) = (-0.0, -0.0, DVec2::ZERO);
+    let (mut sw, mut st, mut sq, mut sk) = (-0.0, -0.0, DVec2::ZERO, -0.0);
     for (i, &ti) in t.iter().enumerate() {
         let w = w(i);
         sw += w;
         st += ti * w;
         sq += q(i) * w;
+        sk += k[i];
     }
     if sw <= 0.0 {
-        return None;
+        return (None, sk);
     }
     let t0 = st / sw;
     let a = sq / sw;
@@ -178,7 +180,7 @@ fn weighted_line(t: &[f64], cols: &Columns) -> Option<LineFit> {
     } else {
         DVec2::ZERO
     };
-    Some(LineFit { t0, a, b })
+    (Some(LineFit { t0, a, b }), sk)
 }
 
 /// The ridge's mean shift narrows its kernel by this factor a round, from its first width
@@ -264,9 +266,10 @@ pub fn ridge_in(
         a: c,
         b: DVec2::ZERO,
     };
-    // The last round's kernel, at the final width (the stop rule acts only there).
-    let weight: f64 = cols.k[..t.len()].iter().sum();
-    if let Some(f) = weighted_line(t, cols) {
+    // The last round's kernel, at the final width (the stop rule acts only there),
+    // summed by the line's fit.
+    let (line, weight) = weighted_line(t, cols);
+    if let Some(f) = line {
         fit = f;
     }
     Some((fit, weight))
