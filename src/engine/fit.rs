@@ -161,16 +161,23 @@ struct Near {
 impl Near {
     /// The gathered points `g` of `grid` (sorted keys).
     fn fill(&mut self, grid: &Grid, g: &[Gathered]) {
-        self.ids.clear();
-        self.x.clear();
-        self.y.clear();
-        self.z.clear();
-        for &key in g {
+        let n = g.len();
+        self.ids.resize(n, 0);
+        self.x.resize(n, 0.0);
+        self.y.resize(n, 0.0);
+        self.z.resize(n, 0.0);
+        let (ids, x, y, z) = (
+            &mut self.ids[..n],
+            &mut self.x[..n],
+            &mut self.y[..n],
+            &mut self.z[..n],
+        );
+        for (j, &key) in g.iter().enumerate() {
             let p = grid.points[(key & 0xFFFF_FFFF) as usize];
-            self.ids.push((key >> 32) as u32);
-            self.x.push(f64::from(p[0]));
-            self.y.push(f64::from(p[1]));
-            self.z.push(f64::from(p[2]));
+            ids[j] = (key >> 32) as u32;
+            x[j] = f64::from(p[0]);
+            y[j] = f64::from(p[1]);
+            z[j] = f64::from(p[2]);
         }
     }
 
