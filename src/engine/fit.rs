@@ -117,6 +117,18 @@ fn gather(
     rows: &mut Vec<(u32, u32)>,
     out: &mut Vec<Gathered>,
 ) {
+    gather_with(grid, g, reach, rows, out, avx2());
+}
+
+/// [`gather`] in vector instructions (`vector`: the CPU has AVX2) or not.
+fn gather_with(
+    grid: &Grid,
+    g: &Segment,
+    reach: f64,
+    rows: &mut Vec<(u32, u32)>,
+    out: &mut Vec<Gathered>,
+    vector: bool,
+) {
     out.clear();
     let d = g.dir();
     let scale = g.p1.abs().max_element().max(g.p2.abs().max_element()) + 1.0;
@@ -124,23 +136,70 @@ fn gather(
     // The capsule of radius `reach` around `g` lies in the capped cylinder around `g`
     // lengthened by `reach` at each end, whose rows the grid visits.
     let long = Segment::new(g.p1 - d * reach, g.p2 + d * reach);
-    let (l, r2) = (g.length(), reach * reach);
+    let capsule = Capsule {
+        p1: g.p1,
+        d,
+        l: g.length(),
+        r2: reach * reach,
+    };
     grid.visit_ranges(&long, reach, rows, |range| {
-        let start = range.start;
-        // Every point is written at the next free place, which advances only past the
-        // points within reach: no branch on the test.
-        let mut k = out.len();
-        out.resize(k + range.len(), 0);
-        for (j, p) in grid.points[range].iter().enumerate() {
-            let w = p64(*p) - g.p1;
-            let t = w.dot(d).clamp(0.0, l);
-            let at = start + j;
-            out[k] = u64::from(grid.ids[at]) << 32 | at as u64;
-            k += usize::from((w - d * t).length_squared() <= r2);
-        }
-        out.truncate(k);
+        let k = out.len();
+        out.reserve(range.len() + SPARE);
+        // Places past the length, within the capacity: written here before the length
+        // takes them in.
+        let to = out.as_mut_ptr();
+        #[cfg(target_arch = "x86_64")]
+        let k = if vector {
+            // SAFETY: the CPU has AVX2; `to` has room for every point of the range and
+            // SPARE more past `k`.
+            unsafe { x86::gather_range(grid, range, &capsule, to, k) }
+        } else {
+            gather_body(grid, range, &capsule, to, k)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let k = {
+            let _ = vector;
+            gather_body(grid, range, &capsule, to, k)
+        };
+        // SAFETY: the first `k` places are written (the keys before and those within
+        // reach here).
+        unsafe { out.set_len(k) };
     });
     out.sort_unstable();
+}
+
+/// The capsule of a gather: points within `sqrt(r2)` of the segment from `p1` along the
+/// unit direction `d` for `l`.
+struct Capsule {
+    p1: DVec3,
+    d: DVec3,
+    l: f64,
+    r2: f64,
+}
+
+/// The keys of the points of `range` within the capsule `c`, written at `to` from place
+/// `k` on; returns the place after the last. Every point is written at the next free
+/// place, which advances only past the points within reach: no branch on the test.
+///
+/// Places `k..k + range.len()` of `to` must be writable.
+#[inline(always)]
+fn gather_body(
+    grid: &Grid,
+    range: std::ops::Range<usize>,
+    c: &Capsule,
+    to: *mut Gathered,
+    mut k: usize,
+) -> usize {
+    let start = range.start;
+    for (j, p) in grid.points[range].iter().enumerate() {
+        let w = p64(*p) - c.p1;
+        let t = w.dot(c.d).clamp(0.0, c.l);
+        let at = start + j;
+        // SAFETY: the caller's room: k <= k0 + j.
+        unsafe { to.add(k).write(u64::from(grid.ids[at]) << 32 | at as u64) };
+        k += usize::from((w - c.d * t).length_squared() <= c.r2);
+    }
+    k
 }
 
 /// Largest move of an end from `a` to `b`.
@@ -263,8 +322,9 @@ fn section_among(near: &Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &mut S
 /// next free place.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{section_body, Near, Section, SPARE};
+    use super::{gather_body, section_body, Capsule, Gathered, Near, Section, SPARE};
     use crate::geom::Cylinder;
+    use crate::index::Grid;
     use glam::DVec3;
     use std::arch::x86_64::*;
 
@@ -295,6 +355,69 @@ mod x86 {
 
     static PACK64: [[i32; 8]; 16] = pack_table(true);
     static PACK32: [[i32; 8]; 16] = pack_table(false);
+
+    /// [`gather_body`] four points at a time (the same arithmetic): each four's
+    /// coordinates loaded in three reads and sorted into columns, their keys packed to
+    /// the front by [`PACK64`] and stored whole.
+    ///
+    /// # Safety
+    /// The CPU has AVX2, and places `k..k + range.len() + SPARE` of `to` are writable.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn gather_range(
+        grid: &Grid,
+        range: std::ops::Range<usize>,
+        c: &Capsule,
+        to: *mut Gathered,
+        mut k: usize,
+    ) -> usize {
+        let s = _mm256_set1_pd;
+        let (p1x, p1y, p1z) = (s(c.p1.x), s(c.p1.y), s(c.p1.z));
+        let (dx, dy, dz) = (s(c.d.x), s(c.d.y), s(c.d.z));
+        let (l, r2, zero) = (s(c.l), s(c.r2), _mm256_setzero_pd());
+        let lanes = _mm256_set_epi64x(3, 2, 1, 0);
+        let (pp, ip) = (grid.points.as_ptr().cast::<f32>(), grid.ids.as_ptr());
+        let mut at = range.start;
+        while at + 4 <= range.end {
+            // Points at, at+1, at+2, at+3: [x0 y0 z0 x1] [y1 z1 x2 y2] [z2 x3 y3 z3].
+            let a = _mm_loadu_ps(pp.add(3 * at));
+            let b = _mm_loadu_ps(pp.add(3 * at + 4));
+            let cc = _mm_loadu_ps(pp.add(3 * at + 8));
+            let t1 = _mm_shuffle_ps::<0b01_00_11_10>(b, cc);
+            let x = _mm_shuffle_ps::<0b11_00_11_00>(a, t1);
+            let t2 = _mm_shuffle_ps::<0b00_00_01_01>(a, b);
+            let t3 = _mm_shuffle_ps::<0b10_10_11_11>(b, cc);
+            let y = _mm_shuffle_ps::<0b10_00_10_00>(t2, t3);
+            let t4 = _mm_shuffle_ps::<0b01_01_10_10>(a, b);
+            let t5 = _mm_shuffle_ps::<0b11_11_00_00>(cc, cc);
+            let z = _mm_shuffle_ps::<0b10_00_10_00>(t4, t5);
+            let wx = _mm256_sub_pd(_mm256_cvtps_pd(x), p1x);
+            let wy = _mm256_sub_pd(_mm256_cvtps_pd(y), p1y);
+            let wz = _mm256_sub_pd(_mm256_cvtps_pd(z), p1z);
+            let t = _mm256_add_pd(
+                _mm256_add_pd(_mm256_mul_pd(wx, dx), _mm256_mul_pd(wy, dy)),
+                _mm256_mul_pd(wz, dz),
+            );
+            let t = _mm256_min_pd(_mm256_max_pd(t, zero), l);
+            let ex = _mm256_sub_pd(wx, _mm256_mul_pd(dx, t));
+            let ey = _mm256_sub_pd(wy, _mm256_mul_pd(dy, t));
+            let ez = _mm256_sub_pd(wz, _mm256_mul_pd(dz, t));
+            let e2 = _mm256_add_pd(
+                _mm256_add_pd(_mm256_mul_pd(ex, ex), _mm256_mul_pd(ey, ey)),
+                _mm256_mul_pd(ez, ez),
+            );
+            let m = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(e2, r2)) as usize;
+            let ids = _mm256_cvtepu32_epi64(_mm_loadu_si128(ip.add(at).cast()));
+            let keys = _mm256_or_si256(
+                _mm256_slli_epi64::<32>(ids),
+                _mm256_add_epi64(_mm256_set1_epi64x(at as i64), lanes),
+            );
+            let p64 = _mm256_loadu_si256(PACK64[m].as_ptr().cast());
+            _mm256_storeu_si256(to.add(k).cast(), _mm256_permutevar8x32_epi32(keys, p64));
+            k += (m as u32).count_ones() as usize;
+            at += 4;
+        }
+        gather_body(grid, at..range.end, c, to, k)
+    }
 
     /// The members among all of `near` from place 0 of `out`; returns their number.
     ///
@@ -483,6 +606,46 @@ mod tests {
             near.z.push(p.z);
         }
         near
+    }
+
+    #[test]
+    fn the_vector_gather_is_the_scalar_one() {
+        if !avx2() {
+            return;
+        }
+        let mut rng = Rng::new(9);
+        let pts: Vec<[f32; 3]> = (0..20_000)
+            .map(|_| [0, 1, 2].map(|_| rng.uniform() as f32))
+            .collect();
+        let mut bounds = crate::geom::Aabb::empty();
+        for p in &pts {
+            bounds.extend(p64(*p));
+        }
+        let grid = Grid::build(&pts, bounds, 0.03);
+        let (mut rows, mut a, mut b) = (Vec::new(), Vec::new(), Vec::new());
+        let mut total = 0;
+        for i in 0..40 {
+            let p1 = DVec3::new(rng.uniform(), rng.uniform(), rng.uniform());
+            let s = Segment::new(p1, p1 + rng.normal3(0.2));
+            let reach = 0.01 + 0.002 * i as f64;
+            gather_with(&grid, &s, reach, &mut rows, &mut a, false);
+            gather_with(&grid, &s, reach, &mut rows, &mut b, true);
+            assert_eq!(a, b, "segment {i}");
+            // Every point within reach, and none far past it, in working-set order.
+            let dist = |p: DVec3| {
+                let w = p - s.p1;
+                (w - s.dir() * w.dot(s.dir()).clamp(0.0, s.length())).length()
+            };
+            let want: Vec<u32> = (0..pts.len() as u32)
+                .filter(|&id| dist(p64(pts[id as usize])) <= reach)
+                .collect();
+            let got: Vec<u32> = a.iter().map(|&key| (key >> 32) as u32).collect();
+            assert!(want.iter().all(|id| got.binary_search(id).is_ok()), "{i}");
+            assert!(got.windows(2).all(|w| w[0] < w[1]), "{i}");
+            assert!(got.len() <= want.len() + 2, "{i}: {} {}", got.len(), want.len());
+            total += got.len();
+        }
+        assert!(total > 1000, "{total}");
     }
 
     #[test]
