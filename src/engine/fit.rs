@@ -311,9 +311,13 @@ fn section_among(near: &Near, s: &Segment, r: f64, job: &FitJob<'_>, out: &mut S
     out.ids.truncate(k);
     let (ow_on, points) = (job.spec.opacity_weight, &job.points);
     out.cols.w.clear();
-    out.cols
-        .w
-        .extend(out.ids.iter().map(|&id| points.weight_if(ow_on, id)));
+    if ow_on {
+        out.cols
+            .w
+            .extend(out.ids.iter().map(|&id| points.weight(id)));
+    } else {
+        out.cols.w.resize(k, 1.0);
+    }
 }
 
 /// [`section_body`] four points at a time in explicit vector instructions (the same
@@ -642,7 +646,12 @@ mod tests {
             let got: Vec<u32> = a.iter().map(|&key| (key >> 32) as u32).collect();
             assert!(want.iter().all(|id| got.binary_search(id).is_ok()), "{i}");
             assert!(got.windows(2).all(|w| w[0] < w[1]), "{i}");
-            assert!(got.len() <= want.len() + 2, "{i}: {} {}", got.len(), want.len());
+            assert!(
+                got.len() <= want.len() + 2,
+                "{i}: {} {}",
+                got.len(),
+                want.len()
+            );
             total += got.len();
         }
         assert!(total > 1000, "{total}");
