@@ -590,6 +590,7 @@ mod tests {
     use crate::synth::Rng;
 
     /// Near points around a segment, some exactly on the cylinder's surface or caps.
+    #[cfg(target_arch = "x86_64")]
     fn near_points(rng: &mut Rng, s: &Segment, r: f64, n: usize) -> Near {
         let (e1, e2) = basis(s.dir());
         let mut near = Near::default();
@@ -658,6 +659,7 @@ mod tests {
     }
 
     #[test]
+    #[cfg(target_arch = "x86_64")]
     fn the_vector_section_is_the_scalar_one_bit_for_bit() {
         if !avx2() {
             return;
