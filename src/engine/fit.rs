@@ -245,8 +245,8 @@ impl Near {
     }
 }
 
-/// Room past the last point that [`section_among`]'s columns keep while they are
-/// written: the vector copy stores four lanes at every place.
+/// Room past the last point that the gather's buffer and [`section_among`]'s columns
+/// keep while they are written: the vector copies store four lanes at every place.
 const SPARE: usize = 4;
 
 /// The members among the near points `near[from..]` of the cylinder `cyl`, written in
