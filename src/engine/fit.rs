@@ -109,19 +109,9 @@ pub fn steps(queries: &[Query], members: &[Vec<Member>], ask: &FitAsk<'_>) -> Ve
 type Gathered = u64;
 
 /// The points of `grid` within `reach` of segment `g` (and a few more: the test is
-/// generous by a relative 1e-7), in working-set order.
+/// generous by a relative 1e-7), in working-set order; tested in vector instructions
+/// where `vector` (the CPU has AVX2), the same keys either way.
 fn gather(
-    grid: &Grid,
-    g: &Segment,
-    reach: f64,
-    rows: &mut Vec<(u32, u32)>,
-    out: &mut Vec<Gathered>,
-) {
-    gather_with(grid, g, reach, rows, out, avx2());
-}
-
-/// [`gather`] in vector instructions (`vector`: the CPU has AVX2) or not.
-fn gather_with(
     grid: &Grid,
     g: &Segment,
     reach: f64,
@@ -545,7 +535,14 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
             // of `at` (end by end, so every point of it): within r + margin of `at`.
             let covers = |g: Segment| end_move(&g, &t.cur) <= margin;
             if !at.is_some_and(covers) {
-                gather(grid, &t.cur, r + margin, &mut s.rows, &mut s.gathered);
+                gather(
+                    grid,
+                    &t.cur,
+                    r + margin,
+                    &mut s.rows,
+                    &mut s.gathered,
+                    avx2(),
+                );
                 s.near.fill(grid, &s.gathered);
                 at = Some(t.cur);
             }
@@ -633,8 +630,8 @@ mod tests {
             let p1 = DVec3::new(rng.uniform(), rng.uniform(), rng.uniform());
             let s = Segment::new(p1, p1 + rng.normal3(0.2));
             let reach = 0.01 + 0.002 * i as f64;
-            gather_with(&grid, &s, reach, &mut rows, &mut a, false);
-            gather_with(&grid, &s, reach, &mut rows, &mut b, true);
+            gather(&grid, &s, reach, &mut rows, &mut a, false);
+            gather(&grid, &s, reach, &mut rows, &mut b, true);
             assert_eq!(a, b, "segment {i}");
             // Every point within reach, and none far past it, in working-set order.
             let dist = |p: DVec3| {

@@ -274,24 +274,21 @@ mod x86 {
             sy = _mm256_add_pd(sy, _mm256_mul_pd(_mm256_loadu_pd(yp.add(i)), wk));
         };
         let mut i = 0;
-        while i + WIDE * LANES <= n {
-            let k = exp4::<WIDE>(std::array::from_fn(|g| arg(i + g * LANES)));
-            for (g, k) in k.into_iter().enumerate() {
-                add(i + g * LANES, k);
-            }
-            i += WIDE * LANES;
+        // Blocks of G groups while they fit: six, then four, then one at a time.
+        macro_rules! blocks {
+            ($g:expr) => {
+                while i + $g * LANES <= n {
+                    let k = exp4::<{ $g }>(std::array::from_fn(|g| arg(i + g * LANES)));
+                    for (g, k) in k.into_iter().enumerate() {
+                        add(i + g * LANES, k);
+                    }
+                    i += $g * LANES;
+                }
+            };
         }
-        while i + 4 * LANES <= n {
-            let k = exp4::<4>(std::array::from_fn(|g| arg(i + g * LANES)));
-            for (g, k) in k.into_iter().enumerate() {
-                add(i + g * LANES, k);
-            }
-            i += 4 * LANES;
-        }
-        while i < n {
-            add(i, exp4([arg(i)])[0]);
-            i += LANES;
-        }
+        blocks!(WIDE);
+        blocks!(4);
+        blocks!(1);
         let lanes = |v: __m256d| {
             let mut a = [0.0; LANES];
             _mm256_storeu_pd(a.as_mut_ptr(), v);
