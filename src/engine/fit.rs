@@ -7,8 +7,9 @@
 //!   its fit runs on the host): per segment, the points within `r + GATHER_MARGIN r` of
 //!   its line are gathered from the grid once into a compact list (working-set order),
 //!   and every step takes its members from that list, in cache, by the same cylinder test
-//!   as a walk; the list is gathered again only when the line has moved more than the
-//!   margin from where it was gathered.
+//!   as a walk; the list is gathered again only when the line has left the margin around
+//!   the line it was gathered for (and a thread's next segment starts with it, which
+//!   serves a near-duplicate or a shorter piece of the same edge without a gather).
 //! - [`by_batches`] (the default [`Engine::fit_edges`], the GPU engine's device fit): one
 //!   [`Engine::fit_lines`] batch per iteration for all segments still moving.
 
@@ -25,8 +26,8 @@ use glam::DVec3;
 use rayon::prelude::*;
 use std::collections::HashMap;
 
-/// How far (in units of r) a line may move from where its neighbourhood was gathered
-/// before it is gathered again. A wider margin gathers less often but tests more points
+/// How far (in units of r) a line may lie from the line its neighbourhood was gathered
+/// for before it is gathered again. A wider margin gathers less often but tests more points
 /// per step.
 pub const GATHER_MARGIN: f64 = 0.5;
 
@@ -190,11 +191,6 @@ fn gather_body(
         k += usize::from((w - c.d * t).length_squared() <= c.r2);
     }
     k
-}
-
-/// Largest move of an end from `a` to `b`.
-fn end_move(a: &Segment, b: &Segment) -> f64 {
-    (a.p1 - b.p1).length().max((a.p2 - b.p2).length())
 }
 
 /// A segment's gathered neighbourhood in columns (working-set order): ids and
@@ -499,17 +495,41 @@ mod x86 {
     }
 }
 
-/// Buffers one thread reuses from segment to segment.
+/// Buffers one thread reuses from segment to segment, and the neighbourhood it gathered
+/// last: the points within `r + GATHER_MARGIN r` of `at`.
 #[derive(Default)]
 struct Scratch {
     rows: Vec<(u32, u32)>,
     gathered: Vec<Gathered>,
     near: Near,
+    at: Option<Segment>,
     section: Section,
 }
 
-/// One segment's iterations, its neighbourhood gathered once (and again only after it
-/// moved more than [`GATHER_MARGIN`] r from where it was gathered).
+/// Distance from `p` to the segment `g` (not its line).
+fn to_segment(g: &Segment, p: DVec3) -> f64 {
+    let d = g.dir();
+    let w = p - g.p1;
+    (w - d * w.dot(d).clamp(0.0, g.length())).length()
+}
+
+/// Whether the points within `r + margin` of `at` include every point within `r` of
+/// `cur`: both ends of `cur` lie within `margin` of `at` (the distance to a segment is
+/// convex along a line, so every point of `cur` does too), and a point within `r` of
+/// some point of `cur` lies within `r + margin` of `at`.
+fn covers(at: &Segment, cur: &Segment, margin: f64) -> bool {
+    to_segment(at, cur.p1) <= margin && to_segment(at, cur.p2) <= margin
+}
+
+/// One segment's iterations, its members taken from the thread's last gathered
+/// neighbourhood while that covers the line ([`covers`], with a margin of
+/// [`GATHER_MARGIN`] r): a segment gathers at its first step at most, and again only
+/// after its line left that margin around the line gathered for. The next segment in the thread's order (the work runs along a
+/// space-filling curve) starts with the same neighbourhood, which serves it too where it
+/// lies along the same stretch of edge: a near-duplicate, or a shorter piece of it.
+/// Members are the points of a neighbourhood that pass a step's cylinder test, in the
+/// neighbourhood's working-set order, so which covering neighbourhood they come from
+/// changes nothing.
 fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) -> Track {
     let (r, spec) = (job.r, job.spec);
     let mut t = Track::new(seg);
@@ -519,7 +539,6 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
     let margin = GATHER_MARGIN * r;
     // Radii the capsule argument does not cover (not a positive finite r) walk per step.
     let direct = !(r.is_finite() && r > 0.0);
-    let mut at: Option<Segment> = None;
     while t.steps < spec.iterations {
         if direct {
             s.section.clear();
@@ -531,10 +550,8 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
         } else if !t.cur.is_valid() {
             s.section.clear();
         } else {
-            // Every point of X(cur, r) lies within r of cur, and cur within the margin
-            // of `at` (end by end, so every point of it): within r + margin of `at`.
-            let covers = |g: Segment| end_move(&g, &t.cur) <= margin;
-            if !at.is_some_and(covers) {
+            // Every point of X(cur, r) lies within r of cur.
+            if !s.at.is_some_and(|at| covers(&at, &t.cur, margin)) {
                 gather(
                     grid,
                     &t.cur,
@@ -544,7 +561,7 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
                     avx2(),
                 );
                 s.near.fill(grid, &s.gathered);
-                at = Some(t.cur);
+                s.at = Some(t.cur);
             }
             section_among(&s.near, &t.cur, r, job, &mut s.section);
         }
@@ -608,6 +625,43 @@ mod tests {
             near.z.push(p.z);
         }
         near
+    }
+
+    #[test]
+    fn a_covering_neighbourhood_holds_every_point_near_the_line() {
+        let mut rng = Rng::new(21);
+        let (r, margin) = (0.03, 0.015);
+        let at = Segment::new(DVec3::ZERO, DVec3::new(1.0, 0.0, 0.0));
+        // A shorter piece of the same edge, and one tilted within the margin: covered,
+        // although their ends are far from `at`'s (the old end-by-end rule refused them).
+        let piece = Segment::new(DVec3::new(0.3, 0.01, 0.0), DVec3::new(0.6, 0.0, -0.01));
+        assert!(covers(&at, &piece, margin));
+        assert!(covers(&at, &piece.reversed(), margin));
+        // Ends just beyond the margin: off the side, and past an end along the line.
+        let side = Segment::new(DVec3::new(0.3, 0.0, 0.0), DVec3::new(0.6, 0.015001, 0.0));
+        assert!(!covers(&at, &side, margin));
+        let past = Segment::new(DVec3::new(0.5, 0.0, 0.0), DVec3::new(1.015001, 0.0, 0.0));
+        assert!(!covers(&at, &past, margin));
+        // Random pairs: where the rule covers, points within r of `cur` (on the sphere of
+        // radius r around a point of it) lie within r + margin of `at`.
+        let mut covered = 0;
+        for _ in 0..2000 {
+            let a = Segment::new(rng.normal3(0.3), rng.normal3(0.3));
+            let cur = Segment::new(
+                a.p1 + (a.p2 - a.p1) * rng.uniform() + rng.normal3(0.01),
+                a.p1 + (a.p2 - a.p1) * rng.uniform() + rng.normal3(0.01),
+            );
+            if !covers(&a, &cur, margin) {
+                continue;
+            }
+            covered += 1;
+            for _ in 0..20 {
+                let c = cur.p1 + (cur.p2 - cur.p1) * rng.uniform();
+                let p = c + rng.normal3(1.0).normalize() * r;
+                assert!(to_segment(&a, p) <= (r + margin) * (1.0 + 1e-12));
+            }
+        }
+        assert!(covered > 500, "{covered}");
     }
 
     #[test]
