@@ -524,12 +524,12 @@ fn covers(at: &Segment, cur: &Segment, margin: f64) -> bool {
 /// One segment's iterations, its members taken from the thread's last gathered
 /// neighbourhood while that covers the line ([`covers`], with a margin of
 /// [`GATHER_MARGIN`] r): a segment gathers at its first step at most, and again only
-/// after its line left that margin around the line gathered for. The next segment in the thread's order (the work runs along a
-/// space-filling curve) starts with the same neighbourhood, which serves it too where it
-/// lies along the same stretch of edge: a near-duplicate, or a shorter piece of it.
-/// Members are the points of a neighbourhood that pass a step's cylinder test, in the
-/// neighbourhood's working-set order, so which covering neighbourhood they come from
-/// changes nothing.
+/// after its line has left the margin around the line the neighbourhood was gathered
+/// for. The next segment in the thread's order (the work runs along a space-filling
+/// curve) starts with the same neighbourhood, which serves it too where it lies along the
+/// same stretch of edge: a near-duplicate, or a shorter piece of it. Members are the
+/// points of a neighbourhood that pass a step's cylinder test, in the neighbourhood's
+/// working-set order, so which covering neighbourhood they come from changes nothing.
 fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) -> Track {
     let (r, spec) = (job.r, job.spec);
     let mut t = Track::new(seg);
