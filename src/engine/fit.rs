@@ -121,18 +121,13 @@ fn gather(
     vector: bool,
 ) {
     out.clear();
-    let d = g.dir();
     let scale = g.p1.abs().max_element().max(g.p2.abs().max_element()) + 1.0;
     let reach = reach * (1.0 + 1e-7) + 1e-9 * scale;
+    let capsule = Capsule::around(g, reach * reach);
     // The capsule of radius `reach` around `g` lies in the capped cylinder around `g`
     // lengthened by `reach` at each end, whose rows the grid visits.
+    let d = capsule.d;
     let long = Segment::new(g.p1 - d * reach, g.p2 + d * reach);
-    let capsule = Capsule {
-        p1: g.p1,
-        d,
-        l: g.length(),
-        r2: reach * reach,
-    };
     grid.visit_ranges(&long, reach, rows, |range| {
         let k = out.len();
         out.reserve(range.len() + SPARE);
@@ -168,6 +163,26 @@ struct Capsule {
     r2: f64,
 }
 
+impl Capsule {
+    /// The points within `sqrt(r2)` of the segment `g`.
+    fn around(g: &Segment, r2: f64) -> Capsule {
+        Capsule {
+            p1: g.p1,
+            d: g.dir(),
+            l: g.length(),
+            r2,
+        }
+    }
+
+    /// Whether `p` lies within the capsule.
+    #[inline(always)]
+    fn holds(&self, p: DVec3) -> bool {
+        let w = p - self.p1;
+        let t = w.dot(self.d).clamp(0.0, self.l);
+        (w - self.d * t).length_squared() <= self.r2
+    }
+}
+
 /// The keys of the points of `range` within the capsule `c`, written at `to` from place
 /// `k` on; returns the place after the last. Every point is written at the next free
 /// place, which advances only past the points within reach: no branch on the test.
@@ -183,12 +198,10 @@ fn gather_body(
 ) -> usize {
     let start = range.start;
     for (j, p) in grid.points[range].iter().enumerate() {
-        let w = p64(*p) - c.p1;
-        let t = w.dot(c.d).clamp(0.0, c.l);
         let at = start + j;
         // SAFETY: the caller's room: k <= k0 + j.
         unsafe { to.add(k).write(u64::from(grid.ids[at]) << 32 | at as u64) };
-        k += usize::from((w - c.d * t).length_squared() <= c.r2);
+        k += usize::from(c.holds(p64(*p)));
     }
     k
 }
@@ -506,19 +519,13 @@ struct Scratch {
     section: Section,
 }
 
-/// Distance from `p` to the segment `g` (not its line).
-fn to_segment(g: &Segment, p: DVec3) -> f64 {
-    let d = g.dir();
-    let w = p - g.p1;
-    (w - d * w.dot(d).clamp(0.0, g.length())).length()
-}
-
 /// Whether the points within `r + margin` of `at` include every point within `r` of
 /// `cur`: both ends of `cur` lie within `margin` of `at` (the distance to a segment is
 /// convex along a line, so every point of `cur` does too), and a point within `r` of
 /// some point of `cur` lies within `r + margin` of `at`.
 fn covers(at: &Segment, cur: &Segment, margin: f64) -> bool {
-    to_segment(at, cur.p1) <= margin && to_segment(at, cur.p2) <= margin
+    let c = Capsule::around(at, margin * margin);
+    c.holds(cur.p1) && c.holds(cur.p2)
 }
 
 /// One segment's iterations, its members taken from the thread's last gathered
@@ -658,7 +665,8 @@ mod tests {
             for _ in 0..20 {
                 let c = cur.p1 + (cur.p2 - cur.p1) * rng.uniform();
                 let p = c + rng.normal3(1.0).normalize() * r;
-                assert!(to_segment(&a, p) <= (r + margin) * (1.0 + 1e-12));
+                let reach = (r + margin) * (1.0 + 1e-12);
+                assert!(Capsule::around(&a, reach * reach).holds(p));
             }
         }
         assert!(covered > 500, "{covered}");
