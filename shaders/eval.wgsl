@@ -19,7 +19,10 @@
 
 @group(0) @binding(1) var<storage, read> queries: array<GQuery>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
-@group(0) @binding(3) var<storage, read> points: array<vec4<f32>>;
+// The point store's part (a texture of STORE_W points a row: on SIMD implementations such
+// as lavapipe a texel fetch gathers the lanes' points in a few instructions, where a
+// storage load with a different address per lane is a loop over the lanes).
+@group(0) @binding(3) var points: texture_2d<f32>;
 @group(0) @binding(4) var<storage, read_write> partials: array<Partial>;
 @group(0) @binding(5) var<storage, read_write> ctl: array<atomic<u32>>;
 @group(0) @binding(6) var<storage, read_write> aux: array<atomic<u32>>;
@@ -38,7 +41,7 @@ fn flag(kind_query: u32, point: u32) {
 // moved into the item's frame (at most ROW_CELLS / 2 cells away along x), exactly in the
 // integer part and with one rounding below 2^-21 cells.
 fn point_in_frame(i: u32, xr: f32) -> vec3<f32> {
-    let pt = points[i];
+    let pt = textureLoad(points, vec2<u32>(i & (STORE_W - 1u), i >> STORE_SHIFT), 0);
     var dx = pt.w - xr;
     dx = select(dx, dx - 65536.0, dx > 32768.0);
     dx = select(dx, dx + 65536.0, dx < -32768.0);

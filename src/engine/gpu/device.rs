@@ -91,6 +91,15 @@ impl Context {
         limits.max_storage_buffers_per_shader_stage =
             offered.max_storage_buffers_per_shader_stage.min(8);
         limits.max_compute_workgroups_per_dimension = offered.max_compute_workgroups_per_dimension;
+        limits.max_texture_dimension_2d = offered.max_texture_dimension_2d;
+        if limits.max_texture_dimension_2d < super::layout::STORE_W {
+            return Err(EngineError::Gpu(format!(
+                "adapter {} offers 2D textures of {} texels a side, the point store needs {}",
+                adapter.get_info().name,
+                limits.max_texture_dimension_2d,
+                super::layout::STORE_W
+            )));
+        }
         if limits.max_storage_buffers_per_shader_stage < 7 {
             return Err(EngineError::Gpu(format!(
                 "adapter {} offers {} storage buffers per shader stage, the kernels need 7",
@@ -228,6 +237,91 @@ impl Context {
         buf
     }
 
+    /// A texture of `points` texels of 16 bytes (`Rgba32Float`), `STORE_W` a row (the last
+    /// row padded), whose contents `fill(first, dst)` writes: the texels `first..` into
+    /// `dst`, the mapped memory of a staging buffer of at most `UPLOAD_ROWS` rows, copied
+    /// into the texture at a submit of its own (so that each staging buffer can go as soon
+    /// as its copy is done).
+    pub fn filled_texture(
+        &self,
+        label: &str,
+        points: usize,
+        fill: impl FnMut(usize, wgpu::WriteOnly<'_, [u8]>),
+    ) -> wgpu::Texture {
+        // 32 MiB of staging memory at a time.
+        self.filled_texture_by(label, points, 256, fill)
+    }
+
+    /// [`Self::filled_texture`] with staging buffers of `upload_rows` rows.
+    fn filled_texture_by(
+        &self,
+        label: &str,
+        points: usize,
+        upload_rows: u32,
+        mut fill: impl FnMut(usize, wgpu::WriteOnly<'_, [u8]>),
+    ) -> wgpu::Texture {
+        use super::layout::STORE_W;
+        let w = STORE_W as usize;
+        let rows = store_rows(points);
+        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size: wgpu::Extent3d {
+                width: STORE_W,
+                height: rows,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba32Float,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_DST
+                | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        for row in (0..rows).step_by(upload_rows.max(1) as usize) {
+            let height = upload_rows.max(1).min(rows - row);
+            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: height as u64 * w as u64 * 16,
+                usage: wgpu::BufferUsages::MAP_WRITE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: true,
+            });
+            let first = row as usize * w;
+            let n = (points - first.min(points)).min(height as usize * w);
+            if let Ok(mut view) = staging.slice(..).get_mapped_range_mut() {
+                if n > 0 {
+                    fill(first, view.slice(..n * 16));
+                }
+            }
+            staging.unmap();
+            let mut enc = self.encoder();
+            enc.copy_buffer_to_texture(
+                wgpu::TexelCopyBufferInfo {
+                    buffer: &staging,
+                    layout: wgpu::TexelCopyBufferLayout {
+                        offset: 0,
+                        bytes_per_row: Some(STORE_W * 16),
+                        rows_per_image: Some(height),
+                    },
+                },
+                wgpu::TexelCopyTextureInfo {
+                    texture: &texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d { x: 0, y: row, z: 0 },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                wgpu::Extent3d {
+                    width: STORE_W,
+                    height,
+                    depth_or_array_layers: 1,
+                },
+            );
+            self.queue.submit([enc.finish()]);
+        }
+        texture
+    }
+
     /// A storage buffer of `size` bytes. With [`super::GpuOptions::fill_garbage`] it is
     /// filled with 0xFF bytes, so a kernel that reads memory it never wrote sees NaNs and
     /// huge counts.
@@ -349,6 +443,16 @@ impl Context {
     }
 }
 
+/// Rows of a point-store texture of `points` texels: enough for them, at least 3 and
+/// never a power of two. Drivers may specialise a kernel on whether a texture's sides are
+/// powers of two (llvmpipe does, and generates its machine code at the first dispatch
+/// with each new shape class): keeping the class fixed lets the kernels compiled at the
+/// device's opening (and its warm-up on a tiny grid) serve every store.
+pub fn store_rows(points: usize) -> u32 {
+    let rows = points.div_ceil(super::layout::STORE_W as usize).max(3) as u32;
+    rows + rows.is_power_of_two() as u32
+}
+
 /// A buffer kept between batches and grown on demand, so that a batch does not pay for
 /// allocating (and wgpu for zeroing) its scratch memory.
 pub struct Reusable {
@@ -466,6 +570,78 @@ mod tests {
             .read_back(enc, &buf, &staging, 256, |b| b.iter().all(|&x| x == 0xFF))
             .unwrap();
         assert!(all_ff);
+    }
+
+    #[test]
+    fn store_rows_hold_the_points_and_are_never_a_power_of_two() {
+        let w = super::super::layout::STORE_W as usize;
+        for n in [
+            0,
+            1,
+            w - 1,
+            w,
+            2 * w,
+            3 * w + 1,
+            4 * w,
+            4 * w + 1,
+            1 << 20,
+            10_000_000,
+        ] {
+            let rows = store_rows(n) as usize;
+            assert!(rows * w >= n && rows >= 3, "{n}: {rows}");
+            assert!(!rows.is_power_of_two(), "{n}: {rows}");
+            // At most one row beyond what the points need (or the three of a tiny store).
+            assert!(rows <= n.div_ceil(w).max(3) + 1, "{n}: {rows}");
+        }
+    }
+
+    #[test]
+    fn a_texture_uploaded_in_pieces_holds_every_point_where_the_kernels_look() {
+        let Some(ctx) = context() else { return };
+        let w = super::super::layout::STORE_W as usize;
+        // Three whole rows and five points: four rows, a power of two, so five rows,
+        // uploaded one row per staging buffer.
+        let n = 3 * w + 5;
+        let value = |i: usize| [i as f32, -(i as f32), 0.5 * i as f32, (i % 7) as f32];
+        let mut calls = Vec::new();
+        let tex = ctx
+            .scoped("upload", || {
+                ctx.filled_texture_by("probe", n, 1, |first, mut dst| {
+                    calls.push((first, dst.len() / 16));
+                    let v: Vec<[f32; 4]> = (first..first + dst.len() / 16).map(value).collect();
+                    dst.copy_from_slice(bytemuck::cast_slice(&v));
+                })
+            })
+            .unwrap();
+        assert_eq!(calls, [(0, w), (w, w), (2 * w, w), (3 * w, 5)]);
+        assert_eq!(tex.height(), 5);
+        let bytes = (5 * w * 16) as u64;
+        let out = ctx.buffer(
+            "out",
+            bytes,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        );
+        let staging = ctx.buffer("staging", bytes, wgpu::BufferUsages::MAP_READ);
+        let mut enc = ctx.encoder();
+        enc.copy_texture_to_buffer(
+            tex.as_image_copy(),
+            wgpu::TexelCopyBufferInfo {
+                buffer: &out,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some((w * 16) as u32),
+                    rows_per_image: Some(5),
+                },
+            },
+            tex.size(),
+        );
+        let got: Vec<[f32; 4]> = ctx
+            .read_back(enc, &out, &staging, bytes, bytemuck::pod_collect_to_vec)
+            .unwrap();
+        // Point i at texel (i mod STORE_W, i / STORE_W), as eval.wgsl reads it.
+        for i in 0..n {
+            assert_eq!(got[(i / w) * w + i % w], value(i), "point {i}");
+        }
     }
 
     #[test]

@@ -13,6 +13,11 @@ pub const CHUNK: u32 = 256;
 /// each point into the frame of the run's middle cell, so this bounds that distance
 /// (`ROW_CELLS / 2` cells) and with it the rounding that the f32 error bound must cover.
 pub const ROW_CELLS: u32 = 8;
+/// The point store is a 2D texture (or several, one per part) of `STORE_W` texels a row,
+/// point `i` of a part at texel (i mod STORE_W, i / STORE_W): 8,192 is what every WebGPU
+/// adapter allows (`Limits::default`), a power of two so that the kernel shifts and masks.
+pub const STORE_SHIFT: u32 = 13;
+pub const STORE_W: u32 = 1 << STORE_SHIFT;
 /// Invocations per workgroup of the per-item and per-query kernels.
 pub const WG: u32 = 64;
 /// Elements per workgroup of the prefix scan.
@@ -254,6 +259,8 @@ pub fn prelude() -> String {
     let consts = [
         ("CHUNK", CHUNK),
         ("ROW_CELLS", ROW_CELLS),
+        ("STORE_SHIFT", STORE_SHIFT),
+        ("STORE_W", STORE_W),
         ("WG", WG),
         ("SCAN_WG", SCAN_WG),
         ("MAX_WALK", MAX_WALK),

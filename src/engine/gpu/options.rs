@@ -8,9 +8,11 @@ use super::{Engine, GpuDevice};
 /// the splitting paths with small data.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct GpuOptions {
-    /// Largest point-store part and per-batch buffer binding in bytes (16 per point);
-    /// `None`: the device's `max_storage_buffer_binding_size`. Never above the device's
-    /// limit. (The cell table is bound whole and only checked against the device.)
+    /// Largest point-store part in bytes (16 per point); `None`: what one texture of the
+    /// device holds ([`STORE_W`](super::layout::STORE_W) points a row, as many rows as
+    /// the device's largest texture side). Tests lower it to split the store. (The cell
+    /// table and the per-batch buffers are bound whole and checked against the device's
+    /// binding limit.)
     pub max_binding_bytes: Option<u64>,
     /// Most work items per submit; a sub-batch needing more is split.
     pub max_items: usize,
@@ -35,7 +37,8 @@ pub struct GpuOptions {
     /// in the first batch. The commands' choice; off here (tests open many engines).
     pub warm_up: bool,
     /// Whether, on a software adapter (whose device memory is the host's), the buffers
-    /// uploaded once (cell table, point store) are created mapped and written in place
+    /// uploaded once (cell table; the point store is a texture, always written through a
+    /// staging buffer) are created mapped and written in place
     /// instead of through the queue's staging memory and a copy (lavapipe: the first
     /// batch 20 ms shorter at 10^6 Gaussians). On by default; tests turn it off to run
     /// the staging path that hardware adapters take.

@@ -29,11 +29,12 @@ impl Limits {
             .limits
             .max_storage_buffer_binding_size
             .min(ctx.limits.max_buffer_size);
-        let binding = opts
-            .max_binding_bytes
-            .unwrap_or(u64::MAX)
-            .min(device_binding);
-        let part_len = (binding / 16).clamp(1, u32::MAX as u64 / 2) as u32;
+        // A part is one texture: at most the device's rows of STORE_W points (the
+        // binding limit is for buffers; the option still splits the store, for tests).
+        let texture = STORE_W as u64 * ctx.limits.max_texture_dimension_2d as u64;
+        let part_len = (opts.max_binding_bytes.unwrap_or(u64::MAX) / 16)
+            .min(texture)
+            .clamp(1, u32::MAX as u64 / 2) as u32;
         let item_max = (opts.max_items as u64)
             .min(device_binding / std::mem::size_of::<Partial>() as u64)
             .clamp(1, 1 << 28) as u32;
@@ -61,7 +62,8 @@ impl Limits {
 pub struct Statics {
     pub cell_start: wgpu::Buffer,
     pub cell_bytes: u64,
-    pub parts: Vec<(wgpu::Buffer, u64)>,
+    /// The point store's parts, each a texture ([`Context::filled_texture`]).
+    pub parts: Vec<wgpu::TextureView>,
     pub dims: [u32; 3],
     /// The sorted centers' own f32 coordinates (3 words each), for the fit kernel's f64
     /// geometry; uploaded only for the device fit, and only when one binding holds them.
@@ -170,25 +172,24 @@ impl Statics {
             dst.slice(..src.len()).copy_from_slice(src)
         };
         ctx.scoped("uploading the Gaussians", || {
-            let storage = wgpu::BufferUsages::STORAGE;
             let cell_start = ctx.filled_buffer("cell_start", cell_bytes, |dst| {
                 copy(dst, bytemuck::cast_slice(&grid.cell_start))
             });
             let mut parts = Vec::new();
             let n = grid.points.len();
             let part_len = lim.part_len as usize;
-            for first in (0..n).step_by(part_len) {
-                let len = part_len.min(n - first);
-                let bytes = (len * 16) as u64;
-                // Computed straight into the buffer or the staging memory unless given.
-                let buf = ctx.filled_buffer("points", bytes, |dst| match &given {
-                    Some(rel) => copy(dst, bytemuck::cast_slice(&rel[first..first + len])),
-                    None => write_store(grid, dst, first),
+            // One texture per part, at least one (an empty store is one row of padding).
+            for first in (0..n.max(1)).step_by(part_len) {
+                let len = part_len.min(n - first.min(n));
+                // Computed straight into the staging memory unless given.
+                let texture = ctx.filled_texture("points", len, |at, dst| {
+                    let (from, to) = (first + at, first + at + dst.len() / 16);
+                    match &given {
+                        Some(rel) => copy(dst, bytemuck::cast_slice(&rel[from..to])),
+                        None => write_store(grid, dst, from),
+                    }
                 });
-                parts.push((buf, bytes));
-            }
-            if parts.is_empty() {
-                parts.push((ctx.buffer("points", 16, storage), 16));
+                parts.push(texture.create_view(&wgpu::TextureViewDescriptor::default()));
             }
             let world_bytes = (grid.points.len() * 12).max(12) as u64;
             let world = (world && world_bytes <= lim.device_binding).then(|| {

@@ -229,7 +229,7 @@ impl Stage<'_> {
     /// every item of that part.
     pub fn evaluate(&self, rec: &mut Recorder<'_>, eval: &wgpu::ComputePipeline, mode: u32) {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
-        for (part, (points, bytes)) in self.st.parts.iter().enumerate() {
+        for (part, points) in self.st.parts.iter().enumerate() {
             let p = Params {
                 mode,
                 part: part as u32,
@@ -239,7 +239,7 @@ impl Stage<'_> {
             let bind = [
                 h(&bd.queries, sz.queries),
                 h(&bd.items, sz.items),
-                h(points, *bytes),
+                wgpu::BindingResource::TextureView(points),
                 h(&bd.partials, sz.partials),
                 h(&bd.ctl, sz.ctl),
                 h(&bd.aux, sz.aux),
