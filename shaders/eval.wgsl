@@ -17,7 +17,7 @@
 // most nine words), far below the 65,535 iterations after which lavapipe silently stops an
 // invocation.
 
-@group(0) @binding(1) var<storage, read> queries: array<GQuery>;
+@group(0) @binding(1) var queries: texture_2d<u32>;
 @group(0) @binding(2) var<storage, read> items: array<Item>;
 // The point store's part (a texture of STORE_W points a row: on SIMD implementations such
 // as lavapipe a texel fetch gathers the lanes' points in a few instructions, where a
@@ -41,7 +41,7 @@ fn flag(kind_query: u32, point: u32) {
 // moved into the item's frame (at most ROW_CELLS / 2 cells away along x), exactly in the
 // integer part and with one rounding below 2^-21 cells.
 fn point_in_frame(i: u32, xr: f32) -> vec3<f32> {
-    let pt = textureLoad(points, vec2<u32>(i & (STORE_W - 1u), i >> STORE_SHIFT), 0);
+    let pt = textureLoad(points, texel(i), 0);
     var dx = pt.w - xr;
     dx = select(dx, dx - 65536.0, dx > 32768.0);
     dx = select(dx, dx + 65536.0, dx < -32768.0);
@@ -63,7 +63,7 @@ fn main(
         return;
     }
     let qi = it.query;
-    let q = queries[qi];
+    let q = query_of(queries, qi);
     let g = geom(q, it.cell);
     // The x index of the item's cell (its frame), as the point store keeps it.
     let xr = f32((it.cell % params.dims_x) & 0xFFFFu);

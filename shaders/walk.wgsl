@@ -11,7 +11,7 @@
 // MAX_WALK iterations in total (below lavapipe's 65,535); a query that reaches it is
 // flagged STATUS_HOST and answered on the host.
 
-@group(0) @binding(1) var<storage, read> queries: array<GQuery>;
+@group(0) @binding(1) var queries: texture_2d<u32>;
 @group(0) @binding(2) var<storage, read> cell_start: array<u32>;
 @group(0) @binding(3) var<storage, read_write> scan: array<u32>;
 // Items written as one vec4 each (query, cell, start, count: `Item`'s fields in order,
@@ -63,7 +63,7 @@ fn main(
     if emit && (results[qi].status & STATUS_HOST) != 0u {
         return;
     }
-    let q = queries[qi];
+    let q = query_of(queries, qi);
     var at = 0u;
     if emit {
         at = scan[qi];

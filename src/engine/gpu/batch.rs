@@ -255,6 +255,8 @@ impl Sizes {
 pub struct Bound {
     pub params: wgpu::Buffer,
     pub queries: wgpu::Buffer,
+    /// The same queries as texels ([`super::device::QueryTexture`]).
+    pub qtex: wgpu::TextureView,
     pub scan: wgpu::Buffer,
     pub items: wgpu::Buffer,
     pub partials: wgpu::Buffer,
@@ -288,6 +290,12 @@ impl Bound {
     ) -> Bound {
         let queries = b.queries.get(ctx, sz.queries).clone();
         let fitq = (kind == Kind::Fit).then(|| b.fitq.get(ctx, sz.fitq).clone());
+        // (A rerun finds them in place: the texture only grows at a first try.)
+        let qtex = if rerun {
+            b.qtex.view().expect("written at the first try").clone()
+        } else {
+            b.qtex.write(ctx, gq).clone()
+        };
         if !rerun {
             ctx.queue
                 .write_buffer(&queries, 0, bytemuck::cast_slice(gq));
@@ -298,6 +306,7 @@ impl Bound {
         Bound {
             params: b.params.get(ctx, params_bytes).clone(),
             queries,
+            qtex,
             scan: b.scan.get(ctx, sz.scan).clone(),
             items: b.items.get(ctx, sz.items).clone(),
             partials: b.partials.get(ctx, sz.partials).clone(),

@@ -453,6 +453,93 @@ pub fn store_rows(points: usize) -> u32 {
     rows + rows.is_power_of_two() as u32
 }
 
+/// A texture of `STORE_W` texels a row holding a batch's queries ([`GQuery`]'s words,
+/// `QUERY_TEXELS` texels each), kept between batches and grown on demand like
+/// [`Reusable`]; its rows follow [`store_rows`], so that its shape class never changes.
+///
+/// [`GQuery`]: super::layout::GQuery
+#[derive(Default)]
+pub struct QueryTexture {
+    tex: Option<(wgpu::Texture, wgpu::TextureView)>,
+}
+
+impl QueryTexture {
+    /// The texture, after writing `queries` at its start (grown first when they do not
+    /// fit).
+    pub fn write(
+        &mut self,
+        ctx: &Context,
+        queries: &[super::layout::GQuery],
+    ) -> &wgpu::TextureView {
+        use super::layout::{QUERY_TEXELS, STORE_W};
+        let w = STORE_W as usize;
+        let texels = queries.len() * QUERY_TEXELS as usize;
+        let rows = texels.div_ceil(w) as u32;
+        if self.tex.as_ref().is_none_or(|(t, _)| t.height() < rows) {
+            // Grow by half again, like the buffers.
+            let grown = self
+                .tex
+                .as_ref()
+                .map_or(0, |(t, _)| t.height() as usize * 3 / 2);
+            let tex = ctx.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("queries"),
+                size: wgpu::Extent3d {
+                    width: STORE_W,
+                    height: store_rows(texels.max(grown * w)),
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Rgba32Uint,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                view_formats: &[],
+            });
+            let view = tex.create_view(&wgpu::TextureViewDescriptor::default());
+            self.tex = Some((tex, view));
+        }
+        let (tex, view) = self.tex.as_ref().expect("just made");
+        let bytes: &[u8] = bytemuck::cast_slice(queries);
+        // The whole rows, then what is left in one more row.
+        let full = (texels / w) as u32;
+        let rest = (texels % w) as u32;
+        let row_bytes = w * 16;
+        for (y, width, height, from) in [
+            (0, STORE_W, full, 0),
+            (full, rest, 1, full as usize * row_bytes),
+        ] {
+            if width == 0 || height == 0 {
+                continue;
+            }
+            ctx.queue.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: tex,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d { x: 0, y, z: 0 },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                &bytes[from..],
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(row_bytes as u32),
+                    rows_per_image: Some(height),
+                },
+                wgpu::Extent3d {
+                    width,
+                    height,
+                    depth_or_array_layers: 1,
+                },
+            );
+        }
+        view
+    }
+
+    /// The texture as last written.
+    pub fn view(&self) -> Option<&wgpu::TextureView> {
+        self.tex.as_ref().map(|(_, v)| v)
+    }
+}
+
 /// A buffer kept between batches and grown on demand, so that a batch does not pay for
 /// allocating (and wgpu for zeroing) its scratch memory.
 pub struct Reusable {

@@ -18,6 +18,9 @@ pub const ROW_CELLS: u32 = 8;
 /// adapter allows (`Limits::default`), a power of two so that the kernel shifts and masks.
 pub const STORE_SHIFT: u32 = 13;
 pub const STORE_W: u32 = 1 << STORE_SHIFT;
+/// Texels (16 bytes) of one query in the query texture: a [`GQuery`]'s words in order.
+pub const QUERY_TEXELS: u32 = (std::mem::size_of::<GQuery>() / 16) as u32;
+const _: () = assert!(std::mem::size_of::<GQuery>() % 16 == 0);
 /// Invocations per workgroup of the per-item and per-query kernels.
 pub const WG: u32 = 64;
 /// Elements per workgroup of the prefix scan.
@@ -100,6 +103,8 @@ shared! {
     /// where `dh` has 12 significant bits so that `dh * t` is exact for a `t` of 12 bits:
     /// the axis point a kernel starts from is then accurate to f32 near its own cell,
     /// however far that is from `P1`.
+    /// Its words are also the texels of the query texture (`QUERY_TEXELS` a query):
+    /// the evaluation kernel reads the first five, the walk the first three and the sixth.
     struct GQuery {
         ix: i32 => "i32", iy: i32 => "i32", iz: i32 => "i32",
         /// `L / cell`.
@@ -112,13 +117,13 @@ shared! {
         /// `(plane - P1)·d / cell`.
         mid: f32 => "f32",
         dhx: f32 => "f32", dhy: f32 => "f32", dhz: f32 => "f32",
-        /// `r / cell`.
-        r: f32 => "f32",
+        /// Bound on the f32 error of squared distances.
+        e2: f32 => "f32",
         dlx: f32 => "f32", dly: f32 => "f32", dlz: f32 => "f32",
         /// Bound on the f32 error of positions and axial coordinates (cell units).
         eps: f32 => "f32",
-        /// Bound on the f32 error of squared distances.
-        e2: f32 => "f32",
+        /// `r / cell`.
+        r: f32 => "f32",
         /// k of the k-nearest batch.
         k: u32 => "u32",
         pad0: u32 => "u32",
@@ -261,6 +266,7 @@ pub fn prelude() -> String {
         ("ROW_CELLS", ROW_CELLS),
         ("STORE_SHIFT", STORE_SHIFT),
         ("STORE_W", STORE_W),
+        ("QUERY_TEXELS", QUERY_TEXELS),
         ("WG", WG),
         ("SCAN_WG", SCAN_WG),
         ("MAX_WALK", MAX_WALK),

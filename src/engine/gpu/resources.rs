@@ -1,7 +1,7 @@
 //! What the engine keeps on the device: the sizes it works within, the cell table and
 //! point store uploaded once, and the per-batch buffers reused and grown across batches.
 
-use super::device::{Context, Reusable};
+use super::device::{Context, QueryTexture, Reusable};
 use super::layout::*;
 use super::GpuOptions;
 use crate::engine::EngineError;
@@ -214,6 +214,8 @@ impl Statics {
 pub struct Buffers {
     pub params: Reusable,
     pub queries: Reusable,
+    /// The queries again, as texels: what the walk and the evaluation read.
+    pub qtex: QueryTexture,
     pub scan: Reusable,
     pub items: Reusable,
     pub partials: Reusable,
@@ -250,6 +252,7 @@ impl Buffers {
         Buffers {
             params: Reusable::new("params", wgpu::BufferUsages::UNIFORM),
             queries: Reusable::new("queries", storage),
+            qtex: QueryTexture::default(),
             scan: Reusable::new("scan", storage),
             items: Reusable::new("items", storage),
             partials: Reusable::new("partials", storage),

@@ -170,7 +170,7 @@ impl Stage<'_> {
             pipeline,
             p,
             &[
-                h(&bd.queries, sz.queries),
+                wgpu::BindingResource::TextureView(&bd.qtex),
                 h(&self.st.cell_start, self.st.cell_bytes),
                 h(&bd.scan, sz.scan),
                 h(&bd.items, sz.items),
@@ -237,7 +237,7 @@ impl Stage<'_> {
                 ..rec.base
             };
             let bind = [
-                h(&bd.queries, sz.queries),
+                wgpu::BindingResource::TextureView(&bd.qtex),
                 h(&bd.items, sz.items),
                 wgpu::BindingResource::TextureView(points),
                 h(&bd.partials, sz.partials),
