@@ -485,7 +485,10 @@ impl QueryTexture {
                 label: Some("queries"),
                 size: wgpu::Extent3d {
                     width: STORE_W,
-                    height: store_rows(texels.max(grown * w)),
+                    // (Queries per sub-batch are bounded far below the largest side.)
+                    height: store_rows(
+                        texels.max(grown.min(ctx.limits.max_texture_dimension_2d as usize - 2) * w),
+                    ),
                     depth_or_array_layers: 1,
                 },
                 mip_level_count: 1,

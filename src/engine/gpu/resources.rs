@@ -29,9 +29,10 @@ impl Limits {
             .limits
             .max_storage_buffer_binding_size
             .min(ctx.limits.max_buffer_size);
-        // A part is one texture: at most the device's rows of STORE_W points (the
-        // binding limit is for buffers; the option still splits the store, for tests).
-        let texture = STORE_W as u64 * ctx.limits.max_texture_dimension_2d as u64;
+        // A part is one texture: rows of STORE_W points, one fewer than the device's
+        // largest side so that `store_rows` may add its row (the binding limit is for
+        // buffers; the option still splits the store, for tests).
+        let texture = STORE_W as u64 * (ctx.limits.max_texture_dimension_2d as u64 - 1);
         let part_len = (opts.max_binding_bytes.unwrap_or(u64::MAX) / 16)
             .min(texture)
             .clamp(1, u32::MAX as u64 / 2) as u32;
