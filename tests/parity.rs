@@ -645,8 +645,8 @@ fn the_device_fit_answers_like_the_host() {
     let spec = FitSpec::from(&Params::default());
     let ask = FitAsk::new(&spec, Default::default());
     // Whole, and with the point store split in two (13 bytes a point per binding: the
-    // 16-byte cell-relative points do not fit one, the 12-byte coordinates the fit reads
-    // do).
+    // option splits the 16-byte cell-relative points in two parts, while the 12-byte
+    // coordinates the fit reads fit one binding).
     let split = GpuOptions {
         max_binding_bytes: Some(pts.len() as u64 * 13),
         ..Default::default()
