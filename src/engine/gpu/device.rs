@@ -239,7 +239,7 @@ impl Context {
 
     /// A texture of `points` texels of 16 bytes (`Rgba32Float`), `STORE_W` a row (the last
     /// row padded), whose contents `fill(first, dst)` writes: the texels `first..` into
-    /// `dst`, the mapped memory of a staging buffer of at most `UPLOAD_ROWS` rows, copied
+    /// `dst`, the mapped memory of a staging buffer of at most 256 rows (32 MiB), copied
     /// into the texture at a submit of its own (so that each staging buffer can go as soon
     /// as its copy is done).
     pub fn filled_texture(
