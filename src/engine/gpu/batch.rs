@@ -290,13 +290,8 @@ impl Bound {
     ) -> Bound {
         let queries = b.queries.get(ctx, sz.queries).clone();
         let fitq = (kind == Kind::Fit).then(|| b.fitq.get(ctx, sz.fitq).clone());
-        // (A rerun finds them in place: the texture only grows at a first try.)
-        let qtex = if rerun {
-            b.qtex.view().expect("written at the first try").clone()
-        } else {
-            b.qtex.write(ctx, gq).clone()
-        };
         if !rerun {
+            b.qtex.write(ctx, gq);
             ctx.queue
                 .write_buffer(&queries, 0, bytemuck::cast_slice(gq));
             if let Some(q) = &fitq {
@@ -306,7 +301,7 @@ impl Bound {
         Bound {
             params: b.params.get(ctx, params_bytes).clone(),
             queries,
-            qtex,
+            qtex: b.qtex.view().expect("written at the first try").clone(),
             scan: b.scan.get(ctx, sz.scan).clone(),
             items: b.items.get(ctx, sz.items).clone(),
             partials: b.partials.get(ctx, sz.partials).clone(),

@@ -263,22 +263,12 @@ impl Context {
         use super::layout::STORE_W;
         let w = STORE_W as usize;
         let rows = store_rows(points);
-        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some(label),
-            size: wgpu::Extent3d {
-                width: STORE_W,
-                height: rows,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba32Float,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_DST
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
+        let texture = self.texture(
+            label,
+            rows,
+            wgpu::TextureFormat::Rgba32Float,
+            wgpu::TextureUsages::COPY_SRC,
+        );
         for row in (0..rows).step_by(upload_rows.max(1) as usize) {
             let height = upload_rows.max(1).min(rows - row);
             let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -320,6 +310,31 @@ impl Context {
             self.queue.submit([enc.finish()]);
         }
         texture
+    }
+
+    /// A texture of `STORE_W` texels a row and `rows` rows, which kernels read and copies
+    /// write (and whatever `usage` adds).
+    fn texture(
+        &self,
+        label: &str,
+        rows: u32,
+        format: wgpu::TextureFormat,
+        usage: wgpu::TextureUsages,
+    ) -> wgpu::Texture {
+        self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size: wgpu::Extent3d {
+                width: super::layout::STORE_W,
+                height: rows,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST | usage,
+            view_formats: &[],
+        })
     }
 
     /// A storage buffer of `size` bytes. With [`super::GpuOptions::fill_garbage`] it is
@@ -464,13 +479,8 @@ pub struct QueryTexture {
 }
 
 impl QueryTexture {
-    /// The texture, after writing `queries` at its start (grown first when they do not
-    /// fit).
-    pub fn write(
-        &mut self,
-        ctx: &Context,
-        queries: &[super::layout::GQuery],
-    ) -> &wgpu::TextureView {
+    /// Writes `queries` at the texture's start (grown first when they do not fit).
+    pub fn write(&mut self, ctx: &Context, queries: &[super::layout::GQuery]) {
         use super::layout::{QUERY_TEXELS, STORE_W};
         let w = STORE_W as usize;
         let texels = queries.len() * QUERY_TEXELS as usize;
@@ -481,27 +491,18 @@ impl QueryTexture {
                 .tex
                 .as_ref()
                 .map_or(0, |(t, _)| t.height() as usize * 3 / 2);
-            let tex = ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some("queries"),
-                size: wgpu::Extent3d {
-                    width: STORE_W,
-                    // (Queries per sub-batch are bounded far below the largest side.)
-                    height: store_rows(
-                        texels.max(grown.min(ctx.limits.max_texture_dimension_2d as usize - 2) * w),
-                    ),
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Rgba32Uint,
-                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-                view_formats: &[],
-            });
+            // (Queries per sub-batch are bounded far below the largest side.)
+            let most = ctx.limits.max_texture_dimension_2d as usize - 2;
+            let tex = ctx.texture(
+                "queries",
+                store_rows(texels.max(grown.min(most) * w)),
+                wgpu::TextureFormat::Rgba32Uint,
+                wgpu::TextureUsages::empty(),
+            );
             let view = tex.create_view(&wgpu::TextureViewDescriptor::default());
             self.tex = Some((tex, view));
         }
-        let (tex, view) = self.tex.as_ref().expect("just made");
+        let (tex, _) = self.tex.as_ref().expect("just made");
         let bytes: &[u8] = bytemuck::cast_slice(queries);
         // The whole rows, then what is left in one more row.
         let full = (texels / w) as u32;
@@ -534,7 +535,6 @@ impl QueryTexture {
                 },
             );
         }
-        view
     }
 
     /// The texture as last written.
