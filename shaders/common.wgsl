@@ -14,45 +14,12 @@ fn texel(k: u32) -> vec2<u32> {
     return vec2<u32>(k & (STORE_W - 1u), k >> STORE_SHIFT);
 }
 
-// Query qi from the query texture (`GQuery`'s words, QUERY_TEXELS texels a query). A
-// kernel reads only the fields it uses, so compilers drop the other fetches: on SIMD
-// implementations (lavapipe) a fetch gathers the lanes' texels at once, where a storage
-// load with an address per lane is a loop over the lanes for each word.
-fn query_of(t: texture_2d<u32>, qi: u32) -> GQuery {
-    let b = qi * QUERY_TEXELS;
-    let t0 = textureLoad(t, texel(b), 0);
-    let t1 = textureLoad(t, texel(b + 1u), 0);
-    let t2 = textureLoad(t, texel(b + 2u), 0);
-    let t3 = textureLoad(t, texel(b + 3u), 0);
-    let t4 = textureLoad(t, texel(b + 4u), 0);
-    let t5 = textureLoad(t, texel(b + 5u), 0);
-    var q: GQuery;
-    q.ix = bitcast<i32>(t0.x);
-    q.iy = bitcast<i32>(t0.y);
-    q.iz = bitcast<i32>(t0.z);
-    q.len = bitcast<f32>(t0.w);
-    q.fx = bitcast<f32>(t1.x);
-    q.fy = bitcast<f32>(t1.y);
-    q.fz = bitcast<f32>(t1.z);
-    q.r2 = bitcast<f32>(t1.w);
-    q.dx = bitcast<f32>(t2.x);
-    q.dy = bitcast<f32>(t2.y);
-    q.dz = bitcast<f32>(t2.z);
-    q.mid = bitcast<f32>(t2.w);
-    q.dhx = bitcast<f32>(t3.x);
-    q.dhy = bitcast<f32>(t3.y);
-    q.dhz = bitcast<f32>(t3.z);
-    q.e2 = bitcast<f32>(t3.w);
-    q.dlx = bitcast<f32>(t4.x);
-    q.dly = bitcast<f32>(t4.y);
-    q.dlz = bitcast<f32>(t4.z);
-    q.eps = bitcast<f32>(t4.w);
-    q.r = bitcast<f32>(t5.x);
-    q.k = t5.y;
-    q.pad0 = t5.z;
-    q.pad1 = t5.w;
-    return q;
-}
+// `query_of(t, qi)`, query qi from the query texture (`GQuery`'s words, QUERY_TEXELS
+// texels a query), is generated from GQuery's fields after this file (`query_of_wgsl` in
+// src/engine/gpu/layout.rs). A kernel reads only the fields it uses, so compilers drop
+// the other fetches: on SIMD implementations (lavapipe) a fetch gathers the lanes' texels
+// at once, where a storage load with an address per lane is a loop over the lanes for
+// each word.
 
 // The geometry of one work item, in cell units relative to its cell's corner. The axis
 // point `o` near the cell's centre keeps every |p - o| within a few cells, so the

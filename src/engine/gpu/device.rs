@@ -735,6 +735,69 @@ mod tests {
     }
 
     #[test]
+    fn every_query_field_comes_back_from_the_query_texture_as_the_host_wrote_it() {
+        use super::super::layout::GQuery;
+        let Some(ctx) = context() else { return };
+        let n_words = std::mem::size_of::<GQuery>() / 4;
+        // Word i of query j: distinct in every query and field, and a normal f32, so that
+        // it passes through an f32 unchanged.
+        let word = |j: u32, i: u32| 0x3F00_0000 + (j << 16) + (i << 8) + 1;
+        let queries: Vec<GQuery> = (0..3)
+            .map(|j| {
+                let w: Vec<u32> = (0..n_words as u32).map(|i| word(j, i)).collect();
+                bytemuck::pod_read_unaligned(bytemuck::cast_slice(&w))
+            })
+            .collect();
+        // A kernel that reads query 1 with the generated accessor and writes each field
+        // back at its own word.
+        let mut kernel = String::from(
+            "@group(0) @binding(1) var queries: texture_2d<u32>;\n\
+             @group(0) @binding(2) var<storage, read_write> out: array<u32>;\n\
+             @compute @workgroup_size(1)\nfn main() {\n    let q = query_of(queries, 1u);\n",
+        );
+        for &(name, offset) in GQuery::FIELDS {
+            kernel += &format!("    out[{}] = bitcast<u32>(q.{name});\n", offset / 4);
+        }
+        kernel += "}\n";
+        let pipeline = ctx.pipeline("query_of", &super::super::kernel_source(&kernel), "main");
+        let mut tex = QueryTexture::default();
+        tex.write(&ctx, &queries);
+        let bytes = (n_words * 4) as u64;
+        let out = ctx.buffer(
+            "out",
+            bytes,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        );
+        let staging = ctx.buffer("staging", bytes, wgpu::BufferUsages::MAP_READ);
+        let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(tex.view().unwrap()),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: out.as_entire_binding(),
+                },
+            ],
+        });
+        let mut enc = ctx.encoder();
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+        }
+        let got: Vec<u32> = ctx
+            .read_back(enc, &out, &staging, bytes, bytemuck::pod_collect_to_vec)
+            .unwrap();
+        let want: Vec<u32> = (0..n_words as u32).map(|i| word(1, i)).collect();
+        assert_eq!(got, want);
+    }
+
+    #[test]
     fn dispatch_tiles_cover_every_item_within_the_limit() {
         assert_eq!(tiles(64, 64, 65_535), (1, 1));
         assert_eq!(tiles(65, 64, 65_535), (2, 1));

@@ -8,12 +8,14 @@ use crate::engine::EngineError;
 use std::sync::OnceLock;
 
 /// The layouts and helpers every kernel shares: the prelude generated from `layout.rs`,
-/// then `shaders/common.wgsl`.
+/// `shaders/common.wgsl`, then the query accessor generated from `GQuery`'s fields
+/// ([`layout::query_of_wgsl`]).
 pub fn common_wgsl() -> String {
     format!(
-        "{}\n{}",
+        "{}\n{}\n{}",
         layout::prelude(),
-        include_str!("../../../shaders/common.wgsl")
+        include_str!("../../../shaders/common.wgsl"),
+        layout::query_of_wgsl()
     )
 }
 

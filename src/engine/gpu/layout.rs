@@ -77,7 +77,8 @@ pub const FIT_OK: u32 = 0;
 pub const FIT_NONE: u32 = 1;
 pub const FIT_HOST: u32 = 2;
 /// Defines a `#[repr(C)]` Pod struct of 4-byte fields and its WGSL text (`Name::WGSL`),
-/// with `Name::FIELDS` (name, byte offset) for the layout test.
+/// with `Name::FIELDS` (name, byte offset) for the layout test and `Name::TYPES` (each
+/// field's WGSL type, in the same order) for generated accessors.
 macro_rules! shared {
     ($(#[$m:meta])* struct $name:ident { $($(#[$fm:meta])* $field:ident : $rty:ty => $wty:literal),* $(,)? }) => {
         $(#[$m])*
@@ -92,6 +93,7 @@ macro_rules! shared {
             );
             pub const FIELDS: &'static [(&'static str, usize)] =
                 &[$((stringify!($field), std::mem::offset_of!($name, $field))),*];
+            pub const TYPES: &'static [&'static str] = &[$($wty),*];
         }
     };
 }
@@ -307,6 +309,29 @@ pub fn prelude() -> String {
         s += st;
     }
     s
+}
+
+/// `query_of(t, qi)`: query `qi` read from the query texture `t` (`QUERY_TEXELS` texels a
+/// query, `texel()` of common.wgsl addressing them), each field from the texel and
+/// component that [`GQuery`]'s byte offset puts it in, so that the accessor cannot drift
+/// from the struct. The fetches a kernel leaves unused are dropped by the compilers.
+pub fn query_of_wgsl() -> String {
+    let mut s = String::from(
+        "// Generated from src/engine/gpu/layout.rs (GQuery's fields): do not edit here.\n\
+         fn query_of(t: texture_2d<u32>, qi: u32) -> GQuery {\n    let b = qi * QUERY_TEXELS;\n",
+    );
+    for k in 0..QUERY_TEXELS {
+        s += &format!("    let t{k} = textureLoad(t, texel(b + {k}u), 0);\n");
+    }
+    s += "    var q: GQuery;\n";
+    for (&(name, offset), &ty) in GQuery::FIELDS.iter().zip(GQuery::TYPES) {
+        let word = format!("t{}.{}", offset / 16, ["x", "y", "z", "w"][offset % 16 / 4]);
+        s += &match ty {
+            "u32" => format!("    q.{name} = {word};\n"),
+            _ => format!("    q.{name} = bitcast<{ty}>({word});\n"),
+        };
+    }
+    s + "    return q;\n}\n"
 }
 
 /// The fit kernel's own prelude, after the common one: its f64 structs and constants
