@@ -5,7 +5,7 @@
 // of d2 / r2), so the host only ranks the members in between.
 // Loop bound: NBINS iterations.
 
-@group(0) @binding(1) var<storage, read> queries: array<GQuery>;
+@group(0) @binding(1) var queries: texture_2d<u32>;
 @group(0) @binding(2) var<storage, read> hist: array<u32>;
 @group(0) @binding(3) var<storage, read_write> plans: array<Plan>;
 
@@ -21,7 +21,7 @@ fn main(
     if qi >= params.n {
         return;
     }
-    let q = queries[qi];
+    let q = query_of(queries, qi);
     var total = 0u;
     for (var b = 0u; b < NBINS; b++) {
         total += hist[qi * NBINS + b];

@@ -180,7 +180,6 @@ pub struct Sizes {
     /// The levels of a members batch's scan of the items' member counts, and its bytes.
     pub mlevels: Vec<stages::Level>,
     pub mscan: u64,
-    pub queries: u64,
     pub items: u64,
     pub partials: u64,
     pub results: u64,
@@ -234,7 +233,6 @@ impl Sizes {
             } else {
                 4
             },
-            queries: size_of(std::mem::size_of::<GQuery>(), n64),
             items: size_of(std::mem::size_of::<Item>(), b.item_cap as u64),
             partials: size_of(std::mem::size_of::<Partial>(), b.item_cap as u64),
             results,
@@ -254,8 +252,8 @@ impl Sizes {
 /// of [`Buffers`], grown where they were smaller).
 pub struct Bound {
     pub params: wgpu::Buffer,
-    pub queries: wgpu::Buffer,
-    /// The same queries as texels ([`super::device::QueryTexture`]).
+    /// The batch's queries as texels ([`super::device::QueryTexture`]): what the walk,
+    /// the evaluation and the cut read.
     pub qtex: wgpu::TextureView,
     pub scan: wgpu::Buffer,
     pub items: wgpu::Buffer,
@@ -288,19 +286,15 @@ impl Bound {
         fit: &[FitQuery],
         rerun: bool,
     ) -> Bound {
-        let queries = b.queries.get(ctx, sz.queries).clone();
         let fitq = (kind == Kind::Fit).then(|| b.fitq.get(ctx, sz.fitq).clone());
         if !rerun {
             b.qtex.write(ctx, gq);
-            ctx.queue
-                .write_buffer(&queries, 0, bytemuck::cast_slice(gq));
             if let Some(q) = &fitq {
                 ctx.queue.write_buffer(q, 0, bytemuck::cast_slice(fit));
             }
         }
         Bound {
             params: b.params.get(ctx, params_bytes).clone(),
-            queries,
             qtex: b.qtex.view().expect("written at the first try").clone(),
             scan: b.scan.get(ctx, sz.scan).clone(),
             items: b.items.get(ctx, sz.items).clone(),

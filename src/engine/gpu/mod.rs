@@ -9,10 +9,9 @@
 //! every GPU serves from its texture cache, and on a SIMD implementation such as lavapipe
 //! it gathers the lanes' points in a few instructions, where a storage load with a
 //! different address per lane is a loop over the lanes (the evaluation kernel 2.3x faster
-//! there). Per batch the host uploads only the queries (96 bytes each, in the
-//! Morton order of their midpoints' cells: `order.rs`; once as a storage array, once as
-//! the texels the walk and the evaluation fetch) and one submit runs the stages of
-//! `stages.rs`:
+//! there). Per batch the host uploads only the queries (96 bytes each, in the Morton
+//! order of their midpoints' cells: `order.rs`), as a texture whose texels the kernels
+//! fetch, and one submit runs the stages of `stages.rs`:
 //! 1. `walk.wgsl` (count): per query, the work items its capped cylinder needs (cells it
 //!    can touch, each cell cut into chunks of at most [`CHUNK`] points);
 //! 2. `scan.wgsl`: exclusive prefix sum of those counts (multi-level workgroup scan);

@@ -214,8 +214,7 @@ impl Statics {
 /// Per-batch buffers, reused and grown across batches, with the capacities learnt.
 pub struct Buffers {
     pub params: Reusable,
-    pub queries: Reusable,
-    /// The queries again, as texels: what the walk and the evaluation read.
+    /// The batch's queries, as texels: what the walk, the evaluation and the cut read.
     pub qtex: QueryTexture,
     pub scan: Reusable,
     pub items: Reusable,
@@ -252,7 +251,6 @@ impl Buffers {
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
         Buffers {
             params: Reusable::new("params", wgpu::BufferUsages::UNIFORM),
-            queries: Reusable::new("queries", storage),
             qtex: QueryTexture::default(),
             scan: Reusable::new("scan", storage),
             items: Reusable::new("items", storage),

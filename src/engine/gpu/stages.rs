@@ -276,7 +276,7 @@ impl Stage<'_> {
     pub fn nearest(&self, rec: &mut Recorder<'_>, ctx: &Context) -> Result<(), EngineError> {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
         let bind = [
-            h(&bd.queries, sz.queries),
+            wgpu::BindingResource::TextureView(&bd.qtex),
             h(&bd.aux, sz.hist),
             h(&bd.plans, sz.plans),
         ];
