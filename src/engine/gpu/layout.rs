@@ -106,7 +106,8 @@ shared! {
     /// the axis point a kernel starts from is then accurate to f32 near its own cell,
     /// however far that is from `P1`.
     /// Its words are also the texels of the query texture (`QUERY_TEXELS` a query):
-    /// the evaluation kernel reads the first five, the walk the first three and the sixth.
+    /// the evaluation kernel reads the first five, the walk the first three and the sixth,
+    /// the k-nearest cut the second, fourth and sixth.
     struct GQuery {
         ix: i32 => "i32", iy: i32 => "i32", iz: i32 => "i32",
         /// `L / cell`.
