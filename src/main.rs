@@ -1,8 +1,8 @@
 //! The `linegs-gpu` command line: argument parsing and printing only; the work is in the
 //! library.
 
-mod cmd;
-mod oom;
+pub(crate) mod cmd;
+pub(crate) mod oom;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -112,16 +112,34 @@ fn quiet_stdio_errors() {
     }));
 }
 
+/// `RUST_LOG` (`info`, `debug`, `wgpu_hal=debug,info`: env_logger's syntax) to standard
+/// error: the adapter search (`linegs_gpu::engine`; `debug` lists every adapter found) and
+/// what wgpu, naga and the Vulkan loader report through `log`, which is lost without a
+/// logger. Unset, nothing is logged. (A second call in one process, from Python, keeps the
+/// first logger.)
+fn init_logger() {
+    let _ = env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("off"))
+        .try_init();
+}
+
 #[global_allocator]
 static ALLOCATOR: oom::Checked = oom::Checked;
 
 fn main() -> ExitCode {
+    ExitCode::from(run(std::env::args_os()))
+}
+
+/// The command line on `args` (the program's name first); returns the exit code. `main`,
+/// and the `linegs-gpu` that `pip install .` installs (python/src/lib.rs includes this
+/// file and calls it with `sys.argv`).
+pub fn run(args: impl IntoIterator<Item = std::ffi::OsString>) -> u8 {
     // Before the first large block.
     linegs_gpu::mem::huge_heap();
     quiet_stdio_errors();
+    init_logger();
     // After parsing: clap exits the process on `--help` and usage errors, which would
     // leave the folder behind.
-    let cli = Cli::parse();
+    let cli = Cli::parse_from(args);
     let _runtime_dir = private_runtime_dir();
     let verbose = cli.verbose;
     let result = match cli.command {
@@ -136,10 +154,10 @@ fn main() -> ExitCode {
         Command::Batch(a) => cmd::batch::run(*a, verbose),
     };
     match result {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(()) => 0,
         Err(e) => {
             eprintln!("error: {e:#}");
-            ExitCode::from(cmd::exit_code(&e))
+            cmd::exit_code(&e)
         }
     }
 }

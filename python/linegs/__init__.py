@@ -15,6 +15,11 @@ dict has the shape of ``linegs-gpu refine --report`` (SPEC 7).
 ``read_gaussians`` returns: the file's centers and attributes, the command line's answer
 bit for bit), as a path (read the same way), or as a plain ``(N, 3)`` array of centers:
 centers only, so the edge fit and the scale cut (``max_scale``) see no attributes.
+
+No array is copied on the way: a :class:`Gaussians` owns its arrays in the native module
+and shows them as read-only numpy views, which ``refine`` and ``evaluate`` compute on in
+place; segments are read from the caller's arrays where they lie, and results come back
+as arrays that own the native result.
 """
 
 from __future__ import annotations
@@ -64,11 +69,15 @@ class Gaussians:
     deviation: a flat Gaussian's thickness, which the edge fit's move gate reads); ``None``
     where it does not.
 
+    The arrays are read-only views of the model's own memory in the native module (the
+    reader's, for :func:`read_gaussians`; no copy). Built from arrays, the model copies
+    them once (any float dtype and layout); build a new one to change them.
+
     ``normals`` and ``max_scale`` come together; every array has one row per center.
     ``np.asarray(g)`` is the centers.
     """
 
-    __slots__ = ("centers", "normals", "max_scale", "opacity", "min_scale")
+    __slots__ = ("centers", "normals", "max_scale", "opacity", "min_scale", "_model")
 
     def __init__(
         self,
@@ -78,27 +87,40 @@ class Gaussians:
         opacity: Any = None,
         min_scale: Any = None,
     ) -> None:
-        self.centers = np.ascontiguousarray(centers, dtype=np.float32)
-        if self.centers.ndim != 2 or self.centers.shape[1] != 3:
-            raise InputError(
-                f"gaussians: expected an (N, 3) array of centers, got shape {self.centers.shape}"
-            )
-        n = len(self.centers)
+        c = np.asarray(centers, dtype=np.float32)
+        if c.ndim != 2 or c.shape[1] != 3:
+            raise InputError(f"gaussians: expected an (N, 3) array of centers, got shape {c.shape}")
+        n = len(c)
 
-        def attr(a: Any, shape: Tuple[int, ...], what: str) -> Optional[np.ndarray]:
+        def attr(a: Any, shape: Tuple[int, ...], what: str) -> Any:
             if a is None:
                 return None
-            a = np.ascontiguousarray(a, dtype=np.float32)
+            a = np.asarray(a, dtype=np.float32)
             if a.shape != shape:
                 raise InputError(f"gaussians: {what} has shape {a.shape}, expected {shape}")
             return a
 
-        self.normals = attr(normals, (n, 3), "normals")
-        self.max_scale = attr(max_scale, (n,), "max_scale")
-        self.opacity = attr(opacity, (n,), "opacity")
-        self.min_scale = attr(min_scale, (n,), "min_scale")
-        if (self.normals is None) != (self.max_scale is None):
+        normals = attr(normals, (n, 3), "normals")
+        max_scale = attr(max_scale, (n,), "max_scale")
+        opacity = attr(opacity, (n,), "opacity")
+        min_scale = attr(min_scale, (n,), "min_scale")
+        if (normals is None) != (max_scale is None):
             raise InputError("gaussians: normals and max_scale come together (or neither)")
+        self._adopt(_linegs.Model(c, normals, max_scale, opacity, min_scale))
+
+    def _adopt(self, model: Any) -> None:
+        self._model = model
+        views = model.views()
+        for v in views:
+            if v is not None:
+                v.flags.writeable = False
+        self.centers, self.normals, self.max_scale, self.opacity, self.min_scale = views
+
+    @classmethod
+    def _of(cls, model: Any) -> "Gaussians":
+        g = cls.__new__(cls)
+        g._adopt(model)
+        return g
 
     def __len__(self) -> int:
         return len(self.centers)
@@ -113,22 +135,16 @@ class Gaussians:
 
 def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, strict: bool = False) -> Gaussians:
     """A 3DGS model (PLY, SuperSplat, SPZ, .splat) as :class:`Gaussians`: its centers and
-    the attributes the file has, exactly as ``linegs-gpu refine`` reads them.
+    the attributes the file has, exactly as ``linegs-gpu refine`` reads them (the arrays
+    are the reader's own memory, not a copy).
 
     ``min_opacity`` keeps only Gaussians with ``sigmoid(opacity) >= min_opacity``. Centers
     that are NaN or infinite are skipped with a warning (an error with ``strict=True``).
     Raises :class:`InputError` naming the file and the place for a bad file.
     """
-    c, n, s, o, m, warnings = _linegs.read_gaussians(os.fspath(path), min_opacity, strict)
+    model, warnings = _linegs.read_gaussians(os.fspath(path), min_opacity, strict)
     _warn(warnings)
-
-    def arr(b: Optional[bytes], k: int) -> Optional[np.ndarray]:
-        if b is None:
-            return None
-        a = np.frombuffer(b, dtype=np.float32).copy()
-        return a.reshape(-1, 3) if k == 3 else a
-
-    return Gaussians(arr(c, 3), arr(n, 3), arr(s, 1), arr(o, 1), arr(m, 1))
+    return Gaussians._of(model)
 
 
 def read_lines(path: PathLike, *, groups: bool = False) -> Any:
@@ -140,9 +156,8 @@ def read_lines(path: PathLike, *, groups: bool = False) -> Any:
     line of each segment (``(M,)`` uint32; Line3D++ ``.txt``) or ``None``; pass it on to
     :func:`refine` so the collinear merge sees the lines, as the command line does.
     """
-    data, g, warnings = _linegs.read_lines(os.fspath(path))
+    segs, g, warnings = _linegs.read_lines(os.fspath(path))
     _warn(warnings)
-    segs = np.frombuffer(data, dtype=np.float64).reshape(-1, 2, 3).copy()
     if groups:
         return segs, (None if g is None else np.asarray(g, dtype=np.uint32))
     return segs
@@ -154,36 +169,24 @@ def write_lines(path: PathLike, segments: Any) -> None:
     _linegs.write_lines(os.fspath(path), _segments(segments, "segments"))
 
 
-def _gaussians(g: Any) -> Dict[str, Optional[bytes]]:
-    """The Gaussians' arrays for the native half: a :class:`Gaussians`, a path, or an
-    ``(N, 3)`` array of centers (no attributes)."""
+def _gaussians(g: Any) -> Any:
+    """The native model of the Gaussians: a :class:`Gaussians`, a path, or an ``(N, 3)``
+    array of centers (no attributes; copied once into a model)."""
     if isinstance(g, (str, os.PathLike)):
         g = read_gaussians(g)
     if not isinstance(g, Gaussians):
-        a = np.asarray(g)
-        if a.ndim != 2 or a.shape[1] != 3:
-            raise InputError(f"gaussians: expected an (N, 3) array of centers, got shape {a.shape}")
-        g = Gaussians(a)
-
-    def b(a: Optional[np.ndarray]) -> Optional[bytes]:
-        return None if a is None else np.ascontiguousarray(a, dtype=np.float32).tobytes()
-
-    return dict(
-        gaussians_f32=g.centers.tobytes(),
-        normals_f32=b(g.normals),
-        max_scale_f32=b(g.max_scale),
-        opacity_f32=b(g.opacity),
-        min_scale_f32=b(g.min_scale),
-    )
+        g = Gaussians(g)
+    return g._model
 
 
-def _segments(a: Any, what: str) -> bytes:
-    a = np.asarray(a)
+def _segments(a: Any, what: str) -> np.ndarray:
+    """``(M, 2, 3)`` float64 (``(M, 6)`` is taken too), a view where ``a`` is float64."""
+    a = np.asarray(a, dtype=np.float64)
     if a.ndim == 2 and a.shape[1] == 6:
         a = a.reshape(-1, 2, 3)
     if a.ndim != 3 or a.shape[1:] != (2, 3):
         raise InputError(f"{what}: expected an (M, 2, 3) array of segments, got shape {a.shape}")
-    return np.ascontiguousarray(a, dtype=np.float64).tobytes()
+    return a
 
 
 def _args(params: Dict[str, Any]) -> list:
@@ -216,6 +219,7 @@ def refine(
     groups: Any = None,
     gt: Any = None,
     radii: Optional[Sequence[float]] = None,
+    frame_check: bool = True,
     **params: Any,
 ) -> Tuple[np.ndarray, Dict[str, Any]]:
     """Refines ``segments`` ``(M, 2, 3)`` against the Gaussians (LineGS:
@@ -233,21 +237,27 @@ def refine(
     (``report["ground_truth"]``). ``radii``: a radius sweep (``report["sweep"]``).
     Every other parameter of :data:`PARAMS` is a keyword, e.g. ``translate_keep=0.4``.
 
+    The frame check of ``linegs-gpu refine`` runs first: when (almost) no segment has a
+    Gaussian center within ``r`` (lines and model in different frames or units), it raises
+    :class:`InputError` with the command line's message; ``frame_check=False`` refines
+    anyway (``--no-frame-check``). A doubtful frame is a warning in ``report["warnings"]``.
+
     The computation runs without the GIL. Raises :class:`InputError` for bad arrays or
     options (with the command line's messages), :class:`LinegsError` otherwise.
     """
     args = _args(dict(radius=radius, eval_radius=eval_radius, profile=profile, **params))
     g = None if groups is None else [int(x) for x in np.asarray(groups).ravel()]
-    data, report = _linegs.refine(
-        segments_f64=_segments(segments, "segments"),
-        groups=g,
-        args=args,
-        backend_name=backend,
+    segs, report = _linegs.refine(
+        _gaussians(gaussians),
+        _segments(segments, "segments"),
+        g,
+        args,
+        backend,
         gt_f64=None if gt is None else _segments(gt, "gt"),
         sweep=None if radii is None else [float(r) for r in radii],
-        **_gaussians(gaussians),
+        frame_check=bool(frame_check),
     )
-    return np.frombuffer(data, dtype=np.float64).reshape(-1, 2, 3).copy(), json.loads(report)
+    return segs, json.loads(report)
 
 
 def evaluate(
@@ -267,15 +277,16 @@ def evaluate(
     ``segments``, ``report["after"]`` for ``compare`` (measured on the same working set),
     ``report["ground_truth"]`` against ``gt``, ``report["sweep"]`` at ``radii``.
     ``gaussians`` as for :func:`refine`. Keywords as for :func:`refine` (``unit_scale``,
-    ``score_lambda``, ``r_l``, ...)."""
+    ``score_lambda``, ``r_l``, ...). The frame check warns in ``report["warnings"]``, as
+    ``linegs-gpu eval`` does."""
     args = _args(dict(eval_radius=eval_radius, profile=profile, **params))
     report = _linegs.evaluate(
-        segments_f64=_segments(segments, "segments"),
-        args=args,
-        backend_name=backend,
+        _gaussians(gaussians),
+        _segments(segments, "segments"),
+        args,
+        backend,
         compare_f64=None if compare is None else _segments(compare, "compare"),
         gt_f64=None if gt is None else _segments(gt, "gt"),
         sweep=None if radii is None else [float(r) for r in radii],
-        **_gaussians(gaussians),
     )
     return json.loads(report)

@@ -1,7 +1,9 @@
 //! The native half of the `linegs` Python package: thin wrappers over
-//! [`linegs_gpu::pipeline`], the entry point the command line uses too. Arrays cross as
-//! native-endian bytes (`f32` Gaussians, `f64` segments) that the Python half converts
-//! with numpy; every computation runs with the GIL released.
+//! [`linegs_gpu::pipeline`], the entry point the command line uses too, and the command
+//! line itself (`main`, the `linegs-gpu` that `pip install .` installs). Arrays cross as
+//! numpy arrays without copies: a model's arrays are owned here ([`Model`]) and Python sees
+//! them through read-only views; segments are read from the caller's arrays in place and
+//! returned as arrays that own the result. Every computation runs with the GIL released.
 
 use linegs_gpu::engine::gpu::GpuSetup;
 use linegs_gpu::engine::select::Backend;
@@ -9,15 +11,25 @@ use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::io;
 use linegs_gpu::pipeline::{self, Job, LoadOptions, RunError, Scene};
 use linegs_gpu::refine::Params;
+use numpy::ndarray::{Array3, ArrayView1, ArrayView2, ArrayView3};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3, PyUntypedArrayMethods,
+};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::PyBytes;
 use std::path::PathBuf;
+use std::sync::Mutex;
 
-/// Large blocks (the Gaussians, the grid) on huge pages, as in the command line.
-#[global_allocator]
-static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
+/// The command line, compiled into the module as it is into the binary (its modules
+/// beside it: `cmd`, `oom`); [`main`] runs it. Its allocator (the library's `HugeBlocks`
+/// with the command line's out-of-memory message) is the module's.
+#[path = "../../src/main.rs"]
+#[allow(dead_code)]
+mod cli;
+// `crate::cmd` and `crate::oom`, as the command line's modules name each other.
+use cli::{cmd, oom};
 
 create_exception!(
     _linegs,
@@ -45,47 +57,247 @@ fn io_to_py(e: io::Error) -> PyErr {
     to_py(RunError::Io(e))
 }
 
-fn points(bytes: &[u8]) -> Vec<[f32; 3]> {
-    bytes
-        .chunks_exact(12)
-        .map(|c| {
-            let f = |i: usize| f32::from_ne_bytes(c[i..i + 4].try_into().expect("4 bytes"));
-            [f(0), f(4), f(8)]
+/// Segments from an `(M, 2, 3)` array, any strides.
+fn segments(a: ArrayView3<'_, f64>) -> Vec<Segment> {
+    a.outer_iter()
+        .map(|s| {
+            Segment::from_arrays(
+                [s[[0, 0]], s[[0, 1]], s[[0, 2]]],
+                [s[[1, 0]], s[[1, 1]], s[[1, 2]]],
+            )
         })
         .collect()
 }
 
-fn floats(bytes: &[u8]) -> Vec<f32> {
-    bytes
-        .chunks_exact(4)
-        .map(|c| f32::from_ne_bytes(c.try_into().expect("4 bytes")))
-        .collect()
-}
-
-fn f32_bytes(v: &[f32]) -> Vec<u8> {
-    v.iter().flat_map(|x| x.to_ne_bytes()).collect()
-}
-
-fn segments(bytes: &[u8]) -> Vec<Segment> {
-    bytes
-        .chunks_exact(48)
-        .map(|c| {
-            let f = |i: usize| f64::from_ne_bytes(c[8 * i..8 * i + 8].try_into().expect("8 bytes"));
-            Segment::from_arrays([f(0), f(1), f(2)], [f(3), f(4), f(5)])
-        })
-        .collect()
-}
-
-fn segment_bytes(segs: &[Segment]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(segs.len() * 48);
+/// An `(M, 2, 3)` array that owns the segments' coordinates (no copy on the way out).
+fn segment_array<'py>(py: Python<'py>, segs: &[Segment]) -> Bound<'py, PyArray3<f64>> {
+    let mut flat = Vec::with_capacity(segs.len() * 6);
     for s in segs {
         for v in [s.p1, s.p2] {
-            for x in [v.x, v.y, v.z] {
-                out.extend_from_slice(&x.to_ne_bytes());
-            }
+            flat.extend_from_slice(&[v.x, v.y, v.z]);
         }
     }
-    out
+    Array3::from_shape_vec((segs.len(), 2, 3), flat)
+        .expect("6 numbers per segment")
+        .into_pyarray(py)
+}
+
+/// Points `(N, 3)` as rows of three, however the array is laid out.
+fn rows(a: ArrayView2<'_, f32>) -> Vec<[f32; 3]> {
+    a.outer_iter().map(|r| [r[0], r[1], r[2]]).collect()
+}
+
+fn column(a: ArrayView1<'_, f32>) -> Vec<f32> {
+    a.iter().copied().collect()
+}
+
+/// A model's arrays: the centers and, where known, the attributes, one entry per center.
+#[derive(Default)]
+struct Arrays {
+    centers: Vec<[f32; 3]>,
+    normals: Option<Vec<[f32; 3]>>,
+    max_scale: Option<Vec<f32>>,
+    opacity: Option<Vec<f32>>,
+    min_scale: Option<Vec<f32>>,
+}
+
+/// Where a model's buffers are (address, rows): fixed for the model's life, since the
+/// vectors are never grown, shrunk or dropped while it lives (a computation moves the
+/// vectors into a [`Scene`] and back, which leaves their buffers in place).
+#[derive(Clone, Copy)]
+struct Place(usize, usize);
+
+fn place<T>(v: &[T]) -> Place {
+    Place(v.as_ptr() as usize, v.len())
+}
+
+/// A Gaussian model owned by the native half; `linegs.Gaussians` shows its arrays as
+/// read-only numpy views (`views`) and passes it to `refine` and `evaluate`, which lend
+/// its buffers to the computation without copying them.
+#[pyclass(module = "linegs._linegs", frozen)]
+struct Model {
+    arrays: Mutex<Arrays>,
+    centers: Place,
+    normals: Option<Place>,
+    max_scale: Option<Place>,
+    opacity: Option<Place>,
+    min_scale: Option<Place>,
+}
+
+impl Model {
+    /// Checks that every attribute has one entry per center and that normals and max
+    /// scales come together.
+    fn new(a: Arrays) -> Result<Model, RunError> {
+        let n = a.centers.len();
+        let check = |what: &str, len: Option<usize>| match len {
+            Some(len) if len != n => Err(RunError::Input(format!(
+                "gaussians: {len} {what} for {n} centers"
+            ))),
+            _ => Ok(()),
+        };
+        check("normals", a.normals.as_ref().map(Vec::len))?;
+        check("max scales", a.max_scale.as_ref().map(Vec::len))?;
+        check("opacities", a.opacity.as_ref().map(Vec::len))?;
+        check("min scales", a.min_scale.as_ref().map(Vec::len))?;
+        if a.normals.is_some() != a.max_scale.is_some() {
+            return Err(RunError::Input(
+                "gaussians: normals and max scales come together (both read from the rotations and scales)".into(),
+            ));
+        }
+        Ok(Model {
+            centers: place(&a.centers),
+            normals: a.normals.as_deref().map(place),
+            max_scale: a.max_scale.as_deref().map(place),
+            opacity: a.opacity.as_deref().map(place),
+            min_scale: a.min_scale.as_deref().map(place),
+            arrays: Mutex::new(a),
+        })
+    }
+
+    /// Runs `f` on the scene of this model's Gaussians and `lines`. The model's vectors
+    /// are moved into the scene and back (their buffers stay where the views see them),
+    /// also when `f` panics. Where a center is NaN or infinite, the scene gets copies
+    /// without those Gaussians (and the warning), as `Scene::from_arrays` has them.
+    fn with_scene<T>(
+        &self,
+        lines: LineSet,
+        f: impl FnOnce(&Scene) -> Result<T, RunError>,
+    ) -> Result<T, RunError> {
+        let mut a = self.arrays.lock().unwrap_or_else(|p| p.into_inner());
+        let finite: Vec<bool> = a
+            .centers
+            .iter()
+            .map(|c| c.iter().all(|v| v.is_finite()))
+            .collect();
+        if finite.iter().any(|f| !f) {
+            let keep = |v: &[f32], k: usize| -> Vec<f32> {
+                v.chunks_exact(k)
+                    .zip(&finite)
+                    .filter(|(_, f)| **f)
+                    .flat_map(|(c, _)| c.iter().copied())
+                    .collect()
+            };
+            let keep3 = |v: &[[f32; 3]]| -> Vec<[f32; 3]> {
+                v.iter()
+                    .zip(&finite)
+                    .filter(|(_, f)| **f)
+                    .map(|(c, _)| *c)
+                    .collect()
+            };
+            let mut s = Scene::from_arrays(a.centers.clone(), lines)?;
+            s.normals = a.normals.as_deref().map(keep3);
+            s.max_scale = a.max_scale.as_deref().map(|v| keep(v, 1));
+            s.opacity = a.opacity.as_deref().map(|v| keep(v, 1));
+            s.min_scale = a.min_scale.as_deref().map(|v| keep(v, 1));
+            return f(&s);
+        }
+        drop(finite);
+        if a.centers.is_empty() {
+            return Err(RunError::Input(
+                "gaussians: the model holds no Gaussian with a finite center".into(),
+            ));
+        }
+        // The lines checked and prepared on a stand-in center, so that no error can drop
+        // the model's vectors; then the model's own.
+        let mut s = Scene::from_arrays(vec![[0.0; 3]], lines)?;
+        s.gaussians = std::mem::take(&mut a.centers);
+        s.input.gaussians_read = s.gaussians.len();
+        s.normals = a.normals.take();
+        s.max_scale = a.max_scale.take();
+        s.opacity = a.opacity.take();
+        s.min_scale = a.min_scale.take();
+        let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&s)));
+        a.centers = std::mem::take(&mut s.gaussians);
+        a.normals = s.normals.take();
+        a.max_scale = s.max_scale.take();
+        a.opacity = s.opacity.take();
+        a.min_scale = s.min_scale.take();
+        out.unwrap_or_else(|p| std::panic::resume_unwind(p))
+    }
+}
+
+/// A read-only-to-be view of `rows x cols` `f32` at `p`, kept alive by `owner`.
+fn view<'py>(owner: &Bound<'py, Model>, p: Place, cols: usize) -> Bound<'py, PyAny> {
+    // SAFETY: `p` is a live buffer of `p.1` rows of `cols` f32 owned by `owner`'s vectors,
+    // which are never reallocated or freed while `owner` lives (see `Place`); the view
+    // holds a reference to `owner`.
+    unsafe {
+        let ptr = p.0 as *const f32;
+        if cols == 1 {
+            let a = ArrayView1::from_shape_ptr(p.1, ptr);
+            PyArray1::borrow_from_array(&a, owner.clone().into_any()).into_any()
+        } else {
+            let a = ArrayView2::from_shape_ptr((p.1, cols), ptr);
+            PyArray2::borrow_from_array(&a, owner.clone().into_any()).into_any()
+        }
+    }
+}
+
+type Views<'py> = (
+    Bound<'py, PyAny>,
+    Option<Bound<'py, PyAny>>,
+    Option<Bound<'py, PyAny>>,
+    Option<Bound<'py, PyAny>>,
+    Option<Bound<'py, PyAny>>,
+);
+
+#[pymethods]
+impl Model {
+    /// A model from arrays (copied once into the model): centers `(N, 3)`, normals
+    /// `(N, 3)`, max scales, opacities and min scales `(N,)`, all float32.
+    #[new]
+    #[pyo3(signature = (centers, normals = None, max_scale = None, opacity = None, min_scale = None))]
+    fn py_new(
+        centers: PyReadonlyArray2<'_, f32>,
+        normals: Option<PyReadonlyArray2<'_, f32>>,
+        max_scale: Option<PyReadonlyArray1<'_, f32>>,
+        opacity: Option<PyReadonlyArray1<'_, f32>>,
+        min_scale: Option<PyReadonlyArray1<'_, f32>>,
+    ) -> PyResult<Model> {
+        let three = |a: &PyReadonlyArray2<'_, f32>, what: &str| {
+            let s = a.shape();
+            if s[1] == 3 {
+                Ok(rows(a.as_array()))
+            } else {
+                Err(InputError::new_err(format!(
+                    "gaussians: {what} has shape ({}, {}), expected (N, 3)",
+                    s[0], s[1]
+                )))
+            }
+        };
+        let a = Arrays {
+            centers: three(&centers, "centers")?,
+            normals: normals.as_ref().map(|n| three(n, "normals")).transpose()?,
+            max_scale: max_scale.map(|v| column(v.as_array())),
+            opacity: opacity.map(|v| column(v.as_array())),
+            min_scale: min_scale.map(|v| column(v.as_array())),
+        };
+        Model::new(a).map_err(to_py)
+    }
+
+    /// `(centers, normals, max_scale, opacity, min_scale)`: views of the model's arrays
+    /// (`None` where it has no such attribute), each keeping the model alive.
+    fn views<'py>(slf: &Bound<'py, Self>) -> Views<'py> {
+        let m = slf.get();
+        (
+            view(slf, m.centers, 3),
+            m.normals.map(|p| view(slf, p, 3)),
+            m.max_scale.map(|p| view(slf, p, 1)),
+            m.opacity.map(|p| view(slf, p, 1)),
+            m.min_scale.map(|p| view(slf, p, 1)),
+        )
+    }
+
+    fn __len__(&self) -> usize {
+        self.centers.1
+    }
+}
+
+/// Runs the command line with `argv` (the program's name first) and returns its exit
+/// code: `linegs-gpu`, as `pip install .` installs it (`linegs._cli`).
+#[pyfunction]
+fn main(py: Python<'_>, argv: Vec<std::ffi::OsString>) -> u8 {
+    py.detach(|| cli::run(argv))
 }
 
 /// The names of every parameter (`translate_keep`, ...), as `refine` accepts them.
@@ -117,110 +329,8 @@ fn job(args: Vec<(String, String)>, backend_name: &str) -> PyResult<Job> {
     })
 }
 
-/// The attributes of the Gaussians as the Python half passes them: `(normals N x 3,
-/// max_scale N, opacity N, min_scale N)` as native-endian `f32` bytes, each optional.
-type AttrBytes<'a> = (
-    Option<&'a [u8]>,
-    Option<&'a [u8]>,
-    Option<&'a [u8]>,
-    Option<&'a [u8]>,
-);
-
-/// A scene from arrays; with attributes, as `Scene::load` has them for a file: normals and
-/// max scales only together, each array one entry per center (those of the centers that
-/// `Scene::from_arrays` skips for a NaN or infinite coordinate are dropped with them).
-fn scene(
-    gaussians: &[u8],
-    attrs: AttrBytes<'_>,
-    segs: &[u8],
-    groups: Option<Vec<u32>>,
-) -> Result<Scene, RunError> {
-    let segments = segments(segs);
-    if let Some(g) = &groups {
-        if g.len() != segments.len() {
-            return Err(RunError::Input(format!(
-                "groups: {} entries for {} segments",
-                g.len(),
-                segments.len()
-            )));
-        }
-    }
-    let centers = points(gaussians);
-    let finite: Vec<bool> = centers
-        .iter()
-        .map(|c| c.iter().all(|v| v.is_finite()))
-        .collect();
-    let n = centers.len();
-    let check = |what: &str, len: usize| {
-        if len == n {
-            Ok(())
-        } else {
-            Err(RunError::Input(format!(
-                "gaussians: {len} {what} for {n} centers"
-            )))
-        }
-    };
-    let keep = |v: Vec<f32>, k: usize| -> Vec<f32> {
-        v.chunks_exact(k)
-            .zip(&finite)
-            .filter(|(_, f)| **f)
-            .flat_map(|(c, _)| c.iter().copied())
-            .collect()
-    };
-    let normals = attrs.0.map(floats).map(|v| {
-        check("normals", v.len() / 3)?;
-        Ok::<_, RunError>(
-            keep(v, 3)
-                .chunks_exact(3)
-                .map(|c| [c[0], c[1], c[2]])
-                .collect::<Vec<[f32; 3]>>(),
-        )
-    });
-    let max_scale = attrs.1.map(|b| {
-        let v = floats(b);
-        check("max scales", v.len())?;
-        Ok::<_, RunError>(keep(v, 1))
-    });
-    let opacity = attrs.2.map(|b| {
-        let v = floats(b);
-        check("opacities", v.len())?;
-        Ok::<_, RunError>(keep(v, 1))
-    });
-    let min_scale = attrs.3.map(|b| {
-        let v = floats(b);
-        check("min scales", v.len())?;
-        Ok::<_, RunError>(keep(v, 1))
-    });
-    let normals = normals.transpose()?;
-    let max_scale = max_scale.transpose()?;
-    let min_scale = min_scale.transpose()?;
-    let opacity = opacity.transpose()?;
-    if normals.is_some() != max_scale.is_some() {
-        return Err(RunError::Input(
-            "gaussians: normals and max scales come together (both read from the rotations and scales)".into(),
-        ));
-    }
-    let mut s = Scene::from_arrays(centers, LineSet { segments, groups })?;
-    s.normals = normals;
-    s.max_scale = max_scale;
-    s.min_scale = min_scale;
-    s.opacity = opacity;
-    Ok(s)
-}
-
-/// The centers and attributes of a model, as bytes.
-type GaussianBytes = (
-    Py<PyBytes>,
-    Option<Py<PyBytes>>,
-    Option<Py<PyBytes>>,
-    Option<Py<PyBytes>>,
-    Option<Py<PyBytes>>,
-    Vec<String>,
-);
-
-/// `(centers N x 3 f32, normals N x 3 f32 or None, max_scale N f32 or None, opacity N f32
-/// or None, min_scale N f32 or None, warnings)`: what `Scene::load` reads from the file
-/// for `refine` (no transform).
+/// What `Scene::load` reads from the file for `refine` (no transform): a [`Model`] that
+/// owns the reader's vectors (no copy), and the reader's warnings.
 #[pyfunction]
 #[pyo3(signature = (path, min_opacity = None, strict = false))]
 fn read_gaussians(
@@ -228,7 +338,7 @@ fn read_gaussians(
     path: PathBuf,
     min_opacity: Option<f64>,
     strict: bool,
-) -> PyResult<GaussianBytes> {
+) -> PyResult<(Model, Vec<String>)> {
     let opts = LoadOptions {
         min_opacity,
         strict,
@@ -237,56 +347,43 @@ fn read_gaussians(
     let (cloud, attrs) = py
         .detach(|| pipeline::read_gaussians_and_attributes(&path, &opts))
         .map_err(to_py)?;
-    let bytes: Vec<u8> = cloud
-        .centers
-        .iter()
-        .flatten()
-        .flat_map(|x| x.to_ne_bytes())
-        .collect();
-    let b = |v: Vec<u8>| PyBytes::new(py, &v).unbind();
-    let (normals, max_scale, opacity, min_scale) = match attrs {
-        Some(a) => (
-            Some(b(a
-                .normals
-                .iter()
-                .flatten()
-                .flat_map(|x| x.to_ne_bytes())
-                .collect())),
-            Some(b(f32_bytes(&a.max_scale))),
-            a.opacity.map(|o| b(f32_bytes(&o))),
-            Some(b(f32_bytes(&a.min_scale))),
-        ),
-        None => (None, None, None, None),
+    let a = match attrs {
+        Some(a) => Arrays {
+            centers: cloud.centers,
+            normals: Some(a.normals),
+            max_scale: Some(a.max_scale),
+            opacity: a.opacity,
+            min_scale: Some(a.min_scale),
+        },
+        None => Arrays {
+            centers: cloud.centers,
+            ..Arrays::default()
+        },
     };
-    Ok((
-        b(bytes),
-        normals,
-        max_scale,
-        opacity,
-        min_scale,
-        cloud.warnings,
-    ))
+    Ok((Model::new(a).map_err(to_py)?, cloud.warnings))
 }
 
-/// Segments as bytes, their groups and the reader's warnings.
-type LinesBytes = (Py<PyBytes>, Option<Vec<u32>>, Vec<String>);
+/// Segments `(M, 2, 3)` float64, their groups and the reader's warnings.
+type Lines<'py> = (Bound<'py, PyArray3<f64>>, Option<Vec<u32>>, Vec<String>);
 
-/// `(bytes of M x 2 x 3 f64, groups or None, warnings)`.
 #[pyfunction]
-fn read_lines(py: Python<'_>, path: PathBuf) -> PyResult<LinesBytes> {
+fn read_lines(py: Python<'_>, path: PathBuf) -> PyResult<Lines<'_>> {
     let f = py.detach(|| io::read_lines(&path)).map_err(io_to_py)?;
-    let bytes = segment_bytes(&f.lines.segments);
     Ok((
-        PyBytes::new(py, &bytes).unbind(),
+        segment_array(py, &f.lines.segments),
         f.lines.groups,
         f.warnings,
     ))
 }
 
 #[pyfunction]
-fn write_lines(py: Python<'_>, path: PathBuf, segments_f64: &[u8]) -> PyResult<()> {
+fn write_lines(
+    py: Python<'_>,
+    path: PathBuf,
+    segments_f64: PyReadonlyArray3<'_, f64>,
+) -> PyResult<()> {
+    let segs = segments(segments_f64.as_array());
     py.detach(|| {
-        let segs = segments(segments_f64);
         if let Some(i) = segs
             .iter()
             .position(|s| !(s.p1.is_finite() && s.p2.is_finite()))
@@ -311,70 +408,88 @@ fn exact_gt(segs: &[Segment]) -> linegs_gpu::eval::gt::Reference {
     }
 }
 
-/// `(bytes of K x 2 x 3 f64, report JSON)`.
+/// What the command line adds to the frame check's message, in Python's words.
+fn frame_error(e: RunError) -> RunError {
+    match e {
+        RunError::FrameMismatch(m) => {
+            RunError::FrameMismatch(format!("{m} (frame_check=False refines anyway)"))
+        }
+        e => e,
+    }
+}
+
+/// `(segments (K, 2, 3) float64, report JSON)`.
 #[pyfunction]
-#[pyo3(signature = (gaussians_f32, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None, min_scale_f32 = None))]
+#[pyo3(signature = (model, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, frame_check = true))]
 #[allow(clippy::too_many_arguments)]
-fn refine(
-    py: Python<'_>,
-    gaussians_f32: &[u8],
-    segments_f64: &[u8],
+fn refine<'py>(
+    py: Python<'py>,
+    model: &Bound<'py, Model>,
+    segments_f64: PyReadonlyArray3<'py, f64>,
     groups: Option<Vec<u32>>,
     args: Vec<(String, String)>,
     backend_name: &str,
-    gt_f64: Option<&[u8]>,
+    gt_f64: Option<PyReadonlyArray3<'py, f64>>,
     sweep: Option<Vec<f64>>,
-    normals_f32: Option<&[u8]>,
-    max_scale_f32: Option<&[u8]>,
-    opacity_f32: Option<&[u8]>,
-    min_scale_f32: Option<&[u8]>,
-) -> PyResult<(Py<PyBytes>, String)> {
+    frame_check: bool,
+) -> PyResult<(Bound<'py, PyArray3<f64>>, String)> {
     let job = Job {
         sweep,
-        gt: gt_f64.map(|g| exact_gt(&segments(g))),
+        gt: gt_f64.map(|g| exact_gt(&segments(g.as_array()))),
+        check_frames: frame_check,
         ..job(args, backend_name)?
     };
-    let (bytes, report) = py
+    let segs = segments(segments_f64.as_array());
+    if let Some(g) = &groups {
+        if g.len() != segs.len() {
+            return Err(InputError::new_err(format!(
+                "groups: {} entries for {} segments",
+                g.len(),
+                segs.len()
+            )));
+        }
+    }
+    let lines = LineSet {
+        segments: segs,
+        groups,
+    };
+    let model = model.get();
+    let (out, report) = py
         .detach(|| {
-            let attrs = (normals_f32, max_scale_f32, opacity_f32, min_scale_f32);
-            let s = scene(gaussians_f32, attrs, segments_f64, groups)?;
-            let out = job.refine(&s, |_| {})?;
-            Ok::<_, RunError>((segment_bytes(&out.lines.segments), out.report.to_json()))
+            model.with_scene(lines, |s| {
+                let out = job.refine(s, |_| {}).map_err(frame_error)?;
+                Ok((out.lines.segments, out.report.to_json()))
+            })
         })
         .map_err(to_py)?;
-    Ok((PyBytes::new(py, &bytes).unbind(), report))
+    Ok((segment_array(py, &out), report))
 }
 
-/// The report JSON of `eval` (before: the segments; after: `compare`).
+/// The report JSON of `eval` (before: the segments; after: `compare`), with the command
+/// line's frame check (a warning in the report).
 #[pyfunction]
-#[pyo3(signature = (gaussians_f32, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None, normals_f32 = None, max_scale_f32 = None, opacity_f32 = None, min_scale_f32 = None))]
-#[allow(clippy::too_many_arguments)]
-fn evaluate(
-    py: Python<'_>,
-    gaussians_f32: &[u8],
-    segments_f64: &[u8],
+#[pyo3(signature = (model, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None))]
+fn evaluate<'py>(
+    py: Python<'py>,
+    model: &Bound<'py, Model>,
+    segments_f64: PyReadonlyArray3<'py, f64>,
     args: Vec<(String, String)>,
     backend_name: &str,
-    compare_f64: Option<&[u8]>,
-    gt_f64: Option<&[u8]>,
+    compare_f64: Option<PyReadonlyArray3<'py, f64>>,
+    gt_f64: Option<PyReadonlyArray3<'py, f64>>,
     sweep: Option<Vec<f64>>,
-    normals_f32: Option<&[u8]>,
-    max_scale_f32: Option<&[u8]>,
-    opacity_f32: Option<&[u8]>,
-    min_scale_f32: Option<&[u8]>,
 ) -> PyResult<String> {
     let job = Job {
         sweep,
-        gt: gt_f64.map(|g| exact_gt(&segments(g))),
+        gt: gt_f64.map(|g| exact_gt(&segments(g.as_array()))),
+        check_frames: true,
         ..job(args, backend_name)?
     };
-    py.detach(|| {
-        let attrs = (normals_f32, max_scale_f32, opacity_f32, min_scale_f32);
-        let s = scene(gaussians_f32, attrs, segments_f64, None)?;
-        let compare = compare_f64.map(|c| LineSet::new(segments(c)));
-        Ok::<_, RunError>(job.evaluate(&s, compare.as_ref())?.to_json())
-    })
-    .map_err(to_py)
+    let lines = LineSet::new(segments(segments_f64.as_array()));
+    let compare = compare_f64.map(|c| LineSet::new(segments(c.as_array())));
+    let model = model.get();
+    py.detach(|| model.with_scene(lines, |s| Ok(job.evaluate(s, compare.as_ref())?.to_json())))
+        .map_err(to_py)
 }
 
 #[pymodule]
@@ -382,6 +497,8 @@ fn _linegs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("InputError", m.py().get_type::<InputError>())?;
     m.add("LinegsError", m.py().get_type::<LinegsError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_class::<Model>()?;
+    m.add_function(wrap_pyfunction!(main, m)?)?;
     m.add_function(wrap_pyfunction!(param_names, m)?)?;
     m.add_function(wrap_pyfunction!(read_gaussians, m)?)?;
     m.add_function(wrap_pyfunction!(read_lines, m)?)?;

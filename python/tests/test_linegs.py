@@ -180,3 +180,105 @@ def test_refine_on_a_real_3dgs_file_is_the_cli_bit_for_bit(tmp_path, profile):
         assert not (centers_only.shape == cli_segs.shape and np.array_equal(centers_only, cli_segs))
         ev = linegs.evaluate(g, segs, compare=mine, backend="cpu", profile=profile)
         assert ev["after"] == cli_report["after"]
+
+
+def test_arrays_cross_without_copies(tmp_path):
+    """The model's arrays are views of the reader's memory, refine computes on them in
+    place and its result owns the native result: no Python-side allocation the size of
+    the model (tracemalloc sees numpy's and Python's allocations)."""
+    import tracemalloc
+
+    g_path, l_path = tmp_path / "g.ply", tmp_path / "l.txt"
+    n = 300_000
+    run("synth", "toy", "-o", g_path, "--lines-out", l_path, "-n", n, "--seed", "2")
+    segs = linegs.read_lines(l_path)
+    tracemalloc.start()
+    try:
+        g = linegs.read_gaussians(g_path)
+        before = g.centers.__array_interface__["data"][0]
+        refined, report = linegs.refine(g, segs, backend="cpu")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(g) == n
+    # the centers alone are 3.6 MB; one copy of them (or of the refined segments'
+    # bytes) would show
+    assert peak < n * 12 / 4, f"Python allocated {peak} bytes for {n} Gaussians"
+    for a in (g.centers, g.normals, g.max_scale, g.opacity, g.min_scale):
+        if a is not None:
+            assert not a.flags.owndata and not a.flags.writeable
+            assert isinstance(a.base, linegs._linegs.Model)
+    # refine lent the buffers to the computation and had them back where they were
+    assert g.centers.__array_interface__["data"][0] == before
+    assert np.array_equal(g.centers, linegs.read_gaussians(g_path).centers)
+    assert refined.dtype == np.float64 and refined.flags.c_contiguous and refined.flags.writeable
+    assert report["input"]["gaussians_read"] == n
+    # segments are read from the caller's array in place, any layout
+    assert np.array_equal(linegs.refine(g, np.asfortranarray(segs), backend="cpu")[0], refined)
+
+
+def test_a_model_built_from_arrays_copies_once_and_skips_nonfinite_centers():
+    rng = np.random.default_rng(3)
+    t = rng.random((20_000, 1))
+    pts = np.hstack([t, 0.002 * rng.standard_normal((20_000, 2))])  # float64
+    segs = np.array([[[0.1 * i, 0.001, 0], [0.1 * i + 0.08, 0.001, 0]] for i in range(9)])
+    g = linegs.Gaussians(pts)
+    assert g.centers.dtype == np.float32 and np.array_equal(g.centers, pts.astype(np.float32))
+    pts[0] = 5.0  # the model holds its own copy
+    assert g.centers[0, 0] != 5.0
+    ref, rep = linegs.refine(g, segs, backend="cpu")
+    bad = g.centers.copy()
+    bad[7] = np.nan
+    ref2, rep2 = linegs.refine(bad, segs, backend="cpu")
+    assert any("skipped 1 Gaussian with a NaN" in w for w in rep2["warnings"])
+    assert rep2["input"]["gaussians_read"] == len(g) - 1
+    # the model with the NaN is unchanged by the computation that skipped it
+    again = linegs.Gaussians(bad)
+    linegs.refine(again, segs, backend="cpu")
+    assert np.isnan(again.centers[7]).all() and len(again) == len(g)
+
+
+def test_refine_runs_the_cli_frame_check_with_its_message(toy, tmp_path):
+    d, g, l, _ = toy
+    far = tmp_path / "far.txt"
+    segs = linegs.read_lines(l)
+    linegs.write_lines(far, segs + 100.0)
+    p = subprocess.run([cli(), "refine", "-g", str(g), "-l", str(far), "-o", str(tmp_path / "o.obj"),
+                        "--backend", "cpu"], capture_output=True, text=True)
+    assert p.returncode == 2
+    with pytest.raises(linegs.InputError) as e:
+        linegs.refine(linegs.read_gaussians(g), segs + 100.0, backend="cpu")
+    msg = str(e.value)
+    assert msg.startswith("the lines and the Gaussians: only 0 of ")
+    # the check's own text is the command line's, word for word
+    core = msg[len("the lines and the Gaussians: "):msg.index(" (frame_check=False refines anyway)")]
+    assert core in p.stderr, (core, p.stderr)
+    assert "frame_check=False" in msg
+    refined, report = linegs.refine(g, segs + 100.0, backend="cpu", frame_check=False)
+    assert report["after"] is not None
+    # eval warns, as `linegs-gpu eval` does (at its own radius)
+    ev = linegs.evaluate(g, segs + 100.0, backend="cpu")
+    assert any(w.startswith("the lines and the Gaussians: only 0 of ") and "not in one frame" in w
+               for w in ev["warnings"]), ev["warnings"]
+
+
+def test_pip_install_puts_the_command_line_on_path(toy, tmp_path):
+    import sys
+
+    exe = Path(sys.executable).parent / "linegs-gpu"
+    assert exe.exists(), f"pip install . did not install {exe}"
+    v = subprocess.run([str(exe), "--version"], capture_output=True, text=True)
+    assert v.returncode == 0 and v.stdout.strip() == f"linegs-gpu {linegs.__version__}", v
+    assert v.stdout == run("--version").stdout
+    # a real command, the same answer as the binary's
+    d, g, l, _ = toy
+    out = tmp_path / "mine.obj"
+    r = subprocess.run([str(exe), "refine", "-g", str(g), "-l", str(l), "-o", str(out), "--backend", "cpu",
+                        "--radius", "0.04"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    theirs = tmp_path / "theirs.obj"
+    run("refine", "-g", g, "-l", l, "-o", theirs, "--backend", "cpu", "--radius", "0.04")
+    assert out.read_bytes() == theirs.read_bytes()
+    # bad input: the binary's message and exit code 2
+    bad = subprocess.run([str(exe), "info", str(tmp_path / "missing.ply")], capture_output=True, text=True)
+    assert bad.returncode == 2 and "missing.ply" in bad.stderr

@@ -77,8 +77,17 @@ pub fn prepare(backend: Backend, gpu: &GpuSetup) -> Pending {
             let adapters = crate::engine::gpu::enumerate_adapters();
             let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
             match auto_pick(&infos) {
-                Pick::Hardware(i) => GpuDevice::open(&adapters[i], gpu.options),
-                Pick::None(why) | Pick::SoftwareOnly(why) => Err(EngineError::NoAdapter(why)),
+                Pick::Hardware(i) => {
+                    log::info!(
+                        "adapter picked: {}",
+                        crate::engine::gpu::describe_adapter(&infos[i])
+                    );
+                    GpuDevice::open(&adapters[i], gpu.options)
+                }
+                Pick::None(why) | Pick::SoftwareOnly(why) => {
+                    log::info!("--backend auto takes the CPU engine: {why}");
+                    Err(EngineError::NoAdapter(why))
+                }
             }
         }
         _ => GpuDevice::open_setup(&gpu),

@@ -35,10 +35,14 @@ pub fn pick_adapter(name: Option<&str>) -> Result<wgpu::Adapter, EngineError> {
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
     let backends = default_backends();
     if let Some(name) = name {
+        log::info!(
+            "adapter search: backends {backends:?}, the first named like WGPU_ADAPTER_NAME={name}"
+        );
         let want = name.to_lowercase();
         let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+        log_adapters(&adapters);
         let names: Vec<String> = adapters.iter().map(|a| a.get_info().name).collect();
-        return adapters
+        let found = adapters
             .into_iter()
             .find(|a| a.get_info().name.to_lowercase().contains(&want))
             .ok_or_else(|| {
@@ -47,14 +51,43 @@ pub fn pick_adapter(name: Option<&str>) -> Result<wgpu::Adapter, EngineError> {
                     names.join(", ")
                 ))
             });
+        if let Ok(a) = &found {
+            log::info!("adapter picked: {}", describe(&a.get_info()));
+        }
+        return found;
     }
     let options = wgpu::RequestAdapterOptions {
         power_preference: wgpu::PowerPreference::from_env()
             .unwrap_or(wgpu::PowerPreference::HighPerformance),
         ..Default::default()
     };
-    pollster::block_on(instance.request_adapter(&options))
-        .map_err(|e| EngineError::NoAdapter(e.to_string()))
+    log::info!(
+        "adapter search: backends {backends:?}, wgpu's choice for {:?}",
+        options.power_preference
+    );
+    let found = pollster::block_on(instance.request_adapter(&options))
+        .map_err(|e| EngineError::NoAdapter(e.to_string()));
+    match &found {
+        Ok(a) => log::info!("adapter picked: {}", describe(&a.get_info())),
+        Err(e) => log::info!("adapter search found none: {e}"),
+    }
+    found
+}
+
+/// One adapter in a line of the log: name, type, backend, driver, PCI ids.
+pub fn describe(i: &wgpu::AdapterInfo) -> String {
+    format!(
+        "{} ({:?}, {:?}; driver {} {}; vendor {:#06x}, device {:#06x})",
+        i.name, i.device_type, i.backend, i.driver, i.driver_info, i.vendor, i.device
+    )
+}
+
+/// Every adapter found, at `debug` (`RUST_LOG=debug`).
+fn log_adapters(adapters: &[wgpu::Adapter]) {
+    log::debug!("adapters found: {}", adapters.len());
+    for (k, a) in adapters.iter().enumerate() {
+        log::debug!("adapter {k}: {}", describe(&a.get_info()));
+    }
 }
 
 /// `WGPU_BACKEND`, else the primary backends (Vulkan, Metal, DX12): probing OpenGL/EGL as
@@ -69,7 +102,10 @@ pub fn enumerate_adapters() -> Vec<wgpu::Adapter> {
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
     let backends = default_backends();
-    pollster::block_on(instance.enumerate_adapters(backends))
+    log::info!("adapter search: backends {backends:?}, every adapter (--backend auto)");
+    let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+    log_adapters(&adapters);
+    adapters
 }
 
 impl Context {

@@ -53,7 +53,7 @@ mod query;
 mod resources;
 mod stages;
 
-pub use device::enumerate_adapters;
+pub use device::{describe as describe_adapter, enumerate_adapters};
 pub use kernels::{common_wgsl, eval_source, fit_source, kernel_source, walk_source};
 pub use layout::CHUNK;
 pub use options::{FitOn, GpuOptions, GpuSetup, MembersOn, SMALL_BATCH};
