@@ -1,20 +1,24 @@
 #!/usr/bin/env bash
-# scripts/slurm-batch.sh on a real Slurm cluster (docs/cluster.md): installs slurm-wlm and
-# munge when missing, starts a one-node cluster in a temporary folder (its own slurm.conf,
-# munge key and socket, spool and state folders, free ports on 127.0.0.1), submits the
-# script on a manifest of three scenes with `--cpus-per-task=1` as sbatch options, requeues
-# the task of the second scene while it is inside that scene (`scontrol requeue`), waits,
-# and checks every scene's output and the one summary. The daemons it started are stopped
-# by PID and the folder removed, whatever happens.
+# scripts/slurm-submit.sh and scripts/slurm-batch.sh on a real Slurm cluster
+# (docs/cluster.md): installs slurm-wlm and munge when missing, starts a one-node cluster in
+# a temporary folder (its own slurm.conf, munge key and socket, spool and state folders,
+# free ports on 127.0.0.1), submits a manifest of three scenes as a user would on the login
+# node (one array task per scene, at most two at once, a one-minute limit with the signal
+# 50 s before it), and while they run: kills the linegs-gpu of scene b's task with SIGKILL
+# inside the scene (as the out-of-memory killer would) and keeps scene c's task inside its
+# scene until the time limit's signal. Both tasks must requeue themselves and finish; then
+# it checks every scene's output, the summary job's one summary and the restart counts.
+# The daemons it started are stopped by PID and the folder removed, whatever happens.
 #
 #   scripts/test-slurm.sh [path/to/linegs-gpu]     (default target/release/linegs-gpu)
 #
-# LINEGS_SLURM_SCRIPT tests another version of the batch script (default
+# LINEGS_SLURM_SCRIPT tests another version of the task script (default
 # scripts/slurm-batch.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=$(realpath "${1:-target/release/linegs-gpu}")
 script=$(realpath "${LINEGS_SLURM_SCRIPT:-scripts/slurm-batch.sh}")
+submit=$(realpath scripts/slurm-submit.sh)
 [ -x "$bin" ] || { echo "test-slurm: no binary at $bin (cargo build --release)" >&2; exit 1; }
 
 fail() {
@@ -150,52 +154,91 @@ until [ "$(sinfo -h -n "$node" -o %t 2>/dev/null)" = idle ]; do
 done
 echo "test-slurm: one-node cluster up in $((SECONDS - t0)) s ($cpus CPUs, $tmp)"
 
-# --- three scenes; the second one's Gaussians are a FIFO for now -------------------------
+# --- three scenes; b's and c's Gaussians are FIFOs for now ---------------------------------
 w=$tmp/work
 for s in a b c; do
   seed=$(printf %d "'$s")
   "$bin" synth toy -o "$w/$s.ply" --lines-out "$w/$s.txt" -n 4000 --seed "$seed" >/dev/null
 done
-mv "$w/b.ply" "$w/b.real.ply"
-mkfifo "$w/b.ply"
+for s in b c; do
+  mv "$w/$s.ply" "$w/$s.real.ply"
+  mkfifo "$w/$s.ply"
+done
 printf 'name,gaussians,lines,radius\na,a.ply,a.txt,0.04\nb,b.ply,b.txt,0.04\nc,c.ply,c.txt,0.04\n' >"$w/scenes.csv"
 
 cd "$w"
-job=$(LINEGS_GPU=$bin sbatch --parsable --array=0-2 --cpus-per-task=1 \
-  "$script" scenes.csv out --backend cpu) ||
-  fail "sbatch refused $script"
-job=${job%%;*}
-echo "test-slurm: submitted array job $job"
+# As on a login node: the wrapper, sbatch options, then batch options after `--`.
+submitted=$(LINEGS_GPU=$bin LINEGS_SLURM_SCRIPT=$script "$submit" scenes.csv -o out --throttle 2 \
+  --cpus-per-task=1 --time=1 --signal=B:USR1@50 -- --backend cpu) ||
+  fail "slurm-submit.sh refused: $submitted"
+echo "$submitted" | head -n 1
+job=$(echo "$submitted" | sed -n 's/^array //p')
+summary_job=$(echo "$submitted" | sed -n 's/^summary //p')
+[ -n "$job" ] && [ -n "$summary_job" ] || fail "no job ids in: $submitted"
+# one task per scene, throttled to two
+[ "$(scontrol show job "$job" | grep -o 'ArrayTaskThrottle=[0-9]*' | head -n 1)" = ArrayTaskThrottle=2 ] ||
+  fail "the array is not throttled to 2: $(scontrol show job "$job" | grep -o 'ArrayTaskThrottle=[^ ]*' | head -n 1)"
+scontrol show job "$summary_job" | grep -q "Dependency=afterany:${job}" ||
+  fail "the summary job does not depend on the array: $(scontrol show job "$summary_job" | grep Dependency)"
 
-# The task of scene b reads the FIFO: it is inside the scene (holding the scene's lock,
-# out/b/.linegs-batch.lock) until the FIFO has a writer. Put the real file in its place,
-# then requeue the task: Slurm kills it mid-scene, and the restarted task must finish it.
+# The linegs-gpu process of array task $1 (found by its Slurm environment), if running.
+task_pid() {
+  local p
+  for p in /proc/[0-9]*; do
+    [ "$(cat "$p/comm" 2>/dev/null)" = linegs-gpu ] || continue
+    tr '\0' '\n' <"$p/environ" 2>/dev/null | grep -qx "SLURM_ARRAY_JOB_ID=$job" || continue
+    tr '\0' '\n' <"$p/environ" 2>/dev/null | grep -qx "SLURM_ARRAY_TASK_ID=$1" || continue
+    echo "${p#/proc/}"
+    return 0
+  done
+  return 1
+}
+# Slurm holds a requeued job back for about two minutes (BeginTime); start it now.
+release() {
+  local _
+  for _ in $(seq 120); do
+    if [ "$(squeue -h -j "${job}_$1" -o %r 2>/dev/null)" = BeginTime ]; then
+      scontrol update JobId="${job}_$1" StartTime=now
+      return 0
+    fi
+    sleep 0.5
+  done
+  fail "task ${job}_$1 was not requeued: $(squeue -h -j "${job}_$1" -o '%T %r' 2>/dev/null)"
+}
+restarts() { scontrol show job "${job}_$1" | grep -o 'Restarts=[0-9]*' | head -n 1 | cut -d= -f2; }
+
+# Scene b: its task's linegs-gpu blocks in the FIFO, inside the scene (holding the scene's
+# lock). Put the real file in its place and kill linegs-gpu with SIGKILL: the task script
+# must requeue the task, and the restarted task finish the scene.
 t0=$SECONDS
-until [ "$(squeue -h -j "${job}_1" -o %T 2>/dev/null)" = RUNNING ] &&
-  [ -e "$w/out/b/.linegs-batch.lock" ]; do
+until [ -e "$w/out/b/.linegs-batch.lock" ] && pid=$(task_pid 1); do
   [ $((SECONDS - t0)) -gt 90 ] && fail "the task of scene b did not start scene b in 90 s"
-  sleep 0.5
+  sleep 0.2
 done
 rm "$w/b.ply"
 cp "$w/b.real.ply" "$w/b.ply"
-scontrol requeue "${job}_1"
-echo "test-slurm: requeued task ${job}_1 inside scene b"
-requeued_at=$SECONDS
-# Slurm holds a requeued job back for about two minutes (BeginTime); start it now.
-for _ in $(seq 60); do
-  if [ "$(squeue -h -j "${job}_1" -o %r 2>/dev/null)" = BeginTime ]; then
-    scontrol update JobId="${job}_1" StartTime=now
-    break
-  fi
+kill -KILL "$pid"
+echo "test-slurm: killed linegs-gpu (PID $pid) of task ${job}_1 inside scene b"
+release 1
+
+# Scene c: its task starts when scene a's ends (two at once) and blocks in its FIFO until
+# Slurm signals the time limit; the task script must requeue it. Then the real file.
+t0=$SECONDS
+until [ "$(restarts 2)" = 1 ] || [ "$(squeue -h -j "${job}_2" -o %r 2>/dev/null)" = BeginTime ]; do
+  [ $((SECONDS - t0)) -gt 150 ] && fail "the task of scene c was not requeued at its time limit in 150 s"
   sleep 0.5
 done
+echo "test-slurm: task ${job}_2 requeued itself at its time limit ($((SECONDS - t0)) s)"
+rm "$w/c.ply"
+cp "$w/c.real.ply" "$w/c.ply"
+release 2
 
 t0=$SECONDS
 while [ -n "$(squeue -h -o %i)" ]; do
   [ $((SECONDS - t0)) -gt 300 ] && { squeue; fail "the jobs did not finish in 300 s"; }
   sleep 1
 done
-echo "test-slurm: all jobs ended $((SECONDS - requeued_at)) s after the requeue"
+echo "test-slurm: all jobs ended $((SECONDS - t0)) s after the second requeue"
 
 # --- what the run left ----------------------------------------------------------------------
 for s in a b c; do
@@ -210,10 +253,19 @@ done
 grep -q "3 of 3 scenes finished" out/summary.md || fail "summary.md does not say 3 of 3"
 leftovers=$(find out -mindepth 1 -maxdepth 1 -name '.*')
 [ -z "$leftovers" ] || fail "temporary folders left in the output: $leftovers"
-# the array tasks wrote no summary; one task (the summary task) did
+# one task per scene: each ran exactly its scene (shard i/3), none wrote a summary
+for i in 0 1 2; do
+  grep -q "shard $i/3 runs 1" "linegs-${job}_$i.log" || fail "task $i did not run shard $i/3"
+done
 [ "$(grep -l 'no summary written' linegs-"${job}"_*.log | wc -l)" = 3 ] ||
   fail "not every array task ran without a summary"
-[ "$(grep -l 'scenes finished' linegs-*_0.log | wc -l)" = 1 ] ||
-  fail "expected exactly one summary task log"
-grep -q 'b: done' linegs-"${job}"_1.log || fail "the requeued task did not finish scene b"
-echo "test-slurm: ok (3 scenes, 1 requeued mid-scene, 1 summary)"
+grep -q 'scenes finished' "linegs-summary-$summary_job.log" || fail "the summary job wrote no summary"
+[ "$(restarts 0)" = 0 ] || fail "task 0 restarted"
+[ "$(restarts 1)" = 1 ] || fail "task 1 (killed) restarted $(restarts 1) times, not once"
+[ "$(restarts 2)" = 1 ] || fail "task 2 (timed out) restarted $(restarts 2) times, not once"
+grep -q 'killed by signal 9; requeueing' "linegs-${job}_1.log" || fail "task 1's log does not say why it requeued"
+grep -q 'time limit is near (SIGUSR1); requeueing' "linegs-${job}_2.log" || fail "task 2's log does not say why it requeued"
+for i in 1 2; do
+  grep -q "$(printf 'abc' | cut -c$((i + 1))): done" "linegs-${job}_$i.log" || fail "the requeued task $i did not finish its scene"
+done
+echo "test-slurm: ok (3 scenes, one task each; one killed and one timed out, both requeued and finished; 1 summary)"

@@ -11,7 +11,7 @@ use std::path::PathBuf;
   chair,chair/point_cloud.ply,chair/Line3D++.txt,,0.05,
   abc_00000006,abc/6/gaussians.ply,abc/6/lines.obj,abc/6/gt.txt,0.01,0.02
 
-Slurm: scripts/slurm-batch.sh (docs/cluster.md). Concurrent shards run with --no-summary;
+Slurm: scripts/slurm-submit.sh (docs/cluster.md). Concurrent shards run with --no-summary;
 one `linegs-gpu batch m.csv -o out --summary-only` after them writes the summary.")]
 pub struct BatchArgs {
     /// The manifest: a CSV with a header `name,gaussians,lines` and optionally `gt`,
@@ -33,6 +33,10 @@ pub struct BatchArgs {
     /// shards), and remove the temporary folders that killed runs left behind.
     #[arg(long)]
     pub summary_only: bool,
+    /// Run nothing: print the manifest's scene names, one a line in manifest order (the
+    /// scene of array task i of scripts/slurm-submit.sh is line i, from 0).
+    #[arg(long, conflicts_with_all = ["summary_only", "no_summary", "skip_existing"])]
+    pub list: bool,
     /// Run every n-th scene starting at the i-th (0-based), e.g. `1/4`. Default: from
     /// SLURM_ARRAY_TASK_ID / SLURM_ARRAY_TASK_COUNT (minus SLURM_ARRAY_TASK_MIN) when
     /// they are set, else all scenes.
@@ -60,6 +64,12 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
             .unwrap_or_default(),
     };
     let m = Manifest::read(&a.manifest)?;
+    if a.list {
+        for e in &m.entries {
+            println!("{}", e.name);
+        }
+        return Ok(());
+    }
     if a.summary_only {
         let removed = batch::remove_partial_dirs(&a.output)?;
         let s = batch::write_summary(&m, &a.output)?;

@@ -76,7 +76,15 @@ pub fn prepare(backend: Backend, gpu: &GpuSetup) -> Pending {
         Backend::Auto => {
             let adapters = crate::engine::gpu::enumerate_adapters();
             let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
-            match auto_pick(&infos) {
+            // The GPU the scheduler bound to the job, whatever its kind.
+            let pick = match &gpu.adapter_pci_bus_id {
+                Some(bus) => match crate::engine::gpu::find_pci_bus_id(&infos, bus) {
+                    Ok(i) => Pick::Hardware(i),
+                    Err(why) => Pick::None(why),
+                },
+                None => auto_pick(&infos),
+            };
+            match pick {
                 Pick::Hardware(i) => {
                     log::info!(
                         "adapter picked: {}",
@@ -232,6 +240,37 @@ mod tests {
         let mut a = wgpu::AdapterInfo::new(device_type, wgpu::Backend::Vulkan);
         a.name = name.into();
         a
+    }
+
+    #[test]
+    fn the_pci_address_picks_one_of_two_identical_gpus() {
+        use crate::engine::gpu::{find_pci_bus_id, parse_pci_bus_id};
+        // nvidia-smi's eight-digit domain and wgpu's four are the same address
+        assert_eq!(parse_pci_bus_id("00000000:65:00.0"), Some([0, 0x65, 0, 0]));
+        assert_eq!(
+            parse_pci_bus_id("0000:65:00.0"),
+            parse_pci_bus_id("00000000:65:00.0")
+        );
+        assert_eq!(parse_pci_bus_id("65:00.0"), Some([0, 0x65, 0, 0]));
+        assert_eq!(parse_pci_bus_id("0000:b3:1f.7"), Some([0, 0xb3, 0x1f, 7]));
+        assert_eq!(parse_pci_bus_id("GPU-5a1c"), None);
+        let mut infos = Vec::new();
+        for bus in ["0000:3b:00.0", "0000:d8:00.0", ""] {
+            let mut a = info("NVIDIA H100 80GB HBM3", wgpu::DeviceType::DiscreteGpu);
+            a.device_pci_bus_id = bus.into();
+            infos.push(a);
+        }
+        assert_eq!(find_pci_bus_id(&infos, "00000000:D8:00.0"), Ok(1));
+        assert_eq!(find_pci_bus_id(&infos, "0000:3b:00.0"), Ok(0));
+        let none = find_pci_bus_id(&infos, "0000:5e:00.0").unwrap_err();
+        assert!(
+            none.contains("matches none of")
+                && none.contains("at 0000:d8:00.0")
+                && none.contains("at no PCI address"),
+            "{none}"
+        );
+        let bad = find_pci_bus_id(&infos, "3").unwrap_err();
+        assert!(bad.contains("expected a PCI address"), "{bad}");
     }
 
     #[test]

@@ -179,11 +179,11 @@ pub fn skip_gpu_tests() -> bool {
 pub fn gpu_setup(opts: linegs_gpu::engine::gpu::GpuOptions) -> linegs_gpu::engine::gpu::GpuSetup {
     let env = linegs_gpu::engine::gpu::GpuSetup::from_vars(|k| std::env::var(k).ok());
     linegs_gpu::engine::gpu::GpuSetup {
-        adapter_name: env.adapter_name,
         options: linegs_gpu::engine::gpu::GpuOptions {
             fill_garbage: opts.fill_garbage || env.options.fill_garbage,
             ..opts
         },
+        ..env
     }
 }
 

@@ -74,11 +74,78 @@ pub fn pick_adapter(name: Option<&str>) -> Result<wgpu::Adapter, EngineError> {
     found
 }
 
+/// The adapter at the PCI address `bus` (the GPU a scheduler bound to the job;
+/// [`super::GpuSetup::adapter_pci_bus_id`]); `WGPU_BACKEND` restricts the backends.
+pub fn pick_adapter_at(bus: &str) -> Result<wgpu::Adapter, EngineError> {
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let backends = default_backends();
+    log::info!("adapter search: backends {backends:?}, the one at PCI address {bus}");
+    let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+    log_adapters(&adapters);
+    let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
+    let i = find_pci_bus_id(&infos, bus).map_err(EngineError::NoAdapter)?;
+    log::info!("adapter picked: {}", describe(&infos[i]));
+    Ok(adapters.into_iter().nth(i).expect("an index of the list"))
+}
+
+/// A PCI address `domain:bus:device.function` in hex as numbers; the domain may be
+/// missing (0) or as wide as nvidia-smi writes it (`00000000:65:00.0`).
+pub fn parse_pci_bus_id(s: &str) -> Option<[u32; 4]> {
+    let (rest, function) = s.trim().rsplit_once('.')?;
+    let parts: Vec<&str> = rest.split(':').collect();
+    let (domain, bus, device) = match parts[..] {
+        [d, b, v] => (d, b, v),
+        [b, v] => ("0", b, v),
+        _ => return None,
+    };
+    let hex = |x: &str| u32::from_str_radix(x, 16).ok();
+    Some([hex(domain)?, hex(bus)?, hex(device)?, hex(function)?])
+}
+
+/// The index of the adapter among `infos` at the PCI address `bus`, or why none is.
+pub fn find_pci_bus_id(infos: &[wgpu::AdapterInfo], bus: &str) -> Result<usize, String> {
+    let want = parse_pci_bus_id(bus).ok_or_else(|| {
+        format!("LINEGS_GPU_PCI_BUS_ID={bus}: expected a PCI address domain:bus:device.function in hex, e.g. 0000:65:00.0")
+    })?;
+    infos
+        .iter()
+        .position(|i| parse_pci_bus_id(&i.device_pci_bus_id) == Some(want))
+        .ok_or_else(|| {
+            let seen: Vec<String> = infos
+                .iter()
+                .map(|i| {
+                    let at = if i.device_pci_bus_id.is_empty() {
+                        "no PCI address"
+                    } else {
+                        &i.device_pci_bus_id
+                    };
+                    format!("{} at {at}", i.name)
+                })
+                .collect();
+            format!(
+                "LINEGS_GPU_PCI_BUS_ID={bus} matches none of [{}]",
+                seen.join(", ")
+            )
+        })
+}
+
 /// One adapter in a line of the log: name, type, backend, driver, PCI ids.
 pub fn describe(i: &wgpu::AdapterInfo) -> String {
     format!(
-        "{} ({:?}, {:?}; driver {} {}; vendor {:#06x}, device {:#06x})",
-        i.name, i.device_type, i.backend, i.driver, i.driver_info, i.vendor, i.device
+        "{} ({:?}, {:?}; driver {} {}; vendor {:#06x}, device {:#06x}; PCI {})",
+        i.name,
+        i.device_type,
+        i.backend,
+        i.driver,
+        i.driver_info,
+        i.vendor,
+        i.device,
+        if i.device_pci_bus_id.is_empty() {
+            "-"
+        } else {
+            &i.device_pci_bus_id
+        }
     )
 }
 

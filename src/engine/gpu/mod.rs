@@ -53,7 +53,9 @@ mod query;
 mod resources;
 mod stages;
 
-pub use device::{describe as describe_adapter, enumerate_adapters};
+pub use device::{
+    describe as describe_adapter, enumerate_adapters, find_pci_bus_id, parse_pci_bus_id,
+};
 pub use kernels::{common_wgsl, eval_source, fit_source, kernel_source, walk_source};
 pub use layout::CHUNK;
 pub use options::{FitOn, GpuOptions, GpuSetup, MembersOn, SMALL_BATCH};
@@ -139,7 +141,10 @@ impl GpuDevice {
 
     /// The adapter and options of `setup` (what the commands read from their environment).
     pub fn open_setup(setup: &GpuSetup) -> Result<GpuDevice, EngineError> {
-        let adapter = device::pick_adapter(setup.adapter_name.as_deref())?;
+        let adapter = match &setup.adapter_pci_bus_id {
+            Some(bus) => device::pick_adapter_at(bus)?,
+            None => device::pick_adapter(setup.adapter_name.as_deref())?,
+        };
         GpuDevice::open(&adapter, setup.options)
     }
 

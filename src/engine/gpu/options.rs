@@ -114,6 +114,11 @@ pub struct GpuSetup {
     /// (`WGPU_POWER_PREF` honoured, as wgpu reads it). A name that matches no adapter is an
     /// error, not a fallback.
     pub adapter_name: Option<String>,
+    /// The adapter at this PCI address (`0000:65:00.0`, or nvidia-smi's
+    /// `00000000:65:00.0`): the GPU a scheduler bound to the job, told apart from others of
+    /// the same model (scripts/slurm-batch.sh); before `adapter_name`, and for `--backend
+    /// auto` too. An address that matches no adapter is an error.
+    pub adapter_pci_bus_id: Option<String>,
     pub options: GpuOptions,
 }
 
@@ -121,6 +126,7 @@ impl Default for GpuSetup {
     fn default() -> Self {
         GpuSetup {
             adapter_name: None,
+            adapter_pci_bus_id: None,
             options: GpuOptions::for_commands(),
         }
     }
@@ -130,6 +136,7 @@ impl GpuSetup {
     /// The default setup with the variables that `var` looks up applied (the commands
     /// pass the process environment; the table is in docs/troubleshooting.md#environment):
     /// - `WGPU_ADAPTER_NAME`: [`GpuSetup::adapter_name`];
+    /// - `LINEGS_GPU_PCI_BUS_ID`: [`GpuSetup::adapter_pci_bus_id`];
     /// - `LINEGS_GPU_SMALL_BATCH=N`: [`GpuOptions::small_batch`] (0 sends every batch to
     ///   the device; not a number: the default [`SMALL_BATCH`]);
     /// - `LINEGS_GPU_FIT=device|host`: [`GpuOptions::fit`] (else by adapter);
@@ -153,6 +160,7 @@ impl GpuSetup {
         options.fill_garbage |= var("LINEGS_GPU_GARBAGE").is_some();
         GpuSetup {
             adapter_name: var("WGPU_ADAPTER_NAME"),
+            adapter_pci_bus_id: var("LINEGS_GPU_PCI_BUS_ID").filter(|v| !v.trim().is_empty()),
             options,
         }
     }
