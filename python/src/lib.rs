@@ -469,6 +469,7 @@ fn refine<'py>(
 /// line's frame check (a warning in the report).
 #[pyfunction]
 #[pyo3(signature = (model, segments_f64, args, backend_name, compare_f64 = None, gt_f64 = None, sweep = None))]
+#[allow(clippy::too_many_arguments)]
 fn evaluate<'py>(
     py: Python<'py>,
     model: &Bound<'py, Model>,
