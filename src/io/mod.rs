@@ -45,7 +45,7 @@ pub use lines::{
 pub use normals::{
     parse_gaussian_attributes, read_gaussian_attributes, read_gaussian_normals, GaussianAttributes,
 };
-pub use output::{same_file, OutputSet};
+pub use output::{same_file, OutputSet, PathIndex};
 pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
 pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};
