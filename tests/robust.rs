@@ -864,6 +864,34 @@ fn run_limited(kb: u64, args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// Worker threads that do not fit under the memory limit: one line that names the phase,
+/// exit 1, no output; not rayon's panic ("The global thread pool has not been
+/// initialized", exit 101) at the first parallel loop.
+#[cfg(unix)]
+#[test]
+fn worker_threads_that_do_not_fit_end_in_one_line_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let out = dir.path().join("p.obj");
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 300000 && exec \"$0\" \"$@\"")
+        .arg(env!("CARGO_BIN_EXE_linegs-gpu"))
+        .args(["refine", "--backend", "cpu", "-g"])
+        .args([&g, Path::new("-l"), &l, Path::new("-o"), &out])
+        .env("RAYON_NUM_THREADS", "500")
+        .output()
+        .unwrap();
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e}");
+    assert!(
+        e.starts_with("error: cannot start 500 worker threads (") && e.contains("ulimit -v"),
+        "{e}"
+    );
+    assert!(!out.exists());
+}
+
 /// Running out of memory is one line naming what did not fit and what to try, exit 1;
 /// not Rust's abort (SIGABRT, "memory allocation of N bytes failed").
 #[cfg(unix)]
