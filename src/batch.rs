@@ -1169,6 +1169,10 @@ mod tests {
                 "`mean` is the summary's row",
             ),
             ("", "empty"),
+            (
+                "name,gaussians,lines\nSummary.CSV,g,l\n",
+                "line 2: scene name `Summary.CSV` is the name of the summary table",
+            ),
         ] {
             std::fs::write(&p, text).unwrap();
             let e = Manifest::read(&p).unwrap_err();
@@ -1179,6 +1183,20 @@ mod tests {
                 "{text:?}: {msg}"
             );
         }
+    }
+
+    /// A byte that is not UTF-8 is reported on its own line.
+    #[test]
+    fn a_manifest_that_is_not_utf8_names_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.csv");
+        std::fs::write(&p, b"name,gaussians,lines\na,g\xff.ply,l\n").unwrap();
+        let e = Manifest::read(&p).unwrap_err();
+        assert!(e.is_input_error());
+        assert!(
+            e.to_string().contains("m.csv: line 2: a manifest is UTF-8"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -267,7 +267,16 @@ pub(crate) fn commit_with(staged: Vec<Staged>, stop: Stop) -> Result<(), Error> 
     let text = plan.text();
     let mut journals = Vec::new();
     for (mut t, name) in temps {
-        let io = |e| Error::io(&name, "write the journal of the output set", e);
+        // Reported under an output of the set in that folder: the journal's own name is a
+        // temporary one, which means nothing to the user.
+        let shown = plan
+            .renames
+            .iter()
+            .map(|(_, target)| target)
+            .find(|target| target.parent() == name.parent())
+            .unwrap_or(&staged[0].target)
+            .clone();
+        let io = |e| Error::io(&shown, "write the journal of the output set beside", e);
         let _ = try_lock(t.as_file());
         t.write_all(text.as_bytes()).map_err(io)?;
         t.as_file().sync_all().map_err(io)?;

@@ -81,7 +81,7 @@ fn sanitize_host(raw: &str) -> String {
 
 /// The prefix of this run's temporary names: `.linegs-<host>-<pid>-` (the random part and
 /// the extension follow).
-pub(crate) fn temp_prefix() -> String {
+pub fn temp_prefix() -> String {
     format!("{TEMP_PREFIX}{}-{}-", host(), std::process::id())
 }
 
@@ -92,6 +92,10 @@ pub(crate) type Maker<'a> = Option<(&'a str, u32)>;
 /// The parts of a writer's temporary name: who made it and its extension.
 pub(crate) fn parse_temp_name(name: &str) -> Option<(Maker<'_>, &str)> {
     let rest = name.strip_prefix(TEMP_PREFIX)?;
+    // The folder probe of earlier versions: `.linegs-XXXXXX`, no extension.
+    if rest.len() == 6 && rest.bytes().all(|b| b.is_ascii_alphanumeric()) {
+        return Some((None, ""));
+    }
     let (stem, ext) = rest.split_once('.')?;
     if !(1..=16).contains(&ext.len()) || ext.contains('.') {
         return None;
@@ -245,12 +249,13 @@ mod tests {
             ".linegs-aaaaaa.commit",
             ".linegs-node-17-4242-Ab3xY9.obj",
             ".linegs-n1-1-Ab3xY9.probe",
+            ".linegs-Ab3xY9",
         ] {
             assert!(is_temp_name(n, None), "{n}");
         }
         for n in [
             ".linegs-batch.lock",
-            ".linegs-Ab3xY9",
+            ".linegs-Ab3xY",
             ".linegs-Ab3xY.obj",
             ".linegs-Ab3xY9.tar.gz",
             ".linegs-Ab3-Y9.obj",

@@ -260,6 +260,10 @@ impl OutputSet {
                 .tempfile_in(dir)
             {
                 let cause = super::error::without_temp_path(e);
+                if super::error::is_resource_limit(&cause) {
+                    // Out of file descriptors or memory: the limit, not the folder (exit 1).
+                    return Err(Error::io(path, "create a temporary file beside", cause));
+                }
                 return Err(refuse(
                     path,
                     format!(
