@@ -168,9 +168,9 @@ impl Manifest {
             }
         }
         let mut entries: Vec<Entry> = Vec::new();
-        // Names seen, exactly and folded to lower case: the index of their entry.
-        let mut exact: HashMap<String, usize> = HashMap::new();
-        let mut folded: HashMap<String, usize> = HashMap::new();
+        // Names seen, folded to lower case: the index of their entry (one lookup a row
+        // finds both a repeated name and one that differs only in case).
+        let mut folded: HashMap<String, usize> = HashMap::with_capacity(total / 64);
         for (line, row) in rows {
             if entries.len() % MANIFEST_PROGRESS_ROWS == MANIFEST_PROGRESS_ROWS - 1 {
                 let done = row.as_ptr() as usize - text.as_ptr() as usize;
@@ -205,15 +205,16 @@ impl Manifest {
                     ),
                 ));
             }
-            if let Some(prev) = exact.get(&name).map(|&k| &entries[k]) {
+            let lower = name.to_lowercase();
+            let prev = folded.get(&lower).map(|&k| &entries[k]);
+            if let Some(prev) = prev.filter(|p| p.name == name) {
                 return Err(bad(
                     line,
                     format!("scene name `{name}` is already used on line {}", prev.line),
                 ));
             }
             // Folders `S1` and `s1` are one folder on case-insensitive file systems.
-            let lower = name.to_lowercase();
-            if let Some(prev) = folded.get(&lower).map(|&k| &entries[k]) {
+            if let Some(prev) = prev {
                 return Err(bad(
                     line,
                     format!(
@@ -237,7 +238,6 @@ impl Manifest {
                 .map(crate::refine::params::positive)
                 .transpose()
                 .map_err(|e| bad(line, format!("eval_radius: {e}")))?;
-            exact.insert(name.clone(), entries.len());
             folded.insert(lower, entries.len());
             entries.push(Entry {
                 gaussians: base.join(need(1)?),
