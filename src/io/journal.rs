@@ -73,7 +73,7 @@ fn hex(p: &Path) -> String {
 }
 
 fn unhex(s: &str) -> Option<PathBuf> {
-    if s.len() % 2 != 0 {
+    if !s.len().is_multiple_of(2) {
         return None;
     }
     let bytes = (0..s.len())
