@@ -6,10 +6,16 @@ e.g.   linegs-gpu synth toy -o toy_g.ply --lines-out toy_l.obj --gt-out toy_gt.o
        scripts/ablation.py toy toy_g.ply toy_l.obj toy_gt.obj 0.03 "reference:--profile reference" \
            "default:" "fit_paper:--fit paper" "fit_none:--fit none" "crop_extend1:--crop-extend 1" \
            "max_scale0:--max-scale 0" "opacity_weight:--fit-opacity-weight true" "sagitta05:--max-sagitta 0.5"
-Binary: $B (default target/release/linegs-gpu); outputs in $OUT (default ablation-out/).
+Binary: $B (default release/linegs-gpu in cargo's target folder); outputs in $OUT (default
+ablation-out/).
 """
 import json, subprocess, sys, os
-B = os.environ.get("B", "target/release/linegs-gpu")
+def target_dir():
+    meta = subprocess.run(["cargo", "metadata", "--format-version", "1", "--no-deps"],
+                          cwd=os.path.dirname(os.path.abspath(__file__)),
+                          capture_output=True, text=True, check=True)
+    return json.loads(meta.stdout)["target_directory"]
+B = os.environ.get("B") or os.path.join(target_dir(), "release", "linegs-gpu")
 OUT = os.environ.get("OUT", "ablation-out")
 os.makedirs(OUT, exist_ok=True)
 name, g, lines, gt, r = sys.argv[1:6]

@@ -10,12 +10,16 @@
 # smoke test in tests/cli.rs does.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# The folder cargo builds into: CARGO_TARGET_DIR, a .cargo/config setting, or ./target.
+target_dir() {
+  cargo metadata --format-version 1 --no-deps | sed -n 's/.*"target_directory":"\([^"]*\)".*/\1/p'
+}
 
 if [ -n "${LINEGS_GPU_BIN:-}" ]; then
   bin=$LINEGS_GPU_BIN
 else
   cargo build --release --quiet --bin linegs-gpu
-  bin=target/release/linegs-gpu
+  bin=$(target_dir)/release/linegs-gpu
 fi
 
 echo "== machine: $(nproc) CPU threads; $(uname -srm)"

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The Python package's tests (docs/python.md), run by scripts/test.sh after the Rust tests:
-# a virtual environment in target/py-venv, `pip install .` (maturin builds python/ in the
-# project's target folder and release profile), then pytest, which compares `linegs` with
-# the `linegs-gpu` binary of the test build (target/release/linegs-gpu).
+# a virtual environment in py-venv of cargo's target folder (CARGO_TARGET_DIR honoured),
+# `pip install .` (maturin builds python/ in that target folder and the release profile),
+# then pytest, which compares `linegs` with the `linegs-gpu` binary of the test build
+# (release/linegs-gpu there). Under CI=true a test that cannot find the binary fails.
 #
 # The binding and `cargo test --release` ask for the same dependency features (Cargo.toml,
 # python/Cargo.toml), so after the test build `pip install .` compiles only pyo3 and the
@@ -10,7 +11,13 @@
 # dependency or feature on one side): this script fails and says so.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-venv=target/py-venv
+# The folder cargo builds into: CARGO_TARGET_DIR, a .cargo/config setting, or ./target.
+target_dir() {
+  cargo metadata --format-version 1 --no-deps | sed -n 's/.*"target_directory":"\([^"]*\)".*/\1/p'
+}
+target=$(target_dir)
+[ -n "$target" ] || { echo "test-python: cargo metadata names no target folder" >&2; exit 1; }
+venv=$target/py-venv
 if [ ! -x "$venv/bin/python" ]; then
   if ! python3 -m venv "$venv" 2>/dev/null; then
     rm -rf "$venv"
@@ -25,14 +32,14 @@ py=$venv/bin/python
 "$py" -m pip install -q --disable-pip-version-check numpy pytest "maturin>=1.5,<2"
 
 # The binary the tests compare with: the test build's (same features as `cargo test`).
-if [ ! -x target/release/linegs-gpu ]; then
+if [ ! -x "$target/release/linegs-gpu" ]; then
   cargo test --release --locked --no-run
 fi
 
 t=$SECONDS
-log=target/py-build.log
+log=$target/py-build.log
 # --no-build-isolation: maturin from the venv, not a fresh download per run.
-if ! PATH="$PWD/$venv/bin:$PATH" "$py" -m pip install -v --no-build-isolation --disable-pip-version-check . >"$log" 2>&1; then
+if ! PATH="$venv/bin:$PATH" "$py" -m pip install -v --no-build-isolation --disable-pip-version-check . >"$log" 2>&1; then
   tail -n 40 "$log"
   echo "test-python: pip install . failed (full log: $log)" >&2
   exit 1
@@ -45,4 +52,4 @@ if echo "$compiled" | grep -q '^Compiling linegs-gpu '; then
     "no longer match the test build's (see docs/python.md, Build)" >&2
   exit 1
 fi
-LINEGS_GPU_BIN="$PWD/target/release/linegs-gpu" "$py" -m pytest -q python/tests
+LINEGS_GPU_BIN="$target/release/linegs-gpu" "$py" -m pytest -q python/tests

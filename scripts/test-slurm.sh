@@ -10,13 +10,18 @@
 # it checks every scene's output, the summary job's one summary and the restart counts.
 # The daemons it started are stopped by PID and the folder removed, whatever happens.
 #
-#   scripts/test-slurm.sh [path/to/linegs-gpu]     (default target/release/linegs-gpu)
+#   scripts/test-slurm.sh [path/to/linegs-gpu]     (default: release/linegs-gpu in cargo's
+#                                                   target folder, CARGO_TARGET_DIR honoured)
 #
 # LINEGS_SLURM_SCRIPT tests another version of the task script (default
 # scripts/slurm-batch.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bin=$(realpath "${1:-target/release/linegs-gpu}")
+# The folder cargo builds into: CARGO_TARGET_DIR, a .cargo/config setting, or ./target.
+target_dir() {
+  cargo metadata --format-version 1 --no-deps | sed -n 's/.*"target_directory":"\([^"]*\)".*/\1/p'
+}
+bin=$(realpath "${1:-$(target_dir)/release/linegs-gpu}")
 script=$(realpath "${LINEGS_SLURM_SCRIPT:-scripts/slurm-batch.sh}")
 submit=$(realpath scripts/slurm-submit.sh)
 [ -x "$bin" ] || { echo "test-slurm: no binary at $bin (cargo build --release)" >&2; exit 1; }

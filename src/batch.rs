@@ -18,6 +18,7 @@ use crate::io::{self, Position};
 use crate::pipeline::{Job, LoadOptions, Outputs, RunError, Scene};
 use crate::refine::{Params, RadiusArg};
 use crate::report::Report;
+use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -98,20 +99,41 @@ fn csv_field(s: &str) -> String {
 
 const COLUMNS: [&str; 6] = ["name", "gaussians", "lines", "gt", "radius", "eval_radius"];
 
+/// The files of the summary in the output folder.
+pub const SUMMARY_FILES: [&str; 2] = ["summary.csv", "summary.md"];
+
+/// How many manifest rows between two calls of the progress of
+/// [`Manifest::read_with_progress`].
+pub const MANIFEST_PROGRESS_ROWS: usize = 1 << 16;
+
 impl Manifest {
     /// Reads a manifest: a header naming the columns (`name`, `gaussians`, `lines`, and
     /// optionally `gt`, `radius`, `eval_radius`, in any order), then one scene a row;
     /// blank lines and lines starting with `#` are skipped. Paths are relative to the
-    /// manifest's folder. Names must be unique and usable as folder names.
+    /// manifest's folder. Names must be unique and usable as folder names. Linear in the
+    /// manifest's size.
     pub fn read(path: &Path) -> Result<Manifest, RunError> {
+        Self::read_with_progress(path, |_, _, _| {})
+    }
+
+    /// [`Manifest::read`], calling `progress(rows, bytes_read, bytes)` every
+    /// [`MANIFEST_PROGRESS_ROWS`] rows.
+    pub fn read_with_progress(
+        path: &Path,
+        mut progress: impl FnMut(usize, usize, usize),
+    ) -> Result<Manifest, RunError> {
         let bytes = io::read_small(path, "a manifest", 256 << 20, false)?;
-        let text = String::from_utf8(bytes).map_err(|_| {
+        let text = String::from_utf8(bytes).map_err(|e| {
+            // The line of the first byte that is not UTF-8.
+            let at = e.utf8_error().valid_up_to();
+            let line = 1 + e.as_bytes()[..at].iter().filter(|&&b| b == b'\n').count();
             io::Error::parse(
                 path,
-                Position::Line(1),
-                "a manifest is UTF-8 text".to_string(),
+                Position::Line(line),
+                "a manifest is UTF-8 text; this line is not".to_string(),
             )
         })?;
+        let total = text.len();
         let bad = |line: usize, msg: String| -> RunError {
             io::Error::parse(path, Position::Line(line), msg).into()
         };
@@ -146,7 +168,14 @@ impl Manifest {
             }
         }
         let mut entries: Vec<Entry> = Vec::new();
+        // Names seen, folded to lower case: the index of their entry (one lookup a row
+        // finds both a repeated name and one that differs only in case).
+        let mut folded: HashMap<String, usize> = HashMap::with_capacity(total / 64);
         for (line, row) in rows {
+            if entries.len() % MANIFEST_PROGRESS_ROWS == MANIFEST_PROGRESS_ROWS - 1 {
+                let done = row.as_ptr() as usize - text.as_ptr() as usize;
+                progress(entries.len() + 1, done, total);
+            }
             let f = csv_fields(row).map_err(|e| bad(line, e))?;
             if f.len() != header.len() {
                 return Err(bad(
@@ -159,7 +188,7 @@ impl Manifest {
                 get(k).ok_or_else(|| bad(line, format!("the `{}` field is empty", COLUMNS[k])))
             };
             let name = need(0)?.to_string();
-            if name.starts_with('.') || name.contains(['/', '\\']) || name == "summary.csv" {
+            if name.starts_with('.') || name.contains(['/', '\\']) {
                 return Err(bad(
                     line,
                     format!(
@@ -167,17 +196,25 @@ impl Manifest {
                     ),
                 ));
             }
-            if let Some(prev) = entries.iter().find(|e| e.name == name) {
+            if SUMMARY_FILES.iter().any(|f| f.eq_ignore_ascii_case(&name)) {
+                return Err(bad(
+                    line,
+                    format!(
+                        "scene name `{name}` is the name of the summary table that batch \
+                         writes in the output folder; rename the scene"
+                    ),
+                ));
+            }
+            let lower = name.to_lowercase();
+            let prev = folded.get(&lower).map(|&k| &entries[k]);
+            if let Some(prev) = prev.filter(|p| p.name == name) {
                 return Err(bad(
                     line,
                     format!("scene name `{name}` is already used on line {}", prev.line),
                 ));
             }
             // Folders `S1` and `s1` are one folder on case-insensitive file systems.
-            if let Some(prev) = entries
-                .iter()
-                .find(|e| e.name.to_lowercase() == name.to_lowercase())
-            {
+            if let Some(prev) = prev {
                 return Err(bad(
                     line,
                     format!(
@@ -201,6 +238,7 @@ impl Manifest {
                 .map(crate::refine::params::positive)
                 .transpose()
                 .map_err(|e| bad(line, format!("eval_radius: {e}")))?;
+            folded.insert(lower, entries.len());
             entries.push(Entry {
                 gaussians: base.join(need(1)?),
                 lines: base.join(need(2)?),
@@ -438,30 +476,15 @@ fn lock_scene(dir: &Path) -> Result<Option<SceneLock>, RunError> {
     }
 }
 
-/// Removes what killed runs of `batch` left for scene `name`: the temporary files of its
-/// owned outputs in its folder (`.linegs-XXXXXX.tmp`, `.linegs-XXXXXX.<ext>`) and the
-/// `.NAME.partial-*` / `.NAME.old-*` folders that earlier versions built scenes in. Called
-/// with the scene's lock held, so no live run owns them.
-fn clean_litter(outdir: &Path, name: &str, dir: &Path, format: &str) {
-    let ours = |f: &str| {
-        let Some(rest) = f.strip_prefix(".linegs-") else {
-            return false;
-        };
-        let tail = rest.get(6..).unwrap_or("");
-        rest.len() > 6
-            && rest.as_bytes()[..6].iter().all(u8::is_ascii_alphanumeric)
-            && [".tmp", ".json", ".txt", &format!(".{format}")].contains(&tail)
-    };
-    // A killed run's committed output set is finished first: its temporary files are the
-    // set's new outputs. If it cannot be, they stay.
-    let finished = io::finish_output_sets(dir).is_ok();
-    if let (true, Ok(rd)) = (finished, std::fs::read_dir(dir)) {
-        for d in rd.flatten() {
-            let f = d.file_name();
-            if ours(&f.to_string_lossy()) && d.file_type().is_ok_and(|t| t.is_file()) {
-                let _ = std::fs::remove_file(d.path());
-            }
-        }
+/// Removes what killed runs left for scene `name`, by the one rule of `io::litter` (a
+/// temporary file is taken only when its lock is free, it is old and it was made on this
+/// host: the scene's lock does not keep a `refine` that writes into the same folder out),
+/// and the `.NAME.partial-*` / `.NAME.old-*` folders that earlier versions built scenes
+/// in. A killed run's committed output set is finished first: its temporary files are
+/// the set's new outputs. If it cannot be, they stay.
+fn clean_litter(outdir: &Path, name: &str, dir: &Path) {
+    if io::finish_output_sets(dir).is_ok() {
+        io::clean_stale_temps(dir);
     }
     let (partial, old) = (format!(".{name}.partial-"), format!(".{name}.old-"));
     if let Ok(rd) = std::fs::read_dir(outdir) {
@@ -486,7 +509,7 @@ fn run_locked(e: &Entry, opts: &BatchOptions, outdir: &Path) -> Result<Option<St
     let Some(_lock) = lock_scene(&dir)? else {
         return Ok(None);
     };
-    clean_litter(outdir, &e.name, &dir, &opts.format);
+    clean_litter(outdir, &e.name, &dir);
     let [refined, report, error] = owned_files(&dir, &opts.format);
     let inputs = entry_inputs(e);
     let t = Instant::now();
@@ -516,6 +539,70 @@ fn run_locked(e: &Entry, opts: &BatchOptions, outdir: &Path) -> Result<Option<St
     }))
 }
 
+/// Checks every path a run of `m` into `outdir` writes against every path it reads, before
+/// any work, as `refine` does: the summary tables (when `summary`), and for each scene of
+/// `shard` (none for `--summary-only`: `shard` is `None`) its refined segments (`format`),
+/// report, error and lock files, against the manifest and every scene's inputs. A clash is
+/// bad input (exit 2) and nothing is written.
+pub fn check_paths(
+    m: &Manifest,
+    outdir: &Path,
+    format: &str,
+    shard: Option<Shard>,
+    summary: bool,
+) -> Result<(), RunError> {
+    let mut reads = io::PathIndex::new();
+    reads.add(&m.path);
+    let mut seen = std::collections::HashSet::new();
+    for e in &m.entries {
+        for p in entry_inputs(e) {
+            if seen.insert(p) {
+                reads.add(p);
+            }
+        }
+    }
+    let clash = |what: String, path: &Path| -> Result<(), RunError> {
+        let Some(input) = reads.find(path) else {
+            return Ok(());
+        };
+        let whose = if input == m.path {
+            "the manifest".to_string()
+        } else {
+            let owner = m
+                .entries
+                .iter()
+                .find(|e| entry_inputs(e).contains(&input))
+                .map(|e| format!("an input of scene `{}` (manifest line {})", e.name, e.line))
+                .unwrap_or_else(|| "an input".into());
+            format!("{owner} `{}`", input.display())
+        };
+        Err(io::Error::Output {
+            path: path.to_path_buf(),
+            msg: format!("{what} is {whose}; writing it would destroy the input"),
+        }
+        .into())
+    };
+    if summary {
+        for f in SUMMARY_FILES {
+            clash(format!("the summary table {f}"), &outdir.join(f))?;
+        }
+    }
+    if let Some(shard) = shard {
+        for (i, e) in m.entries.iter().enumerate() {
+            if !shard.includes(i) {
+                continue;
+            }
+            let dir = scene_dir(outdir, &e.name);
+            let [refined, report, error] = owned_files(&dir, format);
+            for p in [refined, report, error, dir.join(LOCK_NAME)] {
+                let file = p.file_name().unwrap_or_default().to_string_lossy();
+                clash(format!("scene `{}`'s {file}", e.name), &p)?;
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Runs this shard's scenes of `m` into `outdir`, calling `on_scene` after each, then
 /// (with `opts.summary`) rewrites the summary from every finished scene. A failing scene
 /// is recorded (`<name>/error.txt`) and does not stop the others; a scene that another
@@ -527,6 +614,7 @@ pub fn run(
     mut on_scene: impl FnMut(&Entry, &Status),
 ) -> Result<Vec<(String, Status)>, RunError> {
     io::check_line_output(Path::new(&format!("refined.{}", opts.format)))?;
+    check_paths(m, outdir, &opts.format, Some(opts.shard), opts.summary)?;
     std::fs::create_dir_all(outdir).map_err(|e| io::Error::io(outdir, "create", e))?;
     let mut done = Vec::new();
     for (i, e) in m.entries.iter().enumerate() {
@@ -950,7 +1038,7 @@ mod tests {
         }
         set.commit_stopping(io::Stop::AfterRenames(1)).unwrap_err();
         assert_eq!(std::fs::read_to_string(&report).unwrap(), "old");
-        clean_litter(out.path(), "s1", &dir, "obj");
+        clean_litter(out.path(), "s1", &dir);
         for f in [&refined, &report] {
             assert_eq!(
                 std::fs::read_to_string(f).unwrap(),
@@ -1081,6 +1169,10 @@ mod tests {
                 "`mean` is the summary's row",
             ),
             ("", "empty"),
+            (
+                "name,gaussians,lines\nSummary.CSV,g,l\n",
+                "line 2: scene name `Summary.CSV` is the name of the summary table",
+            ),
         ] {
             std::fs::write(&p, text).unwrap();
             let e = Manifest::read(&p).unwrap_err();
@@ -1091,6 +1183,20 @@ mod tests {
                 "{text:?}: {msg}"
             );
         }
+    }
+
+    /// A byte that is not UTF-8 is reported on its own line.
+    #[test]
+    fn a_manifest_that_is_not_utf8_names_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.csv");
+        std::fs::write(&p, b"name,gaussians,lines\na,g\xff.ply,l\n").unwrap();
+        let e = Manifest::read(&p).unwrap_err();
+        assert!(e.is_input_error());
+        assert!(
+            e.to_string().contains("m.csv: line 2: a manifest is UTF-8"),
+            "{e}"
+        );
     }
 
     #[test]

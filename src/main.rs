@@ -1,8 +1,67 @@
 //! The `linegs-gpu` command line: argument parsing and printing only; the work is in the
 //! library.
 
+// The print macros of every command, defined before the modules that use them so that they
+// shadow std's: std's panic when the standard output cannot be written; these end the
+// process from the write error itself (`stdio`).
+macro_rules! println {
+    () => {
+        $crate::stdio::write(false, format_args!("\n"))
+    };
+    ($($t:tt)*) => {
+        $crate::stdio::write(false, format_args!("{}\n", format_args!($($t)*)))
+    };
+}
+macro_rules! print {
+    ($($t:tt)*) => {
+        $crate::stdio::write(false, format_args!($($t)*))
+    };
+}
+macro_rules! eprintln {
+    () => {
+        $crate::stdio::write(true, format_args!("\n"))
+    };
+    ($($t:tt)*) => {
+        $crate::stdio::write(true, format_args!("{}\n", format_args!($($t)*)))
+    };
+}
+
 pub(crate) mod cmd;
 pub(crate) mod oom;
+
+/// Writing to the standard output and error, with the exit of a process that cannot: a
+/// closed pipe (`linegs-gpu info m.ply | head -1`, `io::ErrorKind::BrokenPipe`) ends it
+/// quietly with 141, as a Unix tool killed by SIGPIPE; any other failure (a full disk
+/// behind `> file`, `> /dev/full`) with one line and 1. Every file a command writes is
+/// complete before it prints about it, so the files stay valid either way.
+pub(crate) mod stdio {
+    use std::io::Write;
+
+    pub fn write(to_stderr: bool, args: std::fmt::Arguments) {
+        let r = if to_stderr {
+            std::io::stderr().lock().write_fmt(args)
+        } else {
+            std::io::stdout().lock().write_fmt(args)
+        };
+        if let Err(e) = r {
+            failed(to_stderr, &e);
+        }
+    }
+
+    #[cold]
+    fn failed(to_stderr: bool, e: &std::io::Error) -> ! {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(141);
+        }
+        if !to_stderr {
+            let _ = writeln!(
+                std::io::stderr(),
+                "error: cannot write to the standard output: {e}"
+            );
+        }
+        std::process::exit(1);
+    }
+}
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -81,35 +140,26 @@ fn private_runtime_dir() -> Option<(tempfile::TempDir, Option<std::fs::File>)> {
     Some((dir, lock))
 }
 
-/// The exit of a process whose standard output or error could not be written (the
-/// `println!` family panics then): a closed pipe (`linegs-gpu info m.ply | head -1`) ends
-/// it quietly with 141, as a Unix tool killed by SIGPIPE; any other failure (a full disk
-/// behind `> file`, `> /dev/full`) with one line and 1. Every file a command writes is
-/// complete before it prints about it, so the files stay valid either way.
-fn quiet_stdio_errors() {
-    let default = std::panic::take_hook();
-    std::panic::set_hook(Box::new(move |info| {
-        let p = info.payload();
-        let msg = p
-            .downcast_ref::<String>()
-            .map(String::as_str)
-            .or_else(|| p.downcast_ref::<&str>().copied())
-            .unwrap_or("");
-        let Some(rest) = msg.strip_prefix("failed printing to ") else {
-            return default(info);
-        };
-        if rest.contains("os error 32") {
-            std::process::exit(141);
-        }
-        if let Some(cause) = rest.strip_prefix("stdout: ") {
-            use std::io::Write;
-            let _ = writeln!(
-                std::io::stderr(),
-                "error: cannot write to the standard output: {cause}"
-            );
-        }
-        std::process::exit(1);
-    }));
+/// Starts the worker threads (rayon's global pool) before any work, so that a process
+/// that cannot start them (a memory limit, `ulimit -v`, or a limit on processes) ends with
+/// one line and exit 1 instead of rayon's panic at the first parallel loop.
+fn start_threads() -> Result<(), String> {
+    // rayon's own default: RAYON_NUM_THREADS, else one a core.
+    let n = std::env::var("RAYON_NUM_THREADS")
+        .ok()
+        .and_then(|v| v.trim().parse::<usize>().ok())
+        .filter(|&n| n > 0)
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    oom::doing(
+        format!("starting {n} worker threads"),
+        "free memory, raise the limit (ulimit -v) or start fewer threads (RAYON_NUM_THREADS=1)",
+    );
+    rayon::ThreadPoolBuilder::new().build_global().map_err(|e| {
+        format!(
+            "cannot start {n} worker threads ({e}); free memory, raise the limit (ulimit -v \
+             or ulimit -u) or start fewer threads (RAYON_NUM_THREADS=1)"
+        )
+    })
 }
 
 /// `RUST_LOG` (`info`, `debug`, `wgpu_hal=debug,info`: env_logger's syntax) to standard
@@ -135,11 +185,15 @@ fn main() -> ExitCode {
 pub fn run(args: impl IntoIterator<Item = std::ffi::OsString>) -> u8 {
     // Before the first large block.
     linegs_gpu::mem::huge_heap();
-    quiet_stdio_errors();
     init_logger();
     // After parsing: clap exits the process on `--help` and usage errors, which would
     // leave the folder behind.
     let cli = Cli::parse_from(args);
+    oom::command(command_name(&cli.command));
+    if let Err(e) = start_threads() {
+        eprintln!("error: {e}");
+        return 1;
+    }
     let _runtime_dir = private_runtime_dir();
     let verbose = cli.verbose;
     let result = match cli.command {
@@ -159,6 +213,21 @@ pub fn run(args: impl IntoIterator<Item = std::ffi::OsString>) -> u8 {
             eprintln!("error: {e:#}");
             cmd::exit_code(&e)
         }
+    }
+}
+
+/// The subcommand's name, for messages.
+fn command_name(c: &Command) -> &'static str {
+    match c {
+        Command::Refine(_) => "refine",
+        Command::Eval(_) => "eval",
+        Command::Info(_) => "info",
+        Command::Convert(_) => "convert",
+        Command::Demo(_) => "demo",
+        Command::Synth(_) => "synth",
+        Command::Render(_) => "render",
+        Command::Batch(_) => "batch",
+        Command::Bench(_) => "bench",
     }
 }
 

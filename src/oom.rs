@@ -15,6 +15,15 @@ use std::sync::Mutex;
 /// What the command is doing now and what to try when it does not fit.
 static DOING: Mutex<Option<(String, String)>> = Mutex::new(None);
 
+/// The command that runs, for a failure before it names a phase (or while the phase is
+/// being changed).
+static COMMAND: std::sync::OnceLock<&'static str> = std::sync::OnceLock::new();
+
+/// Names the command (`refine`) for the message of a failure outside a named phase.
+pub fn command(name: &'static str) {
+    let _ = COMMAND.set(name);
+}
+
 /// Names the phase that follows (`reading model.ply`) and the hint for a failure in it
 /// (`a smaller --width`).
 pub fn doing(what: impl Into<String>, hint: impl Into<String>) {
@@ -48,14 +57,24 @@ fn out_of_memory(size: usize) -> ! {
         buf: [0; 1024],
         len: 0,
     };
-    let mb = size as f64 / (1 << 20) as f64;
-    let _ = write!(t, "error: out of memory: {mb:.1} MiB more did not fit");
+    let _ = t.write_str("error: out of memory: ");
+    if size >= 1 << 20 {
+        let _ = write!(t, "{:.1} MiB", size as f64 / (1 << 20) as f64);
+    } else if size >= 1 << 10 {
+        let _ = write!(t, "{:.1} KiB", size as f64 / (1 << 10) as f64);
+    } else {
+        let _ = write!(t, "{size} bytes");
+    }
+    let _ = t.write_str(" more did not fit");
     // try_lock: the failing allocation may come from the thread that holds the lock.
     match DOING.try_lock().ok().as_deref() {
         Some(Some((what, hint))) => {
             let _ = write!(t, " while {what}; {hint}");
         }
         _ => {
+            if let Some(c) = COMMAND.get() {
+                let _ = write!(t, " while running `{c}`");
+            }
             let _ = write!(t, "; free memory or raise the limit (ulimit -v)");
         }
     }

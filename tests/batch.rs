@@ -221,6 +221,7 @@ fn an_output_folder_that_holds_the_inputs_keeps_every_file_batch_did_not_write()
     std::fs::write(dir.path().join("s1/notes.txt"), "mine").unwrap();
     // Litter of killed runs: a temporary of an owned output and an old-style folder.
     std::fs::write(dir.path().join("s1/.linegs-AbC123.tmp"), "x").unwrap();
+    make_old(&dir.path().join("s1/.linegs-AbC123.tmp"));
     std::fs::create_dir(dir.path().join(".s1.partial-Xy12ab")).unwrap();
     std::fs::write(dir.path().join(".s1.partial-Xy12ab/refined.obj"), "x").unwrap();
     let batch = || {
@@ -294,10 +295,15 @@ fn an_input_named_like_an_output_of_batch_is_refused_not_overwritten() {
         ],
         &[],
     );
-    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
-    assert!(stderr(&o).contains("is the input"), "{}", stderr(&o));
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("refined.txt is an input of scene `s1`"),
+        "{}",
+        stderr(&o)
+    );
     assert_eq!(std::fs::read(&input).unwrap(), before);
     assert!(!dir.path().join("s1/report.json").exists());
+    assert!(!dir.path().join("s1/error.txt").exists());
 }
 
 /// A scene another `batch` is working on (its lock held) is left alone, and said so.
@@ -396,4 +402,152 @@ fn concurrent_shards_write_no_summary_and_summary_only_writes_the_one_summary() 
         &[],
     );
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+}
+
+/// A `refine` writing into a scene's folder while `batch` works on that scene: its
+/// temporary files (locked, fresh) are its own, and `batch` leaves them alone, as it
+/// leaves another host's; only old, unlocked litter of this host is removed.
+#[test]
+fn batch_leaves_the_temporary_files_of_a_live_refine_in_the_scene_folder_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    let out = dir.path().join("out");
+    let s = out.join("first");
+    std::fs::create_dir_all(&s).unwrap();
+    // A live run's staged outputs, named as earlier versions and this one name them.
+    let live = [".linegs-AbC123.obj", ".linegs-AbC124.json"];
+    let held: Vec<std::fs::File> = live
+        .iter()
+        .map(|n| {
+            std::fs::write(s.join(n), "new set").unwrap();
+            let f = std::fs::File::open(s.join(n)).unwrap();
+            f.try_lock().unwrap();
+            f
+        })
+        .collect();
+    // Old and unlocked: a killed run's on another host (kept), an earlier version's here
+    // (removed).
+    let elsewhere = ".linegs-some-other-node-4242-Xy12ab.obj";
+    for n in [elsewhere, ".linegs-Old123.tmp"] {
+        std::fs::write(s.join(n), "x").unwrap();
+        make_old(&s.join(n));
+    }
+    let o = run(
+        &[
+            "batch",
+            m.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--backend",
+            "cpu",
+        ],
+        &[],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        names_in(&s),
+        [live[0], live[1], elsewhere, "refined.obj", "report.json"]
+    );
+    for n in live {
+        assert_eq!(std::fs::read_to_string(s.join(n)).unwrap(), "new set");
+    }
+    drop(held);
+}
+
+/// Sets a file's time back past the age at which litter is stale.
+fn make_old(p: &Path) {
+    let old = std::time::SystemTime::now() - linegs_gpu::io::STALE_AGE * 2;
+    std::fs::File::options()
+        .write(true)
+        .open(p)
+        .unwrap()
+        .set_modified(old)
+        .unwrap();
+}
+
+/// Every path `batch` writes is checked against every path it reads before any work: the
+/// manifest named `summary.csv` in the output folder, a scene input that is a summary
+/// table, one scene's output that is another's input. Exit 2, every input intact, no
+/// scene run.
+#[test]
+fn batch_refuses_to_write_over_its_manifest_or_any_scenes_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = scenes(dir.path());
+    let d = dir.path().to_str().unwrap();
+    let check = |manifest: &str, text: &str, extra: &[&str], needle: &str| {
+        let p = dir.path().join(manifest);
+        std::fs::write(&p, text).unwrap();
+        let mut args = vec!["batch", p.to_str().unwrap(), "-o", d, "--backend", "cpu"];
+        args.extend_from_slice(extra);
+        let before: Vec<_> = ["s1/l.txt", "s2/l.txt", "summary.md", "first/refined.obj"]
+            .iter()
+            .map(|f| std::fs::read(dir.path().join(f)).ok())
+            .collect();
+        let o = run(&args, &[]);
+        assert_eq!(o.status.code(), Some(2), "{manifest}: {}", stderr(&o));
+        assert!(stderr(&o).contains(needle), "{manifest}: {}", stderr(&o));
+        assert_eq!(std::fs::read_to_string(&p).unwrap(), text, "{manifest}");
+        let after: Vec<_> = ["s1/l.txt", "s2/l.txt", "summary.md", "first/refined.obj"]
+            .iter()
+            .map(|f| std::fs::read(dir.path().join(f)).ok())
+            .collect();
+        assert_eq!(before, after, "{manifest}");
+        assert!(!dir.path().join("first/report.json").exists(), "{manifest}");
+        assert!(!dir.path().join("s1/report.json").exists(), "{manifest}");
+    };
+    let one = "name,gaussians,lines\ns1,s1/g.ply,s1/l.txt\n";
+    check("summary.csv", one, &[], "is the manifest");
+    check("summary.csv", one, &["--summary-only"], "is the manifest");
+    std::fs::write(dir.path().join("summary.md"), "my notes").unwrap();
+    check(
+        "m.csv",
+        "name,gaussians,lines\ns1,s1/g.ply,summary.md\n",
+        &[],
+        "the summary table summary.md is an input of scene `s1` (manifest line 2)",
+    );
+    std::fs::create_dir(dir.path().join("first")).unwrap();
+    std::fs::copy(
+        dir.path().join("s2/l.txt"),
+        dir.path().join("first/refined.obj"),
+    )
+    .unwrap();
+    check(
+        "m.csv",
+        "name,gaussians,lines\nfirst,s1/g.ply,s1/l.txt\nsecond,s2/g.ply,first/refined.obj\n",
+        &[],
+        "scene `first`'s refined.obj is an input of scene `second` (manifest line 3)",
+    );
+    drop(m);
+}
+
+/// A manifest is read in linear time: 10^5 scenes well within a few seconds (the
+/// quadratic name check took over 100 s).
+#[test]
+fn a_manifest_of_a_hundred_thousand_scenes_is_read_in_seconds() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("m.csv");
+    let mut text = String::from("name,gaussians,lines\n");
+    for i in 0..100_000 {
+        text.push_str(&format!("scene{i},g{i}.ply,l{i}.txt\n"));
+    }
+    std::fs::write(&p, text).unwrap();
+    let t = std::time::Instant::now();
+    let m = linegs_gpu::batch::Manifest::read(&p).unwrap();
+    let secs = t.elapsed().as_secs_f64();
+    assert_eq!(m.entries.len(), 100_000);
+    assert_eq!(m.entries[99_999].name, "scene99999");
+    assert!(secs < 5.0, "{secs} s");
+    // The checks still see every earlier row: a late duplicate names the first.
+    std::fs::write(
+        &p,
+        format!("{}scene7,g,l\n", std::fs::read_to_string(&p).unwrap()),
+    )
+    .unwrap();
+    let e = linegs_gpu::batch::Manifest::read(&p)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("line 100002: scene name `scene7` is already used on line 9"),
+        "{e}"
+    );
 }

@@ -864,6 +864,34 @@ fn run_limited(kb: u64, args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// Worker threads that do not fit under the memory limit: one line that names the phase,
+/// exit 1, no output; not rayon's panic ("The global thread pool has not been
+/// initialized", exit 101) at the first parallel loop.
+#[cfg(unix)]
+#[test]
+fn worker_threads_that_do_not_fit_end_in_one_line_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let out = dir.path().join("p.obj");
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 300000 && exec \"$0\" \"$@\"")
+        .arg(env!("CARGO_BIN_EXE_linegs-gpu"))
+        .args(["refine", "--backend", "cpu", "-g"])
+        .args([&g, Path::new("-l"), &l, Path::new("-o"), &out])
+        .env("RAYON_NUM_THREADS", "500")
+        .output()
+        .unwrap();
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e}");
+    assert!(
+        e.starts_with("error: cannot start 500 worker threads (") && e.contains("ulimit -v"),
+        "{e}"
+    );
+    assert!(!out.exists());
+}
+
 /// Running out of memory is one line naming what did not fit and what to try, exit 1;
 /// not Rust's abort (SIGABRT, "memory allocation of N bytes failed").
 #[cfg(unix)]
@@ -962,6 +990,7 @@ fn the_next_run_removes_the_litter_of_killed_runs_and_nothing_else() {
         ".linegs-Fresh1.json",   // young: perhaps a live run's, kept
         ".linegs-Held12.obj",    // old but locked by a live process, kept
         ".linegs-notes.txt.bak", // not a temporary name, kept
+        ".linegs-Probe1",        // an earlier version's folder probe, old: removed
         "notes.txt",
     ];
     for n in names {
@@ -1020,4 +1049,72 @@ fn the_next_run_removes_the_litter_of_killed_runs_and_nothing_else() {
         left,
         ["linegs-gpu-runtime-Held12", "linegs-gpu-runtime-New123"]
     );
+}
+
+/// `info` on a file of a set that a killed run committed (its journal beside it) finishes
+/// the set first, as the commands that write do, and shows the new file.
+#[cfg(unix)]
+#[test]
+fn info_finishes_a_half_committed_set_before_reading() {
+    use std::os::unix::ffi::OsStrExt;
+    let d = tempfile::tempdir().unwrap();
+    let dir = std::fs::canonicalize(d.path()).unwrap();
+    let hex = |p: &Path| -> String {
+        p.as_os_str()
+            .as_bytes()
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect()
+    };
+    let target = file(&dir, "l.txt", b"0 0 0 1 0 0\n");
+    // The new file, staged under this process's temporary name, and its journal.
+    let prefix = linegs_gpu::io::temp_prefix();
+    let temp = file(
+        &dir,
+        &format!("{prefix}Tmp001.txt"),
+        b"0 0 0 1 0 0\n0 0 0 0 1 0\n0 0 1 1 1 1\n",
+    );
+    let journal = dir.join(format!("{prefix}Jour01.commit"));
+    std::fs::write(
+        &journal,
+        format!(
+            "linegs-gpu output set 1\nrename {} {}\njournal {}\n",
+            hex(&temp),
+            hex(&target),
+            hex(&journal)
+        ),
+    )
+    .unwrap();
+    let o = run(&["info", target.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(out.contains("segments:    3 ("), "{out}");
+    assert!(!temp.exists() && !journal.exists());
+}
+
+/// Out of file descriptors is a resource limit (exit 1), not bad input (exit 2).
+#[cfg(unix)]
+#[test]
+fn too_many_open_files_is_a_resource_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let out = dir.path().join("p.obj");
+    let mut seen = 0;
+    for n in 4..=12 {
+        let o = Command::new("sh")
+            .arg("-c")
+            .arg(format!("ulimit -n {n} && exec \"$0\" \"$@\""))
+            .arg(env!("CARGO_BIN_EXE_linegs-gpu"))
+            .args(["refine", "--backend", "cpu", "-g"])
+            .args([&g, Path::new("-l"), &l, Path::new("-o"), &out])
+            .output()
+            .unwrap();
+        let e = stderr(&o);
+        assert!(!e.contains("panicked"), "{n}: {e}");
+        if e.contains("Too many open files") {
+            seen += 1;
+            assert_eq!(o.status.code(), Some(1), "{n}: {e}");
+        }
+    }
+    assert!(seen > 0, "no limit from 4 to 12 open files ran out");
 }

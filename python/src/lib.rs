@@ -28,8 +28,9 @@ use std::sync::Mutex;
 #[path = "../../src/main.rs"]
 #[allow(dead_code)]
 mod cli;
-// `crate::cmd` and `crate::oom`, as the command line's modules name each other.
-use cli::{cmd, oom};
+// `crate::cmd`, `crate::oom` and `crate::stdio` (the print macros), as the command line's
+// modules name each other.
+use cli::{cmd, oom, stdio};
 
 create_exception!(
     _linegs,

@@ -56,6 +56,26 @@ pub struct BatchArgs {
     pub params: ParamsArgs,
 }
 
+/// Reads the manifest, with a progress bar on the standard error (a terminal only) for a
+/// large one.
+fn read_manifest(path: &std::path::Path) -> Result<Manifest> {
+    let bar = indicatif::ProgressBar::hidden();
+    let m = Manifest::read_with_progress(path, |rows, done, total| {
+        if bar.is_hidden() {
+            bar.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+            bar.set_length(total as u64);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("reading {msg} {bar:30} {percent}%")
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+        }
+        bar.set_message(format!("{} ({rows} scenes)", path.display()));
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    Ok(m?)
+}
+
 pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
     let shard = match a.shard {
         Some(s) => s,
@@ -63,7 +83,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
             .map_err(input_error)?
             .unwrap_or_default(),
     };
-    let m = Manifest::read(&a.manifest)?;
+    let m = read_manifest(&a.manifest)?;
     if a.list {
         for e in &m.entries {
             println!("{}", e.name);
@@ -71,6 +91,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
         return Ok(());
     }
     if a.summary_only {
+        batch::check_paths(&m, &a.output, &a.format, None, true)?;
         let removed = batch::remove_partial_dirs(&a.output)?;
         let s = batch::write_summary(&m, &a.output)?;
         println!(

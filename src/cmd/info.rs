@@ -15,6 +15,14 @@ pub struct InfoArgs {
 }
 
 pub fn run(a: InfoArgs) -> Result<()> {
+    // A set that a killed run committed in the file's folder is finished first, as every
+    // command that reads does; a folder it cannot be finished in (read-only) is read as
+    // it is.
+    let folder = match a.file.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => std::path::Path::new("."),
+    };
+    let _ = io::finish_output_sets(folder);
     let mut info = io::info_with(&a.file, &a.frame.line_options())?;
     if a.frame.gaussians_transform.is_some() && info.kind == io::FileKind::Gaussians {
         // The box as the lines would see it.

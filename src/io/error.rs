@@ -280,14 +280,27 @@ impl Error {
 
 /// `tempfile` wraps OS errors as "<message> at path \"/dir/.linegs-Xy12.tmp\""; the
 /// temporary name means nothing to a user, so only the OS error is kept.
+/// The OS error comes back as itself (`(os error N)`), so that its kind and number still
+/// tell a resource limit from a fault.
 pub(crate) fn without_temp_path(e: std::io::Error) -> std::io::Error {
-    let kind = e.kind();
-    match e.get_ref().and_then(|inner| inner.source()) {
-        Some(os) if e.raw_os_error().is_none() => {
-            let text = os.to_string();
-            std::io::Error::new(kind, text)
-        }
-        _ => e,
+    if e.raw_os_error().is_some() {
+        return e;
+    }
+    let Some(inner) = e.get_ref() else {
+        return e;
+    };
+    let text = inner.to_string();
+    let Some(i) = text.rfind(" at path ") else {
+        return e;
+    };
+    let head = &text[..i];
+    let os = head
+        .strip_suffix(')')
+        .and_then(|h| h.rsplit_once("(os error "))
+        .and_then(|(_, n)| n.parse::<i32>().ok());
+    match os {
+        Some(n) => std::io::Error::from_raw_os_error(n),
+        None => std::io::Error::new(e.kind(), head.to_string()),
     }
 }
 
@@ -296,11 +309,32 @@ impl Error {
     /// or whose content is wrong) rather than in writing our outputs.
     pub fn is_input_error(&self) -> bool {
         match self {
+            // Out of file descriptors or memory is a resource limit, whatever the action.
+            Error::Io { cause, .. } if is_resource_limit(cause) => false,
             Error::Io { action, .. } => {
                 matches!(*action, "open" | "read" | "read metadata of")
             }
             _ => true,
         }
+    }
+}
+
+/// A limit of the process or the system (too many open files, no memory), not a fault of
+/// the file: exit 1, not 2.
+pub(crate) fn is_resource_limit(e: &std::io::Error) -> bool {
+    if e.kind() == std::io::ErrorKind::OutOfMemory {
+        return true;
+    }
+    #[cfg(unix)]
+    {
+        matches!(
+            e.raw_os_error(),
+            Some(libc::EMFILE | libc::ENFILE | libc::ENOMEM)
+        )
+    }
+    #[cfg(not(unix))]
+    {
+        false
     }
 }
 

@@ -35,7 +35,7 @@ pub use journal::recover as finish_output_sets;
 #[cfg(test)]
 pub(crate) use journal::Stop;
 pub use litter::{
-    clean_stale_runtime_dirs, clean_stale_temps, try_lock, RUNTIME_PREFIX, STALE_AGE,
+    clean_stale_runtime_dirs, clean_stale_temps, temp_prefix, try_lock, RUNTIME_PREFIX, STALE_AGE,
 };
 
 pub(crate) use input::{read_input, read_small};
@@ -45,7 +45,7 @@ pub use lines::{
 pub use normals::{
     parse_gaussian_attributes, read_gaussian_attributes, read_gaussian_normals, GaussianAttributes,
 };
-pub use output::{same_file, OutputSet};
+pub use output::{same_file, OutputSet, PathIndex};
 pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
 pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};

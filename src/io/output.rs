@@ -80,9 +80,61 @@ pub fn same_file(a: &Path, b: &Path) -> bool {
     FileId::of(a).same(&FileId::of(b))
 }
 
+/// Many files a run reads, to look a path up among them in constant time: by device and
+/// inode for a file that exists (Unix; that covers other spellings, symlinks and hard
+/// links with one `stat`), by canonical path otherwise. For runs that read too many files
+/// for [`OutputSet`]'s pairwise checks (`batch`).
+#[derive(Default)]
+pub struct PathIndex {
+    inodes: std::collections::HashMap<(u64, u64), PathBuf>,
+    paths: std::collections::HashMap<PathBuf, PathBuf>,
+}
+
+impl PathIndex {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The keys of `path`: its (device, inode) when it exists on Unix, else its canonical
+    /// path (that of its folder and its name, for a file that does not exist).
+    fn key(path: &Path) -> (Option<(u64, u64)>, Option<PathBuf>) {
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::MetadataExt;
+            if let Ok(m) = std::fs::metadata(path) {
+                return (Some((m.dev(), m.ino())), None);
+            }
+        }
+        (None, FileId::of(path).canonical)
+    }
+
+    /// Adds a file that is read.
+    pub fn add(&mut self, path: &Path) {
+        match Self::key(path) {
+            (Some(i), _) => {
+                self.inodes.entry(i).or_insert_with(|| path.to_path_buf());
+            }
+            (None, Some(c)) => {
+                self.paths.entry(c).or_insert_with(|| path.to_path_buf());
+            }
+            _ => {}
+        }
+    }
+
+    /// The added path that names the same file as `path`, if any.
+    pub fn find(&self, path: &Path) -> Option<&Path> {
+        match Self::key(path) {
+            (Some(i), _) => self.inodes.get(&i),
+            (None, Some(c)) => self.paths.get(&c),
+            _ => None,
+        }
+        .map(PathBuf::as_path)
+    }
+}
+
 /// The suffix of a temporary file staged for `path`: its extension (so format-by-extension
-/// writers work), only when short, so that the temporary name (`.linegs-` and six random
-/// characters before it) fits in 255 bytes for every valid final name.
+/// writers work), only when short, so that the temporary name (`.linegs-<host>-<pid>-` and
+/// six random characters before it) fits in 255 bytes for every valid final name.
 pub(crate) fn temp_suffix(path: &Path) -> String {
     match path.extension().and_then(|e| e.to_str()) {
         Some(e) if !e.is_empty() && e.len() <= 16 => format!(".{e}"),
@@ -201,8 +253,17 @@ impl OutputSet {
                 }
             }
             // The real test of "writable" (permissions, read-only mounts, ACLs): make a file.
-            if let Err(e) = tempfile::Builder::new().prefix(".linegs-").tempfile_in(dir) {
+            // (A temporary name with an extension, so a kill's leftover is litter by the rule.)
+            if let Err(e) = tempfile::Builder::new()
+                .prefix(&litter::temp_prefix())
+                .suffix(".probe")
+                .tempfile_in(dir)
+            {
                 let cause = super::error::without_temp_path(e);
+                if super::error::is_resource_limit(&cause) {
+                    // Out of file descriptors or memory: the limit, not the folder (exit 1).
+                    return Err(Error::io(path, "create a temporary file beside", cause));
+                }
                 return Err(refuse(
                     path,
                     format!(
@@ -258,7 +319,7 @@ impl OutputSet {
         write: impl FnOnce(&Path) -> Result<(), Error>,
     ) -> Result<(), Error> {
         let staged = tempfile::Builder::new()
-            .prefix(".linegs-")
+            .prefix(&litter::temp_prefix())
             .suffix(&temp_suffix(path))
             .tempfile_in(folder(path))
             .map_err(|e| Error::io(path, "create a temporary file beside", e))?

@@ -15,7 +15,7 @@ pub(crate) fn read(
     bytes: &[u8],
     mut sink: Sink,
 ) -> Result<(GaussianCloud, Option<Vec<f32>>), Error> {
-    if bytes.len() % RECORD != 0 {
+    if !bytes.len().is_multiple_of(RECORD) {
         let whole = bytes.len() / RECORD;
         return Err(Error::truncated(
             path,

@@ -24,7 +24,8 @@ pub(crate) fn write_atomic(
         _ => Path::new("."),
     };
     let mut builder = tempfile::Builder::new();
-    builder.prefix(".linegs-").suffix(".tmp");
+    let prefix = super::litter::temp_prefix();
+    builder.prefix(&prefix).suffix(".tmp");
     // Temporary files are private (0600); outputs should get the usual umask-filtered mode.
     #[cfg(unix)]
     {

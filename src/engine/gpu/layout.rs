@@ -20,7 +20,7 @@ pub const STORE_SHIFT: u32 = 13;
 pub const STORE_W: u32 = 1 << STORE_SHIFT;
 /// Texels (16 bytes) of one query in the query texture: a [`GQuery`]'s words in order.
 pub const QUERY_TEXELS: u32 = (std::mem::size_of::<GQuery>() / 16) as u32;
-const _: () = assert!(std::mem::size_of::<GQuery>() % 16 == 0);
+const _: () = assert!(std::mem::size_of::<GQuery>().is_multiple_of(16));
 /// Invocations per workgroup of the per-item and per-query kernels.
 pub const WG: u32 = 64;
 /// Elements per workgroup of the prefix scan.

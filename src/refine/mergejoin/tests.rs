@@ -109,7 +109,7 @@ fn two_chords_of_a_curve_are_not_joined_across_it_by_default() {
     // both sides of each (a trained model's face splats about an edge, so that the paper's
     // error test passes): the joined line passes 0.018 (0.6 r) from their shared end.
     let spread = |x: f64, y: f64, k: usize| {
-        let z = if k % 2 == 0 { 0.025 } else { -0.025 };
+        let z = if k.is_multiple_of(2) { 0.025 } else { -0.025 };
         [x as f32, y as f32, z as f32]
     };
     let n = 200;
@@ -486,7 +486,7 @@ fn random_scene(seed: u64) -> (CpuEngine, LineSet, Vec<Vec<usize>>) {
 /// Profile `k % 2` with the switches of step 8 set from the bits of `k / 2`.
 fn switches(k: usize) -> Params {
     let bit = |b: usize| Some((k >> (b + 1)) & 1 == 1);
-    let base = if k % 2 == 0 {
+    let base = if k.is_multiple_of(2) {
         Params::default()
     } else {
         Params::reference()
