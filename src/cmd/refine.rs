@@ -1,5 +1,5 @@
 use super::params::{BackendArg, ParamsArgs};
-use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
+use super::{load_framed, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -38,7 +38,8 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         compare_ply: a.compare_ply.clone(),
     };
     outputs.check(&a.input.paths())?;
-    let scene = load(&a.input)?;
+    let params: linegs_gpu::refine::Params = a.params.into();
+    let scene = load_framed(&a.input, &params, !a.no_frame_check)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
         bar.set_style(style);
@@ -59,7 +60,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     );
     let job = Job {
         check_frames: !a.no_frame_check,
-        ..super::env::job(a.params.into(), a.engine.backend.into())
+        ..super::env::job(params, a.engine.backend.into())
     };
     let refined = job.refine(&scene, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));

@@ -3,6 +3,7 @@
 //! file; and `info` for a quick look at either.
 
 mod chunked;
+mod colmap;
 mod edges_json;
 mod error;
 mod gaussians;
@@ -23,6 +24,10 @@ mod spz;
 mod transform;
 mod write;
 
+pub use colmap::{
+    read_colmap, write_colmap_binary, write_colmap_text, Camera, ColmapModel, Image, Point3D,
+    CAMERA_MODELS,
+};
 pub use edges_json::{Curves, POLYLINE_PIECES};
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
