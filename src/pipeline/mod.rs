@@ -22,7 +22,7 @@ mod write;
 pub use frame::FrameFound;
 pub use load::{read_gaussians, read_gaussians_and_attributes, LoadOptions, Scene};
 pub use run::{grid_cell, Job, Outcome, Refined, Refiner};
-pub use write::{Outputs, AFTER_COLOR, BEFORE_COLOR};
+pub use write::{LinesOut, Outputs, AFTER_COLOR, BEFORE_COLOR};
 
 use crate::engine::EngineError;
 use crate::io;
