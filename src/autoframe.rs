@@ -141,16 +141,14 @@ pub fn symmetric_eigen(m: DMat3) -> (DVec3, DMat3) {
             let c = 1.0 / (t * t + 1.0).sqrt();
             let s = t * c;
             // a = J^T a J with the rotation J in the (p, q) plane.
-            for k in 0..3 {
-                let (akp, akq) = (a[k][p], a[k][q]);
-                a[k][p] = c * akp - s * akq;
-                a[k][q] = s * akp + c * akq;
+            for ak in a.iter_mut() {
+                let (akp, akq) = (ak[p], ak[q]);
+                ak[p] = c * akp - s * akq;
+                ak[q] = s * akp + c * akq;
             }
-            for k in 0..3 {
-                let (apk, aqk) = (a[p][k], a[q][k]);
-                a[p][k] = c * apk - s * aqk;
-                a[q][k] = s * apk + c * aqk;
-            }
+            let (ap, aq) = (a[p], a[q]);
+            a[p] = std::array::from_fn(|k| c * ap[k] - s * aq[k]);
+            a[q] = std::array::from_fn(|k| s * ap[k] + c * aq[k]);
             for row in &mut v {
                 let (vp, vq) = (row[p], row[q]);
                 row[p] = c * vp - s * vq;
@@ -291,7 +289,7 @@ pub fn nerfstudio_normalization(m: &ColmapModel) -> Option<Normalization> {
                 .max_element()
         })
         .fold(0.0, f64::max);
-    if !(max > 0.0) {
+    if max.is_nan() || max <= 0.0 {
         return None;
     }
     Some(Normalization {

@@ -183,15 +183,6 @@ impl Machine {
         self.phase == Phase::Done
     }
 
-    /// The group's items at the end, in order.
-    #[cfg(test)]
-    pub(super) fn into_items(self) -> Vec<Item> {
-        self.into_items_with_members()
-            .into_iter()
-            .map(|(it, _)| it)
-            .collect()
-    }
-
     /// The group's items at the end, in order, each with the indices (into the items the
     /// machine was made with) of the items it holds, in increasing order.
     pub(super) fn into_items_with_members(self) -> Vec<(Item, Vec<usize>)> {
