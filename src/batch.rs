@@ -395,6 +395,7 @@ fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError>
         lines: refined,
         report: Some(report),
         compare_ply: None,
+        ..Default::default()
     };
     outputs.check(&entry_inputs(e))?;
     let scene = Scene::load(&e.gaussians, &e.lines, &LoadOptions::default())?;

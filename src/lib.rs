@@ -1,6 +1,7 @@
 //! linegs-gpu: refine noisy 3D line segments with the Gaussian centers of a 3D Gaussian
 //! Splatting model (LineGS, Yang and Shi), on the CPU or on the GPU through WGSL kernels.
 
+pub mod autoframe;
 pub mod batch;
 pub mod engine;
 pub mod eval;

@@ -27,6 +27,10 @@ pub struct InputReport {
     /// The map applied to the Gaussians (`--gaussians-transform`), when one was.
     #[serde(default)]
     pub gaussians_transform: Option<String>,
+    /// The index of each segment read among the file's segments, when degenerate ones
+    /// were dropped (provenance counts in file order); not part of the report.
+    #[serde(skip)]
+    pub file_index: Option<Vec<u32>>,
 }
 
 /// The paper's radius sweep (docs/method.md#evaluation): metrics at each radius.
@@ -81,6 +85,11 @@ pub struct Report {
     #[serde(default)]
     pub engine_counters: Option<crate::engine::Counters>,
     pub warnings: Vec<String>,
+    /// Provenance, when asked for (`--provenance`; the Python report): for each output
+    /// segment in output order, the 0-based indices of the input segments it came from,
+    /// in file order. Absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sources: Option<Vec<Vec<u32>>>,
 }
 
 impl Report {
@@ -125,6 +134,7 @@ impl Report {
             notes: r.notes().to_vec(),
             engine_counters: None,
             warnings: scene.warnings.clone(),
+            sources: None,
         }
     }
 

@@ -132,6 +132,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
         lines: file("refined.obj"),
         compare_ply: Some(file("before_after.ply")),
         report: Some(file("report.json")),
+        ..Default::default()
     };
     outputs.stage(&mut outs, &scene.lines, &mut out)?;
     let sw = out.report.sweep.as_ref().expect("the job has a sweep");

@@ -1,5 +1,5 @@
 use super::params::{EvalParamsArgs, ProfileArg, ProtocolArg};
-use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
+use super::{load_framed, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::eval::abc::AbcGroundTruth;
@@ -90,7 +90,12 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
         outs.output("--plot", p, &["png", "svg"]);
     }
     outs.check()?;
-    let scene = load(&a.input)?;
+    let params = Params {
+        profile: a.profile.into(),
+        eval: a.eval.clone().into(),
+        ..Params::default()
+    };
+    let scene = load_framed(&a.input, &params, true)?;
     let compare = match &a.compare {
         Some(c) => {
             let f = io::read_lines(c)?;
@@ -102,11 +107,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
         None => None,
     };
     let job = Job {
-        params: Params {
-            profile: a.profile.into(),
-            eval: a.eval.clone().into(),
-            ..Params::default()
-        },
+        params,
         backend: a.engine.backend.into(),
         gpu: super::env::gpu_setup().clone(),
         sweep: a.radii.clone(),

@@ -67,6 +67,13 @@ pub struct InputArgs {
     pub lines: PathBuf,
     #[command(flatten)]
     pub frame: FrameArgs,
+    /// The COLMAP sparse model the lines and the model were made from (a folder with
+    /// `cameras`, `images`, `points3D`, text or binary; or its `sparse/0/`): when the
+    /// lines and the Gaussians are not in one frame, the normalization gsplat
+    /// (`normalize_world_space`) or nerfstudio applied to it is recomputed and undone
+    /// (docs/formats.md: the automatic frame).
+    #[arg(long, value_name = "DIR", conflicts_with = "gaussians_transform")]
+    pub colmap: Option<PathBuf>,
     /// Keep only Gaussians with opacity >= this (in [0, 1]: sigmoid of the logit that 3DGS
     /// stores; SPZ, .splat and compressed PLY store it directly).
     #[arg(long, value_name = "ALPHA")]
@@ -155,6 +162,34 @@ pub fn outputs(a: &InputArgs) -> io::OutputSet {
         outs.input(p);
     }
     outs
+}
+
+/// Reads the scene, finds its frame with `--colmap` when `check` (the automatic frame, at
+/// `params`' radius) and prints what loading it found.
+pub fn load_framed(
+    a: &InputArgs,
+    params: &linegs_gpu::refine::Params,
+    check: bool,
+) -> Result<Scene> {
+    let mut scene = load(a)?;
+    let Some(dir) = &a.colmap else {
+        return Ok(scene);
+    };
+    let model = io::read_colmap(dir)?;
+    if !check {
+        eprintln!(
+            "note: --no-frame-check: the COLMAP model {} is not used",
+            model.describe()
+        );
+        return Ok(scene);
+    }
+    let found = scene.find_frame(&model, params)?;
+    match (&found.transform, found.message()) {
+        (Some(_), Some(m)) => eprintln!("note: Gaussians mapped by the frame {m}"),
+        (None, Some(m)) => eprintln!("warning: {m}"),
+        _ => {}
+    }
+    Ok(scene)
 }
 
 /// Reads the scene and prints what loading it found.

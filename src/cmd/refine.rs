@@ -1,9 +1,17 @@
 use super::params::{BackendArg, ParamsArgs};
-use super::{load, metrics_table, print_engine, BackendArgs, InputArgs};
+use super::{load_framed, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use linegs_gpu::pipeline::{Job, Outputs, RunError};
+use linegs_gpu::pipeline::{Job, LinesOut, Outputs, RunError};
+
+/// `--format` of `refine`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FormatArg {
+    Auto,
+    Limap,
+    Emap,
+}
 use std::path::PathBuf;
 
 #[derive(Args, Debug)]
@@ -23,6 +31,16 @@ pub struct RefineArgs {
     /// Also write a PLY with the input (red) and refined (blue) segments as coloured edges.
     #[arg(long, value_name = "PLY")]
     pub compare_ply: Option<PathBuf>,
+    /// How -o is written: `auto` by its extension; `limap`: LIMAP `finaltracks/` (-o is a
+    /// new or empty folder; one `track_<k>.txt` per segment whose supports are those of
+    /// the input tracks it came from); `emap`: EMAP/EdgeGaussians `parametric_edges.json`
+    /// (-o that file, or a folder to hold it).
+    #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
+    pub format: FormatArg,
+    /// Write each output segment's sources (0-based indices of the input segments, in
+    /// file order, it came from), in output order: a `.json` file.
+    #[arg(long, value_name = "JSON")]
+    pub provenance: Option<PathBuf>,
     /// Refine even when (almost) no segment has a Gaussian center within r, which
     /// otherwise stops the run (lines and model in different frames or units).
     #[arg(long)]
@@ -36,9 +54,16 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         lines: a.output.clone(),
         report: a.report.clone(),
         compare_ply: a.compare_ply.clone(),
+        format: match a.format {
+            FormatArg::Auto => LinesOut::ByExtension,
+            FormatArg::Limap => LinesOut::Limap,
+            FormatArg::Emap => LinesOut::Emap,
+        },
+        provenance: a.provenance.clone(),
     };
     outputs.check(&a.input.paths())?;
-    let scene = load(&a.input)?;
+    let params: linegs_gpu::refine::Params = a.params.into();
+    let scene = load_framed(&a.input, &params, !a.no_frame_check)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
         bar.set_style(style);
@@ -59,7 +84,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     );
     let job = Job {
         check_frames: !a.no_frame_check,
-        ..super::env::job(a.params.into(), a.engine.backend.into())
+        ..super::env::job(params, a.engine.backend.into())
     };
     let refined = job.refine(&scene, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));
@@ -114,6 +139,9 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     println!("wrote {} in {:.2} s", a.output.display(), r.total_seconds);
     if let Some(rp) = &a.report {
         println!("wrote {}", rp.display());
+    }
+    if let Some(pp) = &a.provenance {
+        println!("wrote {}", pp.display());
     }
     Ok(())
 }

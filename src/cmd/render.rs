@@ -1,4 +1,4 @@
-use super::{load, InputArgs};
+use super::{load_framed, InputArgs};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::io;
@@ -39,7 +39,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         outs.output("--viewer", v, &["html", "htm"]);
     }
     outs.check()?;
-    let scene = load(&a.input)?;
+    let scene = load_framed(&a.input, &linegs_gpu::refine::Params::default(), true)?;
     let after = match &a.lines_after {
         Some(p) => Some(io::read_lines(p)?.lines),
         None => None,

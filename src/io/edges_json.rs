@@ -153,3 +153,24 @@ pub(crate) fn parse(path: &Path, text: &str, curves: Curves) -> Result<Edges, Er
     }
     Ok((segs, groups, warnings))
 }
+
+/// `segments` as an EMAP / EdgeGaussians `parametric_edges.json`: every segment in
+/// `lines_end_pts` (`[x1, y1, z1, x2, y2, z2]`), no curves.
+pub fn edges_json_text(segments: &[Segment]) -> String {
+    let rows: Vec<String> = segments
+        .iter()
+        .map(|s| {
+            let v: Vec<String> =
+                s.p1.to_array()
+                    .iter()
+                    .chain(&s.p2.to_array())
+                    .map(|x| serde_json::Number::from_f64(*x).map_or("0".into(), |n| n.to_string()))
+                    .collect();
+            format!("[{}]", v.join(", "))
+        })
+        .collect();
+    format!(
+        "{{\"curves_ctl_pts\": [], \"lines_end_pts\": [\n{}\n]}}\n",
+        rows.join(",\n")
+    )
+}

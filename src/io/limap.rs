@@ -303,3 +303,141 @@ pub(crate) fn refuse_pickled_npy(path: &Path, bytes: &[u8]) -> Result<(), Error>
     }
     Ok(())
 }
+
+/// One 2D observation of a LIMAP track: the image, the 2D line's id in it and, where the
+/// file has it (`track_<id>.txt`, not `alltracks.txt`), the 2D segment `x1 y1 x2 y2`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Support {
+    pub image_id: i64,
+    pub line_id: i64,
+    pub line2d: Option<[f64; 4]>,
+}
+
+/// The supports of one `track_<id>.txt` (after its segment and counts).
+fn track_supports(path: &Path, text: &str) -> Result<Vec<Support>, Error> {
+    let mut t = Tokens::new(path, text);
+    t.segment()?;
+    let (_, n) = t.count("the line count n_lines")?;
+    t.count("the image count n_images")?;
+    t.keyword("image_id_list")?;
+    let mut images = Vec::with_capacity(n);
+    for _ in 0..n {
+        images.push(t.int("an image id")?.1);
+    }
+    t.keyword("line_id_list")?;
+    let mut out = Vec::with_capacity(n);
+    for &image_id in &images {
+        out.push(Support {
+            image_id,
+            line_id: t.int("a line id")?.1,
+            line2d: None,
+        });
+    }
+    // LIMAP's reader takes a file that ends here (its earlier versions wrote no 2D lines).
+    if t.toks.get(t.at).map(|x| x.2) == Some("line2d_list") {
+        t.at += 1;
+        for s in &mut out {
+            let mut v = [0.0; 4];
+            for x in &mut v {
+                *x = t.coord("a 2D line coordinate")?;
+            }
+            s.line2d = Some(v);
+        }
+    }
+    Ok(out)
+}
+
+/// The supports of every track of a LIMAP line file, in the order its segments are read
+/// (a `finaltracks/` folder by id, one track file, `alltracks.txt` in file order);
+/// `None` for any other file.
+pub fn read_supports(path: &Path) -> Result<Option<Vec<Vec<Support>>>, Error> {
+    if path.is_dir() {
+        let entries = std::fs::read_dir(path).map_err(|e| Error::io(path, "read", e))?;
+        let mut tracks: Vec<(u32, PathBuf)> = Vec::new();
+        for entry in entries {
+            let entry = entry.map_err(|e| Error::io(path, "read", e))?;
+            let name = entry.file_name();
+            if let Some(id) = name
+                .to_string_lossy()
+                .strip_prefix("track_")
+                .and_then(|s| s.strip_suffix(".txt"))
+                .and_then(|s| s.parse::<u32>().ok())
+            {
+                tracks.push((id, entry.path()));
+            }
+        }
+        tracks.sort();
+        let mut out = Vec::with_capacity(tracks.len());
+        for (_, p) in tracks {
+            let bytes = super::input::read_small(&p, "a LIMAP track", TRACK_LIMIT, true)?;
+            let text = String::from_utf8_lossy(&bytes);
+            out.push(track_supports(&p, &text)?);
+        }
+        return Ok(Some(out));
+    }
+    let bytes = super::input::read_input(path)?;
+    let text = String::from_utf8_lossy(&bytes);
+    if looks_like_track(&text) {
+        return Ok(Some(vec![track_supports(path, &text)?]));
+    }
+    if looks_like_alltracks(&text) {
+        let mut t = Tokens::new(path, &text);
+        let (_, n) = t.count("the track count")?;
+        let mut out = Vec::with_capacity(n);
+        for _ in 0..n {
+            t.int("a track id")?;
+            let (_, k) = t.count("the line count n_lines")?;
+            t.count("the image count n_images")?;
+            t.segment()?;
+            let mut images = Vec::with_capacity(k);
+            for _ in 0..k {
+                images.push(t.int("an image id")?.1);
+            }
+            let mut s = Vec::with_capacity(k);
+            for image_id in images {
+                s.push(Support {
+                    image_id,
+                    line_id: t.int("a line id")?.1,
+                    line2d: None,
+                });
+            }
+            out.push(s);
+        }
+        return Ok(Some(out));
+    }
+    Ok(None)
+}
+
+/// One `track_<id>.txt` as LIMAP's `LineTrack::Write` writes it (fixed, 10 decimals); the
+/// `line2d_list` section only when every support has its 2D segment (LIMAP's reader takes
+/// a file without it).
+pub fn track_text(seg: &Segment, supports: &[Support]) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    for x in seg.p1.to_array().iter().chain(&seg.p2.to_array()) {
+        let _ = write!(s, "{x:.10} ");
+    }
+    s.push('\n');
+    let mut images: Vec<i64> = supports.iter().map(|x| x.image_id).collect();
+    images.sort_unstable();
+    images.dedup();
+    let _ = writeln!(s, "{} {}", supports.len(), images.len());
+    s.push_str("image_id_list ");
+    for x in supports {
+        let _ = write!(s, "{} ", x.image_id);
+    }
+    s.push_str("\nline_id_list ");
+    for x in supports {
+        let _ = write!(s, "{} ", x.line_id);
+    }
+    s.push('\n');
+    if supports.iter().all(|x| x.line2d.is_some()) {
+        s.push_str("line2d_list\n");
+        for x in supports {
+            let v = x.line2d.unwrap_or_default();
+            let _ = writeln!(s, "{:.10} {:.10} {:.10} {:.10} ", v[0], v[1], v[2], v[3]);
+        }
+    }
+    s.push_str("END\n");
+    s
+}

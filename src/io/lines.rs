@@ -66,6 +66,9 @@ pub struct LineFile {
     pub format: LineFormat,
     /// Degenerate segments (`L <= 1e-12`, docs/method.md#geometry) that were dropped.
     pub dropped_invalid: usize,
+    /// The index of each segment of `lines` among the file's segments (in file order,
+    /// degenerate ones counted), when some were dropped; `None`: the same indices.
+    pub file_index: Option<Vec<u32>>,
     /// One line each, naming the file.
     pub warnings: Vec<String>,
 }
@@ -201,11 +204,13 @@ pub fn parse_lines_with(
 fn finish(path: &Path, format: LineFormat, p: &mut Parsed) -> Result<LineFile, Error> {
     let total = p.segments.len();
     let mut keep = Vec::with_capacity(total);
+    let mut kept = Vec::with_capacity(total);
     let mut groups = p.groups.as_ref().map(|_| Vec::with_capacity(total));
     let mut first_bad = None;
     for (i, s) in p.segments.iter().enumerate() {
         if s.length() > MIN_LENGTH {
             keep.push(*s);
+            kept.push(i as u32);
             if let (Some(out), Some(g)) = (groups.as_mut(), p.groups.as_ref()) {
                 out.push(g[i]);
             }
@@ -240,6 +245,7 @@ fn finish(path: &Path, format: LineFormat, p: &mut Parsed) -> Result<LineFile, E
         },
         format,
         dropped_invalid: dropped,
+        file_index: (dropped > 0).then_some(kept),
         warnings,
     })
 }
@@ -799,6 +805,37 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<Parsed, Error> {
             .push(Segment::from_arrays(points[end[0]], points[end[1]]));
     }
     Ok(p)
+}
+
+/// The 2D observations of every segment of a Line3D++ `.txt`, in file order: each 3D
+/// line's residuals (`camID segID p1x p1y p2x p2y`) as LIMAP supports (image = camera id,
+/// line = 2D segment id), shared by the line's segments.
+pub fn read_line3dpp_supports(path: &Path) -> Result<Vec<Vec<super::Support>>, Error> {
+    let bytes = super::input::read_input(path)?;
+    let text = String::from_utf8_lossy(&bytes);
+    // The reader has checked the counts; a file changed since is refused here.
+    parse_line3dpp(path, &text)?;
+    let mut out = Vec::new();
+    for (_, row) in data_rows(&text) {
+        let toks: Vec<&str> = row.split_whitespace().collect();
+        let n: usize = toks[0].parse().unwrap_or(0);
+        let m: usize = toks[1 + 6 * n].parse().unwrap_or(0);
+        let obs: Vec<super::Support> = (0..m)
+            .map(|k| {
+                let t = &toks[2 + 6 * n + 6 * k..2 + 6 * n + 6 * k + 6];
+                let f = |i: usize| t[i].parse::<f64>().unwrap_or(f64::NAN);
+                super::Support {
+                    image_id: t[0].parse().unwrap_or(-1),
+                    line_id: t[1].parse().unwrap_or(-1),
+                    line2d: Some([f(2), f(3), f(4), f(5)]),
+                }
+            })
+            .collect();
+        for _ in 0..n {
+            out.push(obs.clone());
+        }
+    }
+    Ok(out)
 }
 
 #[cfg(test)]

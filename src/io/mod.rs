@@ -3,6 +3,7 @@
 //! file; and `info` for a quick look at either.
 
 mod chunked;
+mod colmap;
 mod edges_json;
 mod error;
 mod gaussians;
@@ -23,7 +24,11 @@ mod spz;
 mod transform;
 mod write;
 
-pub use edges_json::{Curves, POLYLINE_PIECES};
+pub use colmap::{
+    read_colmap, write_colmap_binary, write_colmap_text, Camera, ColmapModel, Image, Point3D,
+    CAMERA_MODELS,
+};
+pub use edges_json::{edges_json_text, Curves, POLYLINE_PIECES};
 pub use error::{Error, Position, KNOWN_FORMATS};
 pub use gaussians::{
     detect_gaussians, is_gaussian_model, parse_gaussian_model, parse_gaussians_and_attributes,
@@ -34,13 +39,15 @@ pub use input::STREAM_LIMIT;
 pub use journal::recover as finish_output_sets;
 #[cfg(test)]
 pub(crate) use journal::Stop;
+pub use limap::{read_supports, track_text, Support};
 pub use litter::{
     clean_stale_runtime_dirs, clean_stale_temps, temp_prefix, try_lock, RUNTIME_PREFIX, STALE_AGE,
 };
 
 pub(crate) use input::{read_input, read_small};
 pub use lines::{
-    parse_lines, parse_lines_with, read_lines, read_lines_with, LineFile, LineFormat, LineOptions,
+    parse_lines, parse_lines_with, read_line3dpp_supports, read_lines, read_lines_with, LineFile,
+    LineFormat, LineOptions,
 };
 pub use normals::{
     parse_gaussian_attributes, read_gaussian_attributes, read_gaussian_normals, GaussianAttributes,

@@ -115,6 +115,7 @@ impl Scene {
             input_lines: file.lines.input_lines(),
             n_box: 0,
             gaussians_transform: opts.transform.as_ref().map(|t| t.describe.clone()),
+            file_index: file.file_index,
         };
         Ok(Scene {
             gaussians: cloud.centers,
@@ -190,6 +191,7 @@ impl Scene {
             input_lines: lines.input_lines(),
             n_box: 0,
             gaussians_transform: None,
+            file_index: None,
         };
         Ok(Scene {
             gaussians,

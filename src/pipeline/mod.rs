@@ -14,13 +14,15 @@
 //! The parts: `load.rs` (a [`Scene`] from files or arrays), `run.rs` (the [`Job`] and the
 //! [`Refiner`] that runs it), `write.rs` (the [`Outputs`] of a refinement).
 
+mod frame;
 mod load;
 mod run;
 mod write;
 
+pub use frame::FrameFound;
 pub use load::{read_gaussians, read_gaussians_and_attributes, LoadOptions, Scene};
 pub use run::{grid_cell, Job, Outcome, Refined, Refiner};
-pub use write::{Outputs, AFTER_COLOR, BEFORE_COLOR};
+pub use write::{LinesOut, Outputs, AFTER_COLOR, BEFORE_COLOR};
 
 use crate::engine::EngineError;
 use crate::io;

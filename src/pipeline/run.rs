@@ -241,7 +241,7 @@ impl Refiner {
         let before = self.evaluate(&lines.segments)?;
         push(Stage::since("evaluate_before", lines.len(), t), &mut stages);
         let place = self.placement.as_deref().unwrap_or(self);
-        let (refined, steps) = refine::run_steps_noted(
+        let (refined, steps, sources) = refine::run_steps_traced(
             self.engine(),
             (place.engine(), &place.attrs),
             lines,
@@ -260,6 +260,7 @@ impl Refiner {
             after,
             stages,
             steps,
+            sources,
         })
     }
 }
@@ -273,6 +274,9 @@ pub struct Refined {
     pub stages: Vec<Stage>,
     /// Step 4's shifts, the edge fit's counts and segment length per stage.
     pub steps: refine::StepNotes,
+    /// For each output segment, the indices into the input `lines` of the segments it
+    /// came from ([`refine::run_steps_traced`]).
+    pub sources: Vec<Vec<u32>>,
 }
 
 /// One run's parameters and what to measure beyond the paper's metrics.
@@ -300,6 +304,9 @@ pub struct Job {
 pub struct Outcome {
     pub lines: LineSet,
     pub report: Report,
+    /// Provenance: for each segment of `lines`, the 0-based indices of the input
+    /// segments it came from, in the input file's order (increasing).
+    pub sources: Vec<Vec<u32>>,
 }
 
 /// `--max-scale`'s scene (only where it left some Gaussians out) and what it did: how
@@ -456,9 +463,19 @@ impl Job {
         report.ground_truth = ground_truth;
         report.engine_counters = Some(refiner.counters());
         report.total_seconds = scene.load_seconds + t.elapsed().as_secs_f64();
+        // Indices in the file's order (degenerate segments dropped on reading count).
+        let sources = match &scene.input.file_index {
+            Some(f) => out
+                .sources
+                .iter()
+                .map(|v| v.iter().map(|&i| f[i as usize]).collect())
+                .collect(),
+            None => out.sources,
+        };
         Ok(Outcome {
             lines: out.lines,
             report,
+            sources,
         })
     }
 

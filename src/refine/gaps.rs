@@ -99,10 +99,24 @@ pub fn split_gaps(
     min_points: u32,
     interior: bool,
 ) -> Result<(LineSet, GapNotes), EngineError> {
+    let (out, notes, _) = split_gaps_traced(engine, lines, r, alpha, min_points, interior)?;
+    Ok((out, notes))
+}
+
+/// [`split_gaps`] with the index into `lines` of the segment each piece comes from.
+pub fn split_gaps_traced(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    r: f64,
+    alpha: f64,
+    min_points: u32,
+    interior: bool,
+) -> Result<(LineSet, GapNotes, Vec<usize>), EngineError> {
     let mut total = GapNotes::default();
     if alpha <= 0.0 || lines.is_empty() {
-        return Ok((lines.clone(), total));
+        return Ok((lines.clone(), total, (0..lines.len()).collect()));
     }
+    let mut from = Vec::with_capacity(lines.len());
     let queries: Vec<Query> = lines.segments.iter().map(|s| Query::new(*s, r)).collect();
     let axial = engine.axial(&queries)?;
     let mut segments = Vec::with_capacity(lines.len());
@@ -134,9 +148,10 @@ pub fn split_gaps(
             if let (Some(g), Some(src)) = (groups.as_mut(), lines.groups.as_ref()) {
                 g.push(src[i]);
             }
+            from.push(i);
         }
     }
-    Ok((LineSet { segments, groups }, total))
+    Ok((LineSet { segments, groups }, total, from))
 }
 
 #[cfg(test)]

@@ -132,8 +132,38 @@ pub fn run_steps_noted(
     place: (&dyn Engine, &fit::Attributes),
     input: &LineSet,
     s: &Settings,
-    mut stage: impl FnMut(&str, usize, Instant),
+    stage: impl FnMut(&str, usize, Instant),
 ) -> Result<(LineSet, StepNotes), EngineError> {
+    let (lines, notes, _) = run_steps_traced(engine, place, input, s, stage)?;
+    Ok((lines, notes))
+}
+
+/// [`run_steps_noted`] with each output segment's sources: the indices into `input` of
+/// the segments it came from (increasing; a merge or join holds those of both, a split's
+/// pieces those of the segment split).
+pub fn run_steps_traced(
+    engine: &dyn Engine,
+    place: (&dyn Engine, &fit::Attributes),
+    input: &LineSet,
+    s: &Settings,
+    mut stage: impl FnMut(&str, usize, Instant),
+) -> Result<(LineSet, StepNotes, Vec<Vec<u32>>), EngineError> {
+    let mut sources: Vec<Vec<u32>> = (0..input.len() as u32).map(|i| vec![i]).collect();
+    // The sources of the step's output, from each output's members in the step's input.
+    fn regroup(sources: &[Vec<u32>], members: &[Vec<usize>]) -> Vec<Vec<u32>> {
+        members
+            .iter()
+            .map(|m| {
+                let mut v: Vec<u32> = m.iter().flat_map(|&k| sources[k].iter().copied()).collect();
+                v.sort_unstable();
+                v.dedup();
+                v
+            })
+            .collect()
+    }
+    let pick = |sources: &[Vec<u32>], kept: &[usize]| -> Vec<Vec<u32>> {
+        kept.iter().map(|&k| sources[k].clone()).collect()
+    };
     let (place, attrs) = place;
     let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let mut lines = input.clone();
@@ -210,12 +240,15 @@ pub fn run_steps_noted(
     let t = Instant::now();
     let o = outliers::outliers(engine, &lines.segments, r, p.outlier_ratio())?;
     lines = lines.select(&o.kept);
+    sources = pick(&sources, &o.kept);
     note_len("outliers", &lines.segments, &mut notes);
     stage("outliers", lines.len(), t);
 
     if p.collinear_merge && lines.groups.is_some() {
         let t = Instant::now();
-        lines = mergejoin::collinear_merge(engine, &lines, s)?;
+        let (merged, members) = mergejoin::collinear_merge_traced(engine, &lines, s)?;
+        lines = merged;
+        sources = regroup(&sources, &members);
         note_len("collinear_merge", &lines.segments, &mut notes);
         stage("collinear_merge", lines.len(), t);
     }
@@ -225,7 +258,9 @@ pub fn run_steps_noted(
     stage("cluster", lines.len(), t);
 
     let t = Instant::now();
-    lines = mergejoin::merge_join(engine, &lines, &clusters, s)?;
+    let (joined, members) = mergejoin::merge_join_traced(engine, &lines, &clusters, s)?;
+    lines = joined;
+    sources = regroup(&sources, &members);
     note_len("merge_join", &lines.segments, &mut notes);
     stage("merge_join", lines.len(), t);
 
@@ -237,9 +272,10 @@ pub fn run_steps_noted(
     let alpha = p.split_gaps();
     if alpha > 0.0 {
         let t = Instant::now();
-        let (split, g) =
-            gaps::split_gaps(engine, &lines, r, alpha, p.fit_min_points, p.split_interior)?;
+        let (split, g, from) =
+            gaps::split_gaps_traced(engine, &lines, r, alpha, p.fit_min_points, p.split_interior)?;
         lines = split;
+        sources = pick(&sources, &from);
         notes.gaps_ends_cut = Some(g.ends_cut);
         notes.gaps_split = Some(g.split);
         notes.gaps_pieces_dropped = Some(g.pieces_dropped);
@@ -255,8 +291,10 @@ pub fn run_steps_noted(
             .collect();
         notes.curved_dropped = Some(lines.len() - kept.len());
         lines = lines.select(&kept);
+        sources = pick(&sources, &kept);
         note_len("straightness", &lines.segments, &mut notes);
         stage("straightness", lines.len(), t);
     }
-    Ok((lines, notes))
+    debug_assert_eq!(sources.len(), lines.len());
+    Ok((lines, notes, sources))
 }

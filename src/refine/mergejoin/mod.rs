@@ -101,6 +101,17 @@ pub fn merge_join(
     clusters: &[Vec<usize>],
     s: &Settings,
 ) -> Result<LineSet, EngineError> {
+    Ok(merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET)?.0)
+}
+
+/// [`merge_join`] with each result's members: the indices into `lines` of the segments
+/// it was made of (itself, or those merged and joined into it), increasing.
+pub fn merge_join_traced(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    clusters: &[Vec<usize>],
+    s: &Settings,
+) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
     merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET)
 }
 
@@ -110,17 +121,24 @@ fn merge_join_budget(
     clusters: &[Vec<usize>],
     s: &Settings,
     budget: usize,
-) -> Result<LineSet, EngineError> {
+) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
     let cx = Ctx::new(Mode::Cluster, s);
     let mut machines: Vec<rounds::Machine> = clusters
         .iter()
         .map(|c| rounds::Machine::new(items_of(lines, c), Mode::Cluster, budget))
         .collect();
     rounds::run(engine, &mut machines, cx)?;
-    Ok(line_set(
-        machines.into_iter().flat_map(|m| m.into_items()),
-        lines.groups.is_some(),
-    ))
+    let mut items = Vec::with_capacity(lines.len());
+    let mut members = Vec::with_capacity(lines.len());
+    for (m, c) in machines.into_iter().zip(clusters) {
+        for (it, k) in m.into_items_with_members() {
+            items.push(it);
+            let mut idx: Vec<usize> = k.into_iter().map(|k| c[k]).collect();
+            idx.sort_unstable();
+            members.push(idx);
+        }
+    }
+    Ok((line_set(items.into_iter(), lines.groups.is_some()), members))
 }
 
 /// The members of each input line, lines in order of their first segment.
@@ -138,16 +156,26 @@ fn input_lines(groups: &[u32]) -> Vec<Vec<usize>> {
 }
 
 /// Puts each input line's result in the place of its first segment.
-fn in_input_order(lines: &LineSet, members: &[Vec<usize>], mut results: Vec<Vec<Item>>) -> LineSet {
+fn in_input_order(
+    lines: &LineSet,
+    members: &[Vec<usize>],
+    mut results: Vec<Vec<(Item, Vec<usize>)>>,
+) -> (LineSet, Vec<Vec<usize>>) {
     let mut first: Vec<Option<usize>> = vec![None; lines.len()];
     for (k, m) in members.iter().enumerate() {
         first[m[0]] = Some(k);
     }
     let mut out = Vec::with_capacity(lines.len());
+    let mut from = Vec::with_capacity(lines.len());
     for k in first.into_iter().flatten() {
-        out.append(&mut results[k]);
+        for (it, held) in results[k].drain(..) {
+            out.push(it);
+            let mut idx: Vec<usize> = held.into_iter().map(|h| members[k][h]).collect();
+            idx.sort_unstable();
+            from.push(idx);
+        }
     }
-    line_set(out.into_iter(), true)
+    (line_set(out.into_iter(), true), from)
 }
 
 /// Step 6: inside each input line with two or more segments, the join on every pair,
@@ -158,11 +186,21 @@ pub fn collinear_merge(
     lines: &LineSet,
     s: &Settings,
 ) -> Result<LineSet, EngineError> {
+    Ok(collinear_merge_traced(engine, lines, s)?.0)
+}
+
+/// [`collinear_merge`] with each result's members (indices into `lines`, increasing).
+pub fn collinear_merge_traced(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    s: &Settings,
+) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
+    let unchanged = || (lines.clone(), (0..lines.len()).map(|i| vec![i]).collect());
     let Some(groups) = &lines.groups else {
-        return Ok(lines.clone());
+        return Ok(unchanged());
     };
     if !s.params().collinear_merge {
-        return Ok(lines.clone());
+        return Ok(unchanged());
     }
     let members = input_lines(groups);
     let cx = Ctx::new(Mode::Collinear, s);
@@ -171,7 +209,10 @@ pub fn collinear_merge(
         .map(|m| rounds::Machine::new(items_of(lines, m), Mode::Collinear, FIRST_BUDGET))
         .collect();
     rounds::run(engine, &mut machines, cx)?;
-    let results = machines.into_iter().map(|m| m.into_items()).collect();
+    let results = machines
+        .into_iter()
+        .map(|m| m.into_items_with_members())
+        .collect();
     Ok(in_input_order(lines, &members, results))
 }
 

@@ -152,6 +152,9 @@ pub(super) struct Machine {
     failed: HashSet<Key>,
     /// Pairs (by identity) decided in favour in a round where an earlier pair won.
     won: HashMap<Key, Made>,
+    /// The group's input items each item holds (its own, and those merged or joined
+    /// into it): the provenance of the result.
+    members: Vec<Vec<usize>>,
 }
 
 impl Machine {
@@ -160,6 +163,7 @@ impl Machine {
         Machine {
             items,
             alive: vec![true; n],
+            members: (0..n).map(|k| vec![k]).collect(),
             phase: match mode {
                 Mode::Cluster => Phase::Merge,
                 Mode::Collinear => Phase::Join,
@@ -179,14 +183,26 @@ impl Machine {
         self.phase == Phase::Done
     }
 
-    /// The group's items at the end, in order.
-    pub(super) fn into_items(self) -> Vec<Item> {
+    /// The group's items at the end, in order, each with the indices (into the items the
+    /// machine was made with) of the items it holds, in increasing order.
+    pub(super) fn into_items_with_members(self) -> Vec<(Item, Vec<usize>)> {
         let alive = self.alive;
         self.items
             .into_iter()
+            .zip(self.members)
             .zip(alive)
-            .filter_map(|(it, a)| a.then_some(it))
+            .filter_map(|((it, mut m), a)| {
+                m.sort_unstable();
+                a.then_some((it, m))
+            })
             .collect()
+    }
+
+    /// Item `j` goes into item `i`.
+    fn absorb(&mut self, i: usize, j: usize) {
+        self.alive[j] = false;
+        let mj = std::mem::take(&mut self.members[j]);
+        self.members[i].extend(mj);
     }
 
     /// The open pairs of this round in scan order, at most `budget` of them (see the
@@ -373,7 +389,7 @@ impl Machine {
                 continue;
             }
             if bits(&made.seg) == bits(&self.items[i].seg) {
-                self.alive[j] = false;
+                self.absorb(i, j);
             } else {
                 change = Some((i, j, made, phase));
             }
@@ -384,7 +400,7 @@ impl Machine {
                 self.items[i].stats = made.stats;
                 self.uids[i] = self.next_uid;
                 self.next_uid += 1;
-                self.alive[j] = false;
+                self.absorb(i, j);
                 let open = match phase {
                     Phase::Merge => {
                         // The join scan starts afresh once the merge loop ends.

@@ -111,7 +111,8 @@ pub fn collinear_merge_sequential(
     for m in &members {
         let mut items = items_of(lines, m);
         restart_loop(engine, &mut items, false, cx)?;
-        results.push(items);
+        // The executable definition keeps no provenance.
+        results.push(items.into_iter().map(|it| (it, Vec::new())).collect());
     }
-    Ok(in_input_order(lines, &members, results))
+    Ok(in_input_order(lines, &members, results).0)
 }

@@ -329,7 +329,7 @@ fn the_round_budget_changes_rounds_not_results() {
         let (small, rounds_small) = go(3);
         assert_eq!(all, small);
         assert!(rounds_small > rounds_all, "{rounds_small} vs {rounds_all}");
-        assert!(all.len() < 10, "{} left", all.len());
+        assert!(all.0.len() < 10, "{} left", all.0.len());
     }
 }
 
@@ -518,7 +518,9 @@ fn batched_rounds_give_the_sequential_result_on_random_clusters() {
         }
         let want = sequential::merge_join_sequential(&e, &lines, &clusters, &st).unwrap();
         for budget in [FIRST_BUDGET, 2] {
-            let got = merge_join_budget(&e, &lines, &clusters, &st, budget).unwrap();
+            let got = merge_join_budget(&e, &lines, &clusters, &st, budget)
+                .unwrap()
+                .0;
             assert_eq!(got, want, "seed {seed}, budget {budget}, {fixes:?}");
         }
         let want = sequential::collinear_merge_sequential(&e, &lines, &st).unwrap();
