@@ -319,3 +319,127 @@ fn a_model_that_fits_no_normalization_is_refused_and_bad_models_exit_2() {
     args.extend(["--colmap", s(&bad), "--gaussians-transform", s(&bad)]);
     assert_eq!(run(&args).status.code(), Some(2));
 }
+
+/// A COLMAP model for the toy scene: 24 cameras on two rings about the middle of its
+/// Gaussians, looking at it with world z up, and every 7th Gaussian center as a sparse
+/// point.
+fn toy_colmap(centers: &[[f32; 3]]) -> linegs_gpu::io::ColmapModel {
+    use glam::{DMat3, DQuat};
+    use linegs_gpu::io::{Camera, ColmapModel, Image, Point3D};
+    let pts: Vec<DVec3> = centers
+        .iter()
+        .map(|c| DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64))
+        .collect();
+    let (lo, hi) = pts.iter().fold(
+        (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN)),
+        |(a, b), p| (a.min(*p), b.max(*p)),
+    );
+    let (mid, size) = ((lo + hi) * 0.5, (hi - lo).max_element());
+    let images = (0..24)
+        .map(|k| {
+            let a = k as f64 * std::f64::consts::TAU / 12.0 + 0.1;
+            let h = if k < 12 { 0.4 } else { 1.1 };
+            let c = mid + DVec3::new(a.cos(), a.sin(), h).normalize() * 2.5 * size;
+            let fwd = (mid - c).normalize();
+            let right = fwd.cross(DVec3::Z).normalize();
+            let down = fwd.cross(right);
+            let r = DMat3::from_cols(right, down, fwd).transpose();
+            let q = DQuat::from_mat3(&r);
+            let t = -(r * c);
+            Image {
+                id: k + 1,
+                qvec: [q.w, q.x, q.y, q.z],
+                tvec: t.to_array(),
+                camera_id: 1,
+                name: format!("{k:03}.png"),
+                points2d: vec![],
+            }
+        })
+        .collect();
+    ColmapModel {
+        cameras: vec![Camera {
+            id: 1,
+            model: "PINHOLE".into(),
+            width: 800,
+            height: 600,
+            params: vec![700.0, 700.0, 400.0, 300.0],
+        }],
+        images,
+        points: pts
+            .iter()
+            .step_by(7)
+            .enumerate()
+            .map(|(i, p)| Point3D {
+                id: i as u64 + 1,
+                xyz: p.to_array(),
+                rgb: [128, 128, 128],
+                error: 0.5,
+                track: vec![],
+            })
+            .collect(),
+        ..Default::default()
+    }
+}
+
+#[test]
+fn the_toy_scene_normalized_by_gsplat_or_nerfstudio_finds_its_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = common::synth_toy(dir.path(), 20_000);
+    let opts = PlyOptions {
+        min_opacity: None,
+        strict: false,
+    };
+    let centers = read_gaussians(&g, &opts).unwrap().centers;
+    let model = toy_colmap(&centers);
+    let colmap = dir.path().join("sparse/0");
+    std::fs::create_dir_all(&colmap).unwrap();
+    write_colmap_binary(&colmap, &model).unwrap();
+    let cands = autoframe::normalizations(&model);
+    // A gsplat candidate with two axes flipped, and nerfstudio's.
+    for (k, family) in [(3, "gsplat"), (cands.len() - 1, "nerfstudio")] {
+        let n = &cands[k];
+        assert!(n.name.starts_with(family), "{}", n.name);
+        let moved: Vec<[f32; 3]> = centers
+            .iter()
+            .map(|c| {
+                let p =
+                    n.to_model
+                        .transform_point3(DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64));
+                [p.x as f32, p.y as f32, p.z as f32]
+            })
+            .collect();
+        let gn = dir.path().join(format!("{family}.ply"));
+        write_gaussians_ply(&gn, &moved, None, family).unwrap();
+        let (auto, hand) = (dir.path().join("auto.obj"), dir.path().join("hand.obj"));
+        let refine = |out: &Path, extra: &[&str]| {
+            let mut args = vec![
+                "refine",
+                "--backend",
+                "cpu",
+                "-g",
+                s(&gn),
+                "-l",
+                s(&l),
+                "-o",
+                s(out),
+            ];
+            args.extend_from_slice(extra);
+            run(&args)
+        };
+        let o = refine(&auto, &["--colmap", s(dir.path())]);
+        let err = stderr(&o);
+        assert!(o.status.success(), "{family}: {err}");
+        assert!(
+            err.contains("COLMAP binary model: 1 cameras, 24 images"),
+            "{err}"
+        );
+        assert!(err.contains(&n.name), "{family}: {err}");
+        assert!(err.contains("residual"), "{err}");
+        // The right matrix by hand: the same bytes.
+        let m = dir.path().join("hand.txt");
+        std::fs::write(&m, autoframe::matrix_rows(&n.to_colmap())).unwrap();
+        let o = refine(&hand, &["--gaussians-transform", s(&m)]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert_eq!(std::fs::read(&auto).unwrap(), std::fs::read(&hand).unwrap());
+    }
+}
