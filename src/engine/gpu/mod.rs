@@ -23,6 +23,8 @@
 //!    points within the f32 error bound of a boundary are flagged instead;
 //! 6. `reduce.wgsl`: per query, its items' slots summed in grid order (Kahan, no atomics);
 //! 7. `fit.wgsl` (the edge fit's batches): the ridge over each query's member list.
+//! 8. `extent.wgsl` (the end gaps' batches): the members at both ends of each query's
+//!    member list, whose own positions the host then reads in f64.
 //!
 //! The host then reads back the per-query results and the flag list (one readback) and
 //! decides the flagged points in f64 — the only per-point work left on the host, and
