@@ -799,9 +799,22 @@ fn the_device_fit_answers_like_the_host() {
 
 #[test]
 fn the_side_nearest_and_member_kernels_compile_on_first_use() {
+    use linegs_gpu::engine::gpu::FitOn;
     let pts = random_scene(20_000, 61);
     let qs = random_queries(200, 62, 0.04);
-    let Some((_, cpu, gpu)) = engines(&pts, 0.03, GpuOptions::default()) else {
+    // With the ridge on the device (lavapipe and hardware adapters have f64), the member
+    // kernels compile when the device opens: every refinement's edge fit needs them.
+    let Some((_, _, fits)) = engines(&pts, 0.03, GpuOptions::default()) else {
+        return;
+    };
+    if fits.fits_on_device() {
+        assert_eq!(fits.kernels_compiled_on_use(), ["eval members", "members"]);
+    }
+    let host_fit = GpuOptions {
+        fit: FitOn::Host,
+        ..GpuOptions::default()
+    };
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, host_fit) else {
         return;
     };
     // Plain counts and sums (with coverage): nothing beyond the kernels compiled at open.
@@ -889,7 +902,13 @@ fn a_warmed_up_device_answers_like_the_cpu_and_counts_none_of_its_warm_up() {
     // The warm-up's engine, batches and buffers are gone; only eager kernels ran.
     let c = gpu.counters();
     assert_eq!((c.batches, c.queries), (0, 0), "{c:?}");
-    assert!(gpu.kernels_compiled_on_use().is_empty());
+    // (The member kernels compile at opening where the ridge runs on the device.)
+    let eager: &[&str] = if gpu.fits_on_device() {
+        &["eval members", "members"]
+    } else {
+        &[]
+    };
+    assert_eq!(gpu.kernels_compiled_on_use(), eager);
     check_parity(&cpu, &gpu, &qs);
 }
 

@@ -167,6 +167,13 @@ impl GpuDevice {
         let kernels = ctx.scoped("compiling the kernels", || {
             kernels::Kernels::new(&ctx, fit_wanted)
         })?;
+        // Where the ridge runs on the device, every refinement sends member batches (the
+        // fit's, the end gaps'): their kernels compile here, on the opening thread while
+        // the grid is built, instead of in the run's first fit batch.
+        if fit_wanted {
+            kernels.eval(&ctx, layout::MODE_MEMBERS, false)?;
+            kernels.members(&ctx)?;
+        }
         let device = GpuDevice {
             ctx,
             kernels,
@@ -317,7 +324,8 @@ impl GpuEngine {
     }
 
     /// The kernels this engine has compiled on first use (those of the side counts, the k
-    /// nearest and the member lists; the rest compile when the device opens), named as
+    /// nearest and the member lists; the rest compile when the device opens, and the
+    /// member lists' too where the ridge runs on the device), named as
     /// `eval sides`, `eval histogram`, `eval below`, `eval members`, `cut`, `members`.
     pub fn kernels_compiled_on_use(&self) -> Vec<String> {
         self.kernels.compiled_on_use()
