@@ -7,7 +7,9 @@
 # Pick an adapter with WGPU_ADAPTER_NAME=<part of its name> (see `vulkaninfo --summary`).
 # LINEGS_GPU_BIN=<path> uses that binary instead of building one; BENCH_GPU_SIZES="G S
 # LIMIT;..." replaces the two sizes (Gaussians, segments, time limit in seconds), as the
-# smoke test in tests/cli.rs does.
+# smoke test in tests/cli.rs does. On a hardware adapter it fails (exit 1) when the GPU
+# run's host seconds exceed BENCH_GPU_MAX_HOST_SHARE percent (default 10) of the CPU run's
+# total: the host's share bounds what any GPU can gain (docs/benchmarks.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # The folder cargo builds into: CARGO_TARGET_DIR, a .cargo/config setting, or ./target.
@@ -40,5 +42,13 @@ for size in "${sizes[@]}"; do
   echo "$out"
   if echo "$out" | grep -E "^  gpu: " | grep -qiE "llvmpipe|lavapipe|swiftshader|warp|software"; then
     echo "WARNING: the GPU engine ran on a software adapter; these are not real-GPU numbers" >&2
+    continue
+  fi
+  # The last line of the host-share table: "total <host s> <share>%".
+  share=$(echo "$out" | awk '/^gpu host share/ { t = 1 } t && $1 == "total" { s = $NF } END { sub("%", "", s); print s }')
+  max=${BENCH_GPU_MAX_HOST_SHARE:-10}
+  if [ -z "$share" ] || awk -v s="$share" -v m="$max" 'BEGIN { exit !(s > m) }'; then
+    echo "FAILED: at $g x $s the GPU run's host seconds are ${share:-?} % of the CPU run's total (target <= $max %)" >&2
+    exit 1
   fi
 done

@@ -161,6 +161,13 @@ fn main(
             flag(qi | FLAG_CANDIDATE, it.start + k);
         }
     }
+    // The points this item read from the point store (both loops), a 64-bit count in two
+    // words (the carry into the high word).
+    let read = n + again;
+    let before = atomicAdd(&ctl[CTL_POINTS], read);
+    if before > 0xFFFFFFFFu - read {
+        atomicAdd(&ctl[CTL_POINTS + 1u], 1u);
+    }
     if mode == MODE_MEMBERS {
         if count != expect {
             atomicOr(&ctl[CTL_MEMBERS_BAD], 1u);

@@ -105,6 +105,9 @@ impl Report {
                 seconds: scene.load_seconds,
                 host_seconds: None,
                 device_seconds: None,
+                device_items: None,
+                point_bytes: None,
+                host_lists: None,
             });
         }
         stages.extend(r.stages().iter().cloned());

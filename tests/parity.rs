@@ -11,7 +11,7 @@ use glam::DVec3;
 use linegs_gpu::engine::cpu::CpuEngine;
 use linegs_gpu::engine::gpu::{GpuEngine, GpuOptions};
 use linegs_gpu::engine::{
-    axial_of_members, Ask, Coverage, Engine, EngineError, Nearest, NearestSum, Query, Want,
+    axial_of_members, Ask, Coverage, Engine, EngineError, Extent, Nearest, NearestSum, Query, Want,
 };
 use linegs_gpu::geom::Segment;
 use linegs_gpu::index::Grid;
@@ -40,6 +40,7 @@ fn close_vec(a: DVec3, b: DVec3, n: u64, sum_d2: f64, r: f64) -> bool {
 fn check_parity(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
     check_members(reference, tested, queries);
     check_axial(reference, tested, queries);
+    check_extent(reference, tested, queries);
     for want in [Want::COUNT, Want::SUMS, Want::SIDES, Want::ALL] {
         let a = reference.stats(queries, want).unwrap();
         let b = tested.stats(queries, want).unwrap();
@@ -187,6 +188,29 @@ fn check_axial(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
     let want = bits(&from_members);
     assert_eq!(bits(&reference.axial(queries).unwrap()), want);
     assert_eq!(bits(&tested.axial(queries).unwrap()), want);
+}
+
+/// The extents the same, bit for bit, both engines' and the ends of the sorted axial
+/// positions (`Engine::extent`: the GPU engine's from the device's extent kernel).
+fn check_extent(reference: &dyn Engine, tested: &dyn Engine, queries: &[Query]) {
+    let bits = |e: &[Extent]| -> Vec<(u64, u64, u64)> {
+        e.iter()
+            .map(|e| (e.count, e.lo.to_bits(), e.hi.to_bits()))
+            .collect()
+    };
+    let ends: Vec<Extent> = reference
+        .axial(queries)
+        .unwrap()
+        .iter()
+        .map(|t| Extent::of_sorted(t))
+        .collect();
+    let want = bits(&ends);
+    assert_eq!(bits(&reference.extent(queries).unwrap()), want);
+    let got = bits(&tested.extent(queries).unwrap());
+    for (i, (x, y)) in want.iter().zip(&got).enumerate() {
+        assert_eq!(x, y, "extent of query {i}: {:?}", queries[i]);
+    }
+    assert_eq!(got.len(), want.len());
 }
 
 fn nearest_close(x: &NearestSum, y: &NearestSum, r: f64) -> bool {
@@ -506,6 +530,53 @@ fn small_batches_are_answered_on_the_host_with_the_cpu_engines_answers() {
 }
 
 #[test]
+fn extents_come_from_the_device_and_only_ties_are_walked_on_the_host() {
+    // Random queries over a random scene (ends far apart), plus twins: every point of a
+    // dense row doubled, so that each end of a query along the row is held by two points
+    // at the same position (a tie the device cannot break: the host walks that query),
+    // away from the random queries.
+    let mut pts = random_scene(20_000, 81);
+    let row = seg([0.1, 2.0, 0.5], [0.9, 2.0, 0.5]);
+    for k in 0..400 {
+        let p = row.point_at(row.length() * (k as f64 + 0.5) / 400.0);
+        let p = [p.x as f32, p.y as f32, p.z as f32];
+        pts.extend([p, p]);
+    }
+    let mut qs = random_queries(200, 82, 0.05);
+    let plain = qs.len() as u64;
+    qs.push(Query::new(row, 0.01));
+    qs.push(Query::new(seg([0.3, 2.0, 0.5], [0.7, 2.0, 0.5]), 0.01));
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, GpuOptions::default()) else {
+        return;
+    };
+    // The queries the device leaves to the host whatever the batch (walks too long for
+    // its loop bound), as a count batch finds them.
+    gpu.stats(&qs[..plain as usize], Want::COUNT).unwrap();
+    let left = gpu.counters().host_lists;
+    let c0 = gpu.counters();
+    check_extent(&cpu, &gpu, &qs[..plain as usize]);
+    let c = gpu.counters();
+    if gpu.fits_on_device() {
+        // The device's extents: no other query walked on the host, no batch went to the
+        // CPU engine.
+        assert_eq!((c.host_lists - left, c.cpu_batches), (left, 0), "{c:?}");
+        let items = c.device_items - c0.device_items;
+        assert!(
+            items > 0 && c.point_bytes - c0.point_bytes >= 16 * items,
+            "{c:?}"
+        );
+    }
+    check_extent(&cpu, &gpu, &qs);
+    let twins = gpu.counters().host_lists - c.host_lists;
+    let e = gpu.extent(&qs[plain as usize..]).unwrap();
+    assert_eq!((e[0].count, e[1].count), (800, 400));
+    if gpu.fits_on_device() {
+        // The two queries along the twinned row, each tied at both ends.
+        assert_eq!(twins, 2);
+    }
+}
+
+#[test]
 fn member_lists_go_where_the_option_says() {
     use linegs_gpu::engine::gpu::MembersOn;
     let pts = random_scene(20_000, 71);
@@ -728,9 +799,22 @@ fn the_device_fit_answers_like_the_host() {
 
 #[test]
 fn the_side_nearest_and_member_kernels_compile_on_first_use() {
+    use linegs_gpu::engine::gpu::FitOn;
     let pts = random_scene(20_000, 61);
     let qs = random_queries(200, 62, 0.04);
-    let Some((_, cpu, gpu)) = engines(&pts, 0.03, GpuOptions::default()) else {
+    // With the ridge on the device (lavapipe and hardware adapters have f64), the member
+    // kernels compile when the device opens: every refinement's edge fit needs them.
+    let Some((_, _, fits)) = engines(&pts, 0.03, GpuOptions::default()) else {
+        return;
+    };
+    if fits.fits_on_device() {
+        assert_eq!(fits.kernels_compiled_on_use(), ["eval members", "members"]);
+    }
+    let host_fit = GpuOptions {
+        fit: FitOn::Host,
+        ..GpuOptions::default()
+    };
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, host_fit) else {
         return;
     };
     // Plain counts and sums (with coverage): nothing beyond the kernels compiled at open.
@@ -818,7 +902,13 @@ fn a_warmed_up_device_answers_like_the_cpu_and_counts_none_of_its_warm_up() {
     // The warm-up's engine, batches and buffers are gone; only eager kernels ran.
     let c = gpu.counters();
     assert_eq!((c.batches, c.queries), (0, 0), "{c:?}");
-    assert!(gpu.kernels_compiled_on_use().is_empty());
+    // (The member kernels compile at opening where the ridge runs on the device.)
+    let eager: &[&str] = if gpu.fits_on_device() {
+        &["eval members", "members"]
+    } else {
+        &[]
+    };
+    assert_eq!(gpu.kernels_compiled_on_use(), eager);
     check_parity(&cpu, &gpu, &qs);
 }
 

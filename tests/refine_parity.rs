@@ -145,3 +145,49 @@ fn nef_lines_refine_alike_on_gpu_and_cpu() {
     // after-evaluation differs: up to 5e-5 relative (the coverage).
     check_scene(&pts, &lines, &[p, r], 1e-4);
 }
+
+#[test]
+fn no_stage_walks_member_lists_on_the_host_in_the_hardware_configuration() {
+    // The configuration a hardware adapter gets (member lists and the fit on the device,
+    // `LINEGS_GPU_MEMBERS=device LINEGS_GPU_FIT=device`), every batch on the device
+    // (`small_batch` 0): the steps that ask whether Gaussians are there (outliers, merge
+    // and join, crop, the end gaps) walk no member on the host, and each evaluates its
+    // points there. (The translate stage's edge-fit gate reads member lists.)
+    let scene = synth::toy_scene(&synth::ToyParams::default());
+    let p = Params::default();
+    let gpu = Refiner::with_engine(&scene.gaussians, &scene.lines.segments, &p, |grid| {
+        match common::gpu_engine(grid, Default::default()) {
+            Some(e) => Ok((Box::new(e) as Box<dyn Engine>, Vec::new())),
+            None => Err(EngineError::NoAdapter("skipped".into())),
+        }
+    });
+    let Ok(g) = gpu else {
+        return;
+    };
+    assert!(p.split_gaps() > 0.0 && !p.split_interior);
+    let out = run(&g, &scene.lines);
+    let stage = |name: &str| {
+        out.stages
+            .iter()
+            .find(|s| s.name == name)
+            .unwrap_or_else(|| panic!("no stage {name}: {:?}", out.stages))
+    };
+    for name in [
+        "outliers",
+        "merge_join",
+        "crop",
+        "split_gaps",
+        "evaluate_after",
+    ] {
+        let s = stage(name);
+        assert_eq!(s.host_lists, Some(0), "{name}: {s:?}");
+        assert!(s.device_items.unwrap() > 0, "{name}: {s:?}");
+        assert!(
+            s.point_bytes.unwrap() >= 16 * s.device_items.unwrap(),
+            "{name}: {s:?}"
+        );
+    }
+    // and the refinement is the CPU engine's
+    let c = Refiner::new(&scene.gaussians, &scene.lines.segments, &p, Backend::Cpu).unwrap();
+    assert_close(&out, &run(&c, &scene.lines), g.settings().radius(), 1e-6);
+}

@@ -2,7 +2,7 @@
 //! not in a user's run. And every struct the host and the kernels share has, in naga's
 //! reflection of each kernel, the offsets and size of the Rust struct the host writes.
 
-use linegs_gpu::engine::gpu::{common_wgsl, fit_source, kernel_source, layout};
+use linegs_gpu::engine::gpu::{common_wgsl, f64_kernel_source, kernel_source, layout};
 use std::path::Path;
 
 /// A kernel as the engine loads it: the generated prelude and `common.wgsl` first.
@@ -11,16 +11,17 @@ fn source(path: &Path) -> Result<String, String> {
     Ok(if path.file_name().is_some_and(|n| n == "common.wgsl") {
         common_wgsl()
     } else if is_fit(path) {
-        fit_source()
+        f64_kernel_source(&src)
     } else {
         kernel_source(&src)
     })
 }
 
-/// The fit kernel runs in f64: the one kernel that needs a capability (`SHADER_F64`), and
-/// the one with the fit's shared structs.
+/// The fit and extent kernels run in f64: the kernels that need a capability
+/// (`SHADER_F64`), and those with the f64 shared structs.
 fn is_fit(path: &Path) -> bool {
-    path.file_name().is_some_and(|n| n == "fit.wgsl")
+    path.file_name()
+        .is_some_and(|n| n == "fit.wgsl" || n == "extent.wgsl")
 }
 
 fn parse(src: &str, path: &Path) -> Result<naga::Module, String> {
@@ -74,6 +75,7 @@ fn every_shader_is_valid_wgsl() {
             "common.wgsl",
             "cut.wgsl",
             "eval.wgsl",
+            "extent.wgsl",
             "fit.wgsl",
             "members.wgsl",
             "reduce.wgsl",
@@ -89,7 +91,7 @@ fn host_workgroup(file: &str) -> u32 {
     match file {
         "args.wgsl" => 1,
         "scan.wgsl" => layout::SCAN_WG,
-        "fit.wgsl" => layout::FIT_WG,
+        "fit.wgsl" | "extent.wgsl" => layout::FIT_WG,
         _ => layout::WG,
     }
 }
@@ -118,7 +120,7 @@ fn every_kernel_runs_the_workgroup_size_the_host_dispatches() {
         if want > 1 {
             let name = match file.as_str() {
                 "scan.wgsl" => "SCAN_WG",
-                "fit.wgsl" => "FIT_WG",
+                "fit.wgsl" | "extent.wgsl" => "FIT_WG",
                 _ => "WG",
             };
             let decl = format!("const {name}: u32 = {want}u;");

@@ -55,6 +55,66 @@ struct Case {
     runs: Vec<RunTiming>,
     /// GPU total / CPU total, when both ran.
     gpu_over_cpu: Option<f64>,
+    /// The GPU run's host seconds against the CPU run's whole time, per stage, when both
+    /// ran: what bounds `--backend gpu` on any device.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    host_share: Option<HostShare>,
+}
+
+/// The GPU run's host seconds (all of them, and per stage) as a share of the CPU run's
+/// total seconds, with the device's work per stage.
+#[derive(Serialize)]
+struct HostShare {
+    cpu_total_seconds: f64,
+    gpu_host_seconds: f64,
+    /// `gpu_host_seconds / cpu_total_seconds`.
+    share: f64,
+    stages: Vec<StageShare>,
+}
+
+#[derive(Serialize)]
+struct StageShare {
+    name: String,
+    host_seconds: f64,
+    device_seconds: f64,
+    /// `host_seconds / cpu_total_seconds`.
+    share: f64,
+    device_items: u64,
+    point_bytes: u64,
+    host_lists: u64,
+}
+
+impl HostShare {
+    /// `None` unless both a CPU and a GPU run (with host clocks) are there.
+    fn of(runs: &[RunTiming]) -> Option<HostShare> {
+        let cpu = runs.iter().find(|r| r.backend == "cpu")?.total_seconds;
+        let gpu = runs.iter().find(|r| r.backend == "gpu")?;
+        let host = gpu.host_seconds?;
+        if cpu <= 0.0 {
+            return None;
+        }
+        let stages = gpu
+            .stages
+            .iter()
+            .filter_map(|s| {
+                Some(StageShare {
+                    name: s.name.clone(),
+                    host_seconds: s.host_seconds?,
+                    device_seconds: s.device_seconds.unwrap_or(0.0),
+                    share: s.host_seconds? / cpu,
+                    device_items: s.device_items.unwrap_or(0),
+                    point_bytes: s.point_bytes.unwrap_or(0),
+                    host_lists: s.host_lists.unwrap_or(0),
+                })
+            })
+            .collect();
+        Some(HostShare {
+            cpu_total_seconds: cpu,
+            gpu_host_seconds: host,
+            share: host / cpu,
+            stages,
+        })
+    }
 }
 
 #[derive(Serialize)]
@@ -140,6 +200,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
                 gaussians: n,
                 segments: m,
                 synth_seconds,
+                host_share: HostShare::of(&runs),
                 runs,
                 gpu_over_cpu,
             };
@@ -222,4 +283,38 @@ fn print_case(c: &Case) {
     if let Some(x) = c.gpu_over_cpu {
         println!("gpu / cpu total time: {x:.2}");
     }
+    if let Some(h) = &c.host_share {
+        print_host_share(h);
+    }
+}
+
+/// The GPU run's host seconds per stage beside the CPU run's total, and the device's work.
+fn print_host_share(h: &HostShare) {
+    println!(
+        "gpu host share (the gpu run's host seconds / the cpu run's total {:.3} s):",
+        h.cpu_total_seconds
+    );
+    println!(
+        "{:<18}{:>10}{:>10}{:>8}{:>12}{:>12}{:>12}",
+        "stage", "host (s)", "dev (s)", "share", "items", "MB read", "host lists"
+    );
+    for s in &h.stages {
+        println!(
+            "{:<18}{:>10.3}{:>10.3}{:>7.1}%{:>12}{:>12.1}{:>12}",
+            s.name,
+            s.host_seconds,
+            s.device_seconds,
+            100.0 * s.share,
+            s.device_items,
+            s.point_bytes as f64 / 1e6,
+            s.host_lists
+        );
+    }
+    println!(
+        "{:<18}{:>10.3}{:>10}{:>7.1}%",
+        "total",
+        h.gpu_host_seconds,
+        "",
+        100.0 * h.share
+    );
 }

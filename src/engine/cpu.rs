@@ -163,6 +163,25 @@ pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
     )
 }
 
+/// [`Engine::extent`] over `grid` on the host, f64.
+pub fn extents_of(grid: &Grid, queries: &[Query]) -> Vec<super::Extent> {
+    let order = SpatialOrder::new(grid, queries);
+    order.restore(
+        (0..queries.len())
+            .into_par_iter()
+            .with_min_len(8)
+            .map(|j| extent_of(grid, &queries[order.index(j)]))
+            .collect(),
+    )
+}
+
+/// [`Engine::extent`] of one query on the host.
+pub fn extent_of(grid: &Grid, q: &Query) -> super::Extent {
+    let (mut e, l) = (super::Extent::default(), q.seg.length());
+    for_each_member(grid, q, |_, t1, _| e.add(t1.clamp(0.0, l)));
+    e
+}
+
 /// The members of one query on the host, in working-set order.
 pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
     let mut out = Vec::new();
@@ -254,6 +273,12 @@ impl Engine for CpuEngine {
                 })
                 .collect(),
         ))
+    }
+
+    /// The ends of the axial positions straight from the walk: no list, no sort.
+    fn extent(&self, queries: &[Query]) -> Result<Vec<super::Extent>, EngineError> {
+        self.count_batch(queries.len());
+        Ok(extents_of(&self.grid, queries))
     }
 
     /// Each segment's neighbourhood gathered once and iterated on in cache

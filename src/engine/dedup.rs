@@ -206,6 +206,10 @@ impl Engine for Dedup {
         self.per_distinct(queries, |e, q| e.members(q))
     }
 
+    fn extent(&self, queries: &[Query]) -> Result<Vec<super::Extent>, EngineError> {
+        self.per_distinct(queries, |e, q| e.extent(q))
+    }
+
     /// The step of a segment is a function of its query's bits (and the batch-wide ask):
     /// each distinct query is fitted once and its answer copied.
     fn fit_lines(

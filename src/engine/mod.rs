@@ -220,6 +220,53 @@ pub fn axial_of_members(members: &[Vec<Member>], queries: &[Query]) -> Vec<Vec<f
         .collect()
 }
 
+/// One query's member count and its members' smallest and largest axial positions, each
+/// clamped to `[0, length]` ([`Engine::extent`]): the first and last of its sorted
+/// [`Engine::axial`] positions, bit for bit. `lo = hi = 0` when it has no members.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Extent {
+    pub count: u64,
+    pub lo: f64,
+    pub hi: f64,
+}
+
+impl Extent {
+    /// The extent of sorted axial positions `t` ([`Engine::axial`]'s lists).
+    pub fn of_sorted(t: &[f64]) -> Extent {
+        Extent {
+            count: t.len() as u64,
+            lo: t.first().copied().unwrap_or(0.0),
+            hi: t.last().copied().unwrap_or(0.0),
+        }
+    }
+
+    /// The extent of unsorted axial positions `t`, each clamped to `[0, l]` (ordered as
+    /// [`sorted_axial`] orders them: `-0.0` before `0.0`).
+    pub fn of(t: impl Iterator<Item = f64>, l: f64) -> Extent {
+        let mut e = Extent::default();
+        for t in t {
+            e.add(t.clamp(0.0, l));
+        }
+        e
+    }
+
+    /// Adds one member at (clamped) axial position `t`.
+    #[inline]
+    pub fn add(&mut self, t: f64) {
+        if self.count == 0 {
+            (self.lo, self.hi) = (t, t);
+        } else {
+            if t.total_cmp(&self.lo).is_lt() {
+                self.lo = t;
+            }
+            if t.total_cmp(&self.hi).is_gt() {
+                self.hi = t;
+            }
+        }
+        self.count += 1;
+    }
+}
+
 /// Axial positions `t` clamped to `[0, l]` and sorted ascending ([`Engine::axial`]).
 pub fn sorted_axial(t: impl Iterator<Item = f64>, l: f64) -> Vec<f64> {
     let mut t: Vec<f64> = t.map(|t| t.clamp(0.0, l)).collect();
@@ -262,6 +309,20 @@ pub struct Counters {
     pub device_fits: u64,
     #[serde(default)]
     pub device_fits_refitted: u64,
+    /// GPU engine: work items the device evaluated (an item: up to `CHUNK` consecutive
+    /// points of one query's walk), and the bytes it read from the point store for them
+    /// (16 a point and evaluation pass). 0 for the CPU engine.
+    #[serde(default)]
+    pub device_items: u64,
+    #[serde(default)]
+    pub point_bytes: u64,
+    /// GPU engine: queries whose members the host walked or read: every
+    /// [`Engine::members`] query (its list comes back to the host), the queries of
+    /// [`Engine::axial`] and [`Engine::extent`] batches the CPU engine's code answered, and
+    /// every query the device left to the host (a walk too long, a boundary member of a
+    /// k-nearest set or a device fit, a tie in an extent). 0 for the CPU engine.
+    #[serde(default)]
+    pub host_lists: u64,
 }
 
 impl std::ops::AddAssign for Counters {
@@ -276,6 +337,9 @@ impl std::ops::AddAssign for Counters {
             cpu_queries,
             device_fits,
             device_fits_refitted,
+            device_items,
+            point_bytes,
+            host_lists,
         } = o;
         self.uploads += uploads;
         self.batches += batches;
@@ -284,6 +348,9 @@ impl std::ops::AddAssign for Counters {
         self.cpu_queries += cpu_queries;
         self.device_fits += device_fits;
         self.device_fits_refitted += device_fits_refitted;
+        self.device_items += device_items;
+        self.point_bytes += point_bytes;
+        self.host_lists += host_lists;
     }
 }
 
@@ -332,6 +399,17 @@ pub trait Engine: Send + Sync {
     /// sorted ascending (what `--split-gaps` reads): by default from [`Self::members`].
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
         Ok(axial_of_members(&self.members(queries)?, queries))
+    }
+    /// Every query's member count and smallest and largest axial position, each clamped to
+    /// `[0, length]` (what `--split-gaps` reads without interior splits): the ends of
+    /// [`Self::axial`]'s lists, bit for bit, without listing the members. By default from
+    /// [`Self::axial`].
+    fn extent(&self, queries: &[Query]) -> Result<Vec<Extent>, EngineError> {
+        Ok(self
+            .axial(queries)?
+            .iter()
+            .map(|t| Extent::of_sorted(t))
+            .collect())
     }
     /// The edge fit's step (`--fit edge`) for every query's segment (`query.seg`, radius
     /// `query.r`) from its members: by default [`Self::members`], then the host's

@@ -45,6 +45,18 @@ pub struct Stage {
     /// GPU engine: time waiting for the device in this stage.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub device_seconds: Option<f64>,
+    /// GPU engine: work items the device evaluated in this stage (each up to `CHUNK`
+    /// points of one query's walk).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device_items: Option<u64>,
+    /// GPU engine: bytes the device read from the point store in this stage (16 a point
+    /// and evaluation pass).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub point_bytes: Option<u64>,
+    /// GPU engine: queries of this stage whose member lists the host walked or read
+    /// back (`Counters::host_lists`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_lists: Option<u64>,
 }
 
 impl Stage {
@@ -55,6 +67,9 @@ impl Stage {
             seconds: t.elapsed().as_secs_f64(),
             host_seconds: None,
             device_seconds: None,
+            device_items: None,
+            point_bytes: None,
+            host_lists: None,
         }
     }
 }

@@ -225,15 +225,21 @@ impl Refiner {
         mut on_stage: impl FnMut(&Stage),
     ) -> Result<Refined, RunError> {
         let mut stages = Vec::new();
-        // The engine's clocks (GPU engine) split each stage into host and device time.
+        // The engine's clocks (GPU engine) split each stage into host and device time, and
+        // its counters give the device's work in it.
         let mut clock = self.engine().seconds();
+        let mut work = self.engine().counters();
         let mut push = |mut s: Stage, stages: &mut Vec<Stage>| {
             let now = self.engine().seconds();
+            let done = self.engine().counters();
             if let (Some(a), Some(b)) = (clock, now) {
                 s.host_seconds = Some(b.0 - a.0);
                 s.device_seconds = Some(b.1 - a.1);
+                s.device_items = Some(done.device_items - work.device_items);
+                s.point_bytes = Some(done.point_bytes - work.point_bytes);
+                s.host_lists = Some(done.host_lists - work.host_lists);
             }
-            clock = now;
+            (clock, work) = (now, done);
             on_stage(&s);
             stages.push(s);
         };

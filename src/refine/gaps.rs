@@ -12,9 +12,11 @@
 //! hole is not a break in the line (and where the Gaussians cluster, as along a trained
 //! or noisy edge, short holes are more common than the uniform model says). Pieces of a
 //! split holding fewer than `fit_min_points` points are dropped (a few stray points past
-//! a gap are not a line). One `members` batch for all segments.
+//! a gap are not a line). One engine batch for all segments: their sorted axial positions
+//! (`Engine::axial`) with interior splits, else only each one's count and extent
+//! (`Engine::extent`).
 
-use crate::engine::{Engine, EngineError, Query};
+use crate::engine::{Engine, EngineError, Extent, Query};
 use crate::geom::{LineSet, Segment};
 
 /// What [`split_gaps`] did.
@@ -42,23 +44,11 @@ pub fn pieces(
     min_points: u32,
     interior: bool,
 ) -> (Vec<(f64, f64)>, GapNotes) {
-    let mut notes = GapNotes::default();
     let n = t.len();
-    if n < 2 || l <= 0.0 || alpha <= 0.0 {
-        return (vec![(0.0, l)], notes);
-    }
-    let rho = n as f64 / l;
-    let end_gap = ((2.0 / alpha).ln() / rho).max(min_gap);
-    let inner_gap = (((n as f64 + 1.0) / alpha).ln() / rho).max(min_gap);
-    let (mut lo, mut hi) = (0.0, l);
-    if t[0] >= end_gap {
-        lo = t[0];
-        notes.ends_cut += 1;
-    }
-    if l - t[n - 1] >= end_gap {
-        hi = t[n - 1];
-        notes.ends_cut += 1;
-    }
+    let Some((lo, hi, mut notes)) = ends(&Extent::of_sorted(t), l, alpha, min_gap) else {
+        return (vec![(0.0, l)], GapNotes::default());
+    };
+    let inner_gap = (((n as f64 + 1.0) / alpha).ln() / (n as f64 / l)).max(min_gap);
     // Runs of points separated by interior gaps: [start index, end index].
     let mut runs = vec![(0usize, n - 1)];
     for i in 0..n.saturating_sub(1) * usize::from(interior) {
@@ -87,6 +77,30 @@ pub fn pieces(
         }
     }
     (out, notes)
+}
+
+/// The segment `[lo, hi]` left after its empty end stretches are cut, from its members'
+/// count and their smallest and largest axial positions (all that the ends need), and
+/// what was cut; `None`: nothing to test (fewer than two members, an empty segment, `alpha
+/// <= 0`).
+pub fn ends(e: &Extent, l: f64, alpha: f64, min_gap: f64) -> Option<(f64, f64, GapNotes)> {
+    let mut notes = GapNotes::default();
+    let n = e.count;
+    if n < 2 || l <= 0.0 || alpha <= 0.0 {
+        return None;
+    }
+    let rho = n as f64 / l;
+    let end_gap = ((2.0 / alpha).ln() / rho).max(min_gap);
+    let (mut lo, mut hi) = (0.0, l);
+    if e.lo >= end_gap {
+        lo = e.lo;
+        notes.ends_cut += 1;
+    }
+    if l - e.hi >= end_gap {
+        hi = e.hi;
+        notes.ends_cut += 1;
+    }
+    Some((lo, hi, notes))
 }
 
 /// Splits every segment of `lines` at its empty stretches (see the module); a split's
@@ -118,15 +132,28 @@ pub fn split_gaps_traced(
     }
     let mut from = Vec::with_capacity(lines.len());
     let queries: Vec<Query> = lines.segments.iter().map(|s| Query::new(*s, r)).collect();
-    let axial = engine.axial(&queries)?;
+    // Without interior splits only the ends are tested: each cylinder's count and
+    // extent, not its sorted positions.
+    let (axial, extents) = if interior {
+        (engine.axial(&queries)?, Vec::new())
+    } else {
+        (Vec::new(), engine.extent(&queries)?)
+    };
     let mut segments = Vec::with_capacity(lines.len());
     let mut groups = lines
         .groups
         .as_ref()
         .map(|_| Vec::with_capacity(lines.len()));
-    for (i, (s, t)) in lines.segments.iter().zip(&axial).enumerate() {
+    for (i, s) in lines.segments.iter().enumerate() {
         let l = s.length();
-        let (kept, notes) = pieces(t, l, alpha, r, min_points, interior);
+        let (kept, notes) = if interior {
+            pieces(&axial[i], l, alpha, r, min_points, true)
+        } else {
+            match ends(&extents[i], l, alpha, r) {
+                Some((lo, hi, notes)) => (vec![(lo, hi)], notes),
+                None => (vec![(0.0, l)], GapNotes::default()),
+            }
+        };
         total.ends_cut += notes.ends_cut;
         total.split += notes.split;
         total.pieces_dropped += notes.pieces_dropped;

@@ -7,7 +7,7 @@ use super::batch::{self, Kind, Output};
 use super::query::stats_of;
 use super::resources::{self, Buffers};
 use super::{host, layout, GpuEngine};
-use crate::engine::{Coverage, CylStats, EngineError, Member, NearestSum, Query, Want};
+use crate::engine::{Coverage, CylStats, EngineError, Extent, Member, NearestSum, Query, Want};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::atomic::Ordering;
@@ -81,10 +81,12 @@ impl GpuEngine {
             match out {
                 batch::Attempt::Done(o, w) => {
                     waited += w;
+                    self.touched(o.items_run, o.points_read);
                     each(r.start, o)?;
                 }
-                batch::Attempt::TooLarge(w) => {
+                batch::Attempt::TooLarge(w, items, points) => {
                     waited += w;
+                    self.touched(items, points);
                     if r.len() > 1 {
                         let mid = r.start + r.len() / 2;
                         todo.push(mid..r.end);
@@ -119,7 +121,7 @@ impl GpuEngine {
         }
         let mut out = vec![CylStats::default(); queries.len()];
         let grid = &*self.grid;
-        let fallbacks = &self.fallbacks;
+        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         // Members the device left to the host (flagged points, host-answered queries).
         let mut extra: Vec<u32> = Vec::new();
         let kind = Kind::Stats {
@@ -133,6 +135,7 @@ impl GpuEngine {
                 let r = &o.results[i];
                 if r.status & layout::STATUS_HOST != 0 {
                     fallbacks.fetch_add(1, Ordering::Relaxed);
+                    host_lists.fetch_add(1, Ordering::Relaxed);
                     *s = host::stats(grid, &qs[i]);
                     return;
                 }
@@ -191,7 +194,7 @@ impl GpuEngine {
     ) -> Result<(Vec<NearestSum>, Vec<u64>), EngineError> {
         let mut out = vec![(NearestSum::default(), 0u64); queries.len()];
         let grid = &*self.grid;
-        let fallbacks = &self.fallbacks;
+        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         self.run(b, Kind::Nearest, queries, k, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -202,6 +205,7 @@ impl GpuEngine {
                     Some(x) => *s = x,
                     None => {
                         fallbacks.fetch_add(1, Ordering::Relaxed);
+                        host_lists.fetch_add(1, Ordering::Relaxed);
                         *s = host::exact_nearest(grid, q, k);
                     }
                 }
@@ -253,6 +257,58 @@ impl GpuEngine {
                 *m = list.unwrap_or_else(|| {
                     fallbacks.fetch_add(1, Ordering::Relaxed);
                     crate::engine::cpu::member_list(grid, q)
+                });
+            });
+            Ok(())
+        })?;
+        Ok(out)
+    }
+
+    /// Every query's extent (see [`crate::engine::Engine::extent`]) from device batches:
+    /// the count and the ends of the sure members from the device (`extent.wgsl`), each
+    /// end taken from its member's own f64 position; the flagged points decided and added
+    /// on the host. A query whose end the device cannot tell apart from its runner-up
+    /// (within 1e-9 of the coordinates' scale, beyond any f64 rounding of the kernel's),
+    /// or that the device leaves to the host, is walked on the host (`host_fallbacks`).
+    pub(super) fn extent_batch(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+    ) -> Result<Vec<Extent>, EngineError> {
+        let frames: Vec<layout::FitQuery> = queries
+            .iter()
+            .map(|q| {
+                let (p1, d) = (q.seg.p1, q.seg.dir());
+                layout::FitQuery {
+                    p1x: p1.x,
+                    p1y: p1.y,
+                    p1z: p1.z,
+                    dx: d.x,
+                    dy: d.y,
+                    dz: d.z,
+                    r: q.r,
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let mut out = vec![Extent::default(); queries.len()];
+        let grid = &*self.grid;
+        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
+        self.run_with(b, Kind::Extent, queries, &[], &frames, &mut |first, o| {
+            let n = o.results.len();
+            let qs = &queries[first..first + n];
+            per_query(&mut out[first..first + n], &o, 64, |i, flags, e| {
+                let q = &qs[i];
+                let device = o.results[i].status & layout::STATUS_HOST == 0 && !o.bad;
+                let got = o
+                    .extents
+                    .get(i)
+                    .filter(|_| device)
+                    .and_then(|x| host::extent(grid, q, o.results[i].count, x, flags));
+                *e = got.unwrap_or_else(|| {
+                    fallbacks.fetch_add(1, Ordering::Relaxed);
+                    host_lists.fetch_add(1, Ordering::Relaxed);
+                    crate::engine::cpu::extent_of(grid, q)
                 });
             });
             Ok(())

@@ -27,12 +27,21 @@ pub enum Kind {
     /// The edge fit's ridge of each query (`fit.wgsl`) over its sure members, left on the
     /// device (and the flagged points).
     Fit,
+    /// Each query's extent (`extent.wgsl`) over its sure members, left on the device (and
+    /// the flagged points).
+    Extent,
 }
 
 impl Kind {
     /// Whether the batch lists each query's members on the device.
     pub fn lists(self) -> bool {
-        matches!(self, Kind::Members | Kind::Fit)
+        matches!(self, Kind::Members | Kind::Fit | Kind::Extent)
+    }
+
+    /// Whether the batch uploads per-query frames (`FitQuery`) for an f64 kernel and
+    /// reads back its per-query output.
+    pub fn f64_kernel(self) -> bool {
+        matches!(self, Kind::Fit | Kind::Extent)
     }
 }
 
@@ -49,6 +58,12 @@ pub struct Output {
     pub bad: bool,
     /// A fit batch's ridges, one per query.
     pub fits: Vec<FitOut>,
+    /// An extent batch's extents, one per query.
+    pub extents: Vec<ExtentOut>,
+    /// Work items the device evaluated and points it read from the point store, over
+    /// every try of the sub-batch.
+    pub items_run: u64,
+    pub points_read: u64,
 }
 
 impl Output {
@@ -70,8 +85,9 @@ impl Output {
 pub enum Attempt {
     /// The output and the seconds spent waiting for the device.
     Done(Output, f64),
-    /// The sub-batch needs more items or flags than one submit may hold.
-    TooLarge(f64),
+    /// The sub-batch needs more items or flags than one submit may hold; the seconds
+    /// waited, and the items and points the tries evaluated.
+    TooLarge(f64, u64, u64),
 }
 
 /// Work items per query that [`submit`] makes room for in the engine's first batch (the
@@ -108,6 +124,7 @@ pub fn submit(
         .map(|(i, q)| gquery(grid, q, ks.get(i).copied().unwrap_or(0)))
         .collect();
     let mut waited = 0.0;
+    let (mut items_run, mut points_read) = (0u64, 0u64);
     let mut rerun = false;
     // The engine's first batch starts from a guess from its size, so that it does not
     // learn the capacity by a rerun (a count walk, its scan and reduction, and a round
@@ -125,33 +142,40 @@ pub fn submit(
         let got = attempt(ctx, k, st, lim, b, kind, &gq, fit, rerun)?;
         rerun = true;
         waited += got.waited;
+        items_run += got.items.min(b.item_cap) as u64;
+        points_read += got.points;
         let mut again = false;
         if kind.lists() && got.items > stages::member_scan_max(lim) {
-            return Ok(Attempt::TooLarge(waited));
+            return Ok(Attempt::TooLarge(waited, items_run, points_read));
         }
         if got.items > b.item_cap {
             if got.items > lim.item_max {
-                return Ok(Attempt::TooLarge(waited));
+                return Ok(Attempt::TooLarge(waited, items_run, points_read));
             }
             b.item_cap = grow(got.items, lim.item_max);
             again = true;
         } else if got.members > b.member_cap as u64 {
             // (Counted only when every item was evaluated.)
             if got.members > member_max as u64 {
-                return Ok(Attempt::TooLarge(waited));
+                return Ok(Attempt::TooLarge(waited, items_run, points_read));
             }
             b.member_cap = grow(got.members as u32, member_max);
             again = true;
         }
         if got.flags > b.flag_cap {
             if got.flags > lim.flag_max {
-                return Ok(Attempt::TooLarge(waited));
+                return Ok(Attempt::TooLarge(waited, items_run, points_read));
             }
             b.flag_cap = grow(got.flags, lim.flag_max);
             again = true;
         }
         if !again {
-            return Ok(Attempt::Done(got.out, waited));
+            let out = Output {
+                items_run,
+                points_read,
+                ..got.out
+            };
+            return Ok(Attempt::Done(out, waited));
         }
     }
 }
@@ -168,6 +192,8 @@ struct Readback {
     flags: u32,
     /// A members batch's sure members.
     members: u64,
+    /// Points the evaluation passes read from the point store.
+    points: u64,
 }
 
 /// Byte sizes of everything one try binds, from the batch and the buffers' capacities.
@@ -209,17 +235,20 @@ impl Sizes {
         let hist = n64 * NBINS as u64 * 4;
         let plans = size_of(std::mem::size_of::<Plan>(), n64);
         let members = b.member_cap as u64 * 4;
-        let fitout = size_of(std::mem::size_of::<FitOut>(), n64);
+        let fitout = match kind {
+            Kind::Extent => size_of(std::mem::size_of::<ExtentOut>(), n64),
+            _ => size_of(std::mem::size_of::<FitOut>(), n64),
+        };
         let aux = match kind {
             Kind::Nearest => hist,
             Kind::Stats { cover: true, .. } => b.aux_len,
             Kind::Stats { cover: false, .. } => 4,
-            Kind::Members | Kind::Fit => members,
+            Kind::Members | Kind::Fit | Kind::Extent => members,
         };
         let tail = match kind {
             Kind::Nearest => plans,
             Kind::Members => members,
-            Kind::Fit => fitout,
+            Kind::Fit | Kind::Extent => fitout,
             Kind::Stats { .. } => 0,
         };
         Sizes {
@@ -286,7 +315,7 @@ impl Bound {
         fit: &[FitQuery],
         rerun: bool,
     ) -> Bound {
-        let fitq = (kind == Kind::Fit).then(|| b.fitq.get(ctx, sz.fitq).clone());
+        let fitq = kind.f64_kernel().then(|| b.fitq.get(ctx, sz.fitq).clone());
         if !rerun {
             b.qtex.write(ctx, gq);
             if let Some(q) = &fitq {
@@ -309,7 +338,9 @@ impl Bound {
             },
             mscan: b.mscan.get(ctx, sz.mscan).clone(),
             fitq,
-            fitout: (kind == Kind::Fit).then(|| b.fitout.get(ctx, sz.fitout).clone()),
+            fitout: kind
+                .f64_kernel()
+                .then(|| b.fitout.get(ctx, sz.fitout).clone()),
             plans: b.plans.get(ctx, sz.plans.max(16)).clone(),
             staging: b.staging.get(ctx, sz.staging).clone(),
         }
@@ -380,7 +411,9 @@ fn attempt(
         s.size_items(&mut rec);
         s.emit(&mut rec);
         let mode = match kind {
-            Kind::Stats { sides: false, .. } | Kind::Members | Kind::Fit => MODE_STATS,
+            Kind::Stats { sides: false, .. } | Kind::Members | Kind::Fit | Kind::Extent => {
+                MODE_STATS
+            }
             Kind::Stats { sides: true, .. } => MODE_STATS_SIDES,
             Kind::Nearest => MODE_HIST,
         };
@@ -395,6 +428,9 @@ fn attempt(
         if kind == Kind::Fit {
             s.fit(&mut rec);
         }
+        if kind == Kind::Extent {
+            s.extent(&mut rec);
+        }
         rec.finish()
     };
     // Written before the submit that reads it.
@@ -407,7 +443,9 @@ fn attempt(
     match (kind, &bd.fitout) {
         (Kind::Nearest, _) => enc.copy_buffer_to_buffer(&bd.plans, 0, &bd.staging, after, sz.plans),
         (Kind::Members, _) => enc.copy_buffer_to_buffer(&bd.aux, 0, &bd.staging, after, sz.members),
-        (Kind::Fit, Some(out)) => enc.copy_buffer_to_buffer(out, 0, &bd.staging, after, sz.fitout),
+        (Kind::Fit | Kind::Extent, Some(out)) => {
+            enc.copy_buffer_to_buffer(out, 0, &bd.staging, after, sz.fitout)
+        }
         _ => {}
     }
     let (got, waited) = ctx.submit_and_map(enc, &bd.staging, sz.staging, |bytes| {
@@ -436,6 +474,7 @@ fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32, member_cap: u32) ->
     match kind {
         Kind::Nearest => out.plans = bytemuck::pod_collect_to_vec(&tail[..sz.plans as usize]),
         Kind::Fit => out.fits = bytemuck::pod_collect_to_vec(&tail[..sz.fitout as usize]),
+        Kind::Extent => out.extents = bytemuck::pod_collect_to_vec(&tail[..sz.fitout as usize]),
         _ => {}
     }
     if kind.lists() {
@@ -457,5 +496,6 @@ fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32, member_cap: u32) ->
         items,
         flags: n_flags,
         members,
+        points: ctlw[CTL_POINTS as usize] as u64 | (ctlw[CTL_POINTS as usize + 1] as u64) << 32,
     }
 }

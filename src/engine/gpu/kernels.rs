@@ -27,11 +27,13 @@ pub fn kernel_source(kernel: &str) -> String {
 /// The fit kernel's full source: the shared prelude, its own f64 prelude, then
 /// `fit.wgsl` (compiled only on a device with `SHADER_F64`).
 pub fn fit_source() -> String {
-    kernel_source(&format!(
-        "{}\n{}",
-        layout::fit_prelude(),
-        include_str!("../../../shaders/fit.wgsl")
-    ))
+    f64_kernel_source(include_str!("../../../shaders/fit.wgsl"))
+}
+
+/// An f64 kernel's full source (`fit.wgsl`, `extent.wgsl`): the shared prelude, the f64
+/// prelude with their structs, then the kernel.
+pub fn f64_kernel_source(kernel: &str) -> String {
+    kernel_source(&format!("{}\n{kernel}", layout::fit_prelude()))
 }
 
 /// The lines of `eval.wgsl` that read the evaluation mode and the coverage switch from
@@ -86,6 +88,9 @@ pub struct Kernels {
     scatter: OnceLock<wgpu::ComputePipeline>,
     /// The edge fit's ridge, in f64: only on a device with `SHADER_F64`.
     pub fit: Option<wgpu::ComputePipeline>,
+    /// The extent of each query's member list (`extent.wgsl`, f64), compiled with the
+    /// fit kernel.
+    pub extent: Option<wgpu::ComputePipeline>,
 }
 
 impl Kernels {
@@ -123,6 +128,15 @@ impl Kernels {
                 .then(|| {
                     ctx.scoped("compiling the fit kernel", || {
                         ctx.pipeline("fit", &fit_source(), "main")
+                    })
+                    .ok()
+                })
+                .flatten(),
+            extent: (fit && ctx.f64)
+                .then(|| {
+                    ctx.scoped("compiling the extent kernel", || {
+                        let src = f64_kernel_source(include_str!("../../../shaders/extent.wgsl"));
+                        ctx.pipeline("extent", &src, "main")
                     })
                     .ok()
                 })

@@ -36,8 +36,12 @@ pub const NBINS: u32 = 64;
 /// `Plan::cut` meaning "every member is below the cut".
 pub const ALL_BELOW: u32 = NBINS;
 /// Words of the control buffer before the flag entries: word 0: items needed by the batch,
-/// 1: flags appended, 2: a members batch's miscount (`CTL_MEMBERS_BAD`), 3: unused.
-pub const CTL_HEAD: u32 = 4;
+/// 1: flags appended, 2: a members batch's miscount (`CTL_MEMBERS_BAD`), 3 and 4: points
+/// the evaluation passes read from the point store (`CTL_POINTS`), 5: unused.
+pub const CTL_HEAD: u32 = 6;
+/// `ctl[3]` (low word) and `ctl[4]` (high word): every evaluation pass adds the points
+/// each item read (what the device read from the point store, for the report).
+pub const CTL_POINTS: u32 = 3;
 /// Flag kinds (bit 31 of a flag's first word): the point lies within the f32 error bound
 /// of a boundary (membership or side for the host to decide in f64), or it is a member in
 /// the k-nearest cut band (for the host to rank).
@@ -76,6 +80,14 @@ pub const MAX_FIT_MEMBERS: u32 = 16_384;
 pub const FIT_OK: u32 = 0;
 pub const FIT_NONE: u32 = 1;
 pub const FIT_HOST: u32 = 2;
+/// Most members of a query the extent kernel takes (its loop runs
+/// `MAX_EXTENT_MEMBERS / FIT_WG + log2(FIT_WG)` iterations: 16,390); a query with more is
+/// the host's.
+pub const MAX_EXTENT_MEMBERS: u32 = 1 << 20;
+/// `ExtentOut::status`: the ends found; no sure member; the host answers the query.
+pub const EXTENT_OK: u32 = 0;
+pub const EXTENT_NONE: u32 = 1;
+pub const EXTENT_HOST: u32 = 2;
 /// Defines a `#[repr(C)]` Pod struct of 4-byte fields and its WGSL text (`Name::WGSL`),
 /// with `Name::FIELDS` (name, byte offset) for the layout test and `Name::TYPES` (each
 /// field's WGSL type, in the same order) for generated accessors.
@@ -259,6 +271,22 @@ shared! {
     }
 }
 
+shared! {
+    /// One query's extent from the extent kernel (`extent.wgsl`, f64): the smallest and
+    /// largest axial position of its sure members (from `P1`, unclamped), the members
+    /// (sorted indices) holding them, and each end's runner-up (`±1e300`: none).
+    struct ExtentOut {
+        status: u32 => "u32",
+        ilo: u32 => "u32",
+        ihi: u32 => "u32",
+        pad0: u32 => "u32",
+        lo: f64 => "f64",
+        lo2: f64 => "f64",
+        hi: f64 => "f64",
+        hi2: f64 => "f64",
+    }
+}
+
 /// Bytes between the uniform slots of consecutive dispatches.
 pub const PARAMS_SLOT: u64 = 256;
 
@@ -288,6 +316,11 @@ pub fn prelude() -> String {
         ("MODE_BELOW", MODE_BELOW),
         ("MODE_MEMBERS", MODE_MEMBERS),
         ("CTL_MEMBERS_BAD", CTL_MEMBERS_BAD),
+        ("CTL_POINTS", CTL_POINTS),
+        ("MAX_EXTENT_MEMBERS", MAX_EXTENT_MEMBERS),
+        ("EXTENT_OK", EXTENT_OK),
+        ("EXTENT_NONE", EXTENT_NONE),
+        ("EXTENT_HOST", EXTENT_HOST),
         ("FIT_WG", FIT_WG),
         ("FIT_STEPS", FIT_STEPS),
         ("MAX_FIT_MEMBERS", MAX_FIT_MEMBERS),
@@ -335,7 +368,7 @@ pub fn query_of_wgsl() -> String {
     s + "    return q;\n}\n"
 }
 
-/// The fit kernel's own prelude, after the common one: its f64 structs and constants
+/// The f64 kernels' own prelude (the fit's and the extent's), after the common one: its f64 structs and constants
 /// (a module that declares an f64 type needs `SHADER_F64`, so the other kernels do not
 /// carry them).
 pub fn fit_prelude() -> String {
@@ -343,12 +376,13 @@ pub fn fit_prelude() -> String {
         "// Generated from src/engine/gpu/layout.rs: do not edit here.\n\
          const MIN_ELONGATION: f64 = {:?}lf;\n\
          const RIDGE_SHRINK: f64 = {:?}lf;\n\
-         const RIDGE_STOP: f64 = {:?}lf;\n{}{}",
+         const RIDGE_STOP: f64 = {:?}lf;\n{}{}{}",
         crate::geom::fit::MIN_ELONGATION,
         crate::geom::fit::RIDGE_SHRINK,
         crate::geom::fit::RIDGE_STOP,
         FitQuery::WGSL,
-        FitOut::WGSL
+        FitOut::WGSL,
+        ExtentOut::WGSL
     )
 }
 
@@ -367,7 +401,7 @@ pub fn layouts() -> Vec<Layout> {
     ]
 }
 
-/// The fit kernel's shared structs (in [`fit_prelude`]), for the layout test.
+/// The f64 kernels' shared structs (in [`fit_prelude`]), for the layout test.
 pub fn fit_layouts() -> Vec<Layout> {
     vec![
         (
@@ -376,5 +410,10 @@ pub fn fit_layouts() -> Vec<Layout> {
             FitQuery::FIELDS,
         ),
         ("FitOut", std::mem::size_of::<FitOut>(), FitOut::FIELDS),
+        (
+            "ExtentOut",
+            std::mem::size_of::<ExtentOut>(),
+            ExtentOut::FIELDS,
+        ),
     ]
 }

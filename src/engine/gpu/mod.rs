@@ -23,6 +23,8 @@
 //!    points within the f32 error bound of a boundary are flagged instead;
 //! 6. `reduce.wgsl`: per query, its items' slots summed in grid order (Kahan, no atomics);
 //! 7. `fit.wgsl` (the edge fit's batches): the ridge over each query's member list.
+//! 8. `extent.wgsl` (the end gaps' batches): the members at both ends of each query's
+//!    member list, whose own positions the host then reads in f64.
 //!
 //! The host then reads back the per-query results and the flag list (one readback) and
 //! decides the flagged points in f64 — the only per-point work left on the host, and
@@ -56,7 +58,9 @@ mod stages;
 pub use device::{
     describe as describe_adapter, enumerate_adapters, find_pci_bus_id, parse_pci_bus_id,
 };
-pub use kernels::{common_wgsl, eval_source, fit_source, kernel_source, walk_source};
+pub use kernels::{
+    common_wgsl, eval_source, f64_kernel_source, fit_source, kernel_source, walk_source,
+};
 pub use layout::CHUNK;
 pub use options::{FitOn, GpuOptions, GpuSetup, MembersOn, SMALL_BATCH};
 pub use resources::PointStore;
@@ -119,6 +123,13 @@ pub struct GpuEngine {
     cpu_queries: AtomicU64,
     device_fits: AtomicU64,
     device_fits_refitted: AtomicU64,
+    /// [`Counters::device_items`], [`Counters::point_bytes`], [`Counters::host_lists`].
+    device_items: AtomicU64,
+    point_bytes: AtomicU64,
+    host_lists: AtomicU64,
+    /// Whether [`Engine::extent`] runs on the device (`extent.wgsl`: f64 and the
+    /// coordinates there, as for the device fit).
+    device_extent: bool,
 }
 
 /// An opened device with the kernels compiled, before any Gaussians: what does not depend
@@ -161,6 +172,13 @@ impl GpuDevice {
         let kernels = ctx.scoped("compiling the kernels", || {
             kernels::Kernels::new(&ctx, fit_wanted)
         })?;
+        // Where the ridge runs on the device, every refinement sends member batches (the
+        // fit's, the end gaps'): their kernels compile here, on the opening thread while
+        // the grid is built, instead of in the run's first fit batch.
+        if fit_wanted {
+            kernels.eval(&ctx, layout::MODE_MEMBERS, false)?;
+            kernels.members(&ctx)?;
+        }
         let device = GpuDevice {
             ctx,
             kernels,
@@ -245,6 +263,7 @@ impl GpuDevice {
         let statics = resources::Statics::upload(&ctx, &grid, store, &limits, fit_wanted)?;
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         let device_fit = fit_wanted && kernels.fit.is_some() && statics.world.is_some();
+        let device_extent = fit_wanted && kernels.extent.is_some() && statics.world.is_some();
         Ok(GpuEngine {
             cpu: super::cpu::CpuEngine::new(grid.clone()),
             small_batch: opts.small_batch,
@@ -257,6 +276,10 @@ impl GpuDevice {
             cpu_queries: AtomicU64::new(0),
             device_fits: AtomicU64::new(0),
             device_fits_refitted: AtomicU64::new(0),
+            device_items: AtomicU64::new(0),
+            point_bytes: AtomicU64::new(0),
+            host_lists: AtomicU64::new(0),
+            device_extent,
             grid,
             ctx,
             kernels,
@@ -306,7 +329,8 @@ impl GpuEngine {
     }
 
     /// The kernels this engine has compiled on first use (those of the side counts, the k
-    /// nearest and the member lists; the rest compile when the device opens), named as
+    /// nearest and the member lists; the rest compile when the device opens, and the
+    /// member lists' too where the ridge runs on the device), named as
     /// `eval sides`, `eval histogram`, `eval below`, `eval members`, `cut`, `members`.
     pub fn kernels_compiled_on_use(&self) -> Vec<String> {
         self.kernels.compiled_on_use()
@@ -339,6 +363,13 @@ impl GpuEngine {
             self.clock.host_ns.load(Ordering::Relaxed) as f64 * 1e-9,
             self.clock.device_ns.load(Ordering::Relaxed) as f64 * 1e-9,
         )
+    }
+
+    /// Counts the device work of a sub-batch: `items` work items evaluated, `points`
+    /// points read from the point store (16 bytes each).
+    fn touched(&self, items: u64, points: u64) {
+        self.device_items.fetch_add(items, Ordering::Relaxed);
+        self.point_bytes.fetch_add(points * 16, Ordering::Relaxed);
     }
 
     fn count_batch(&self, n: usize) {
@@ -399,7 +430,7 @@ impl GpuEngine {
             .collect();
         let min_points = p.min_points as f64;
         let mut out: Vec<FitAnswer> = vec![(None, How::Unclear); queries.len()];
-        let fallbacks = &self.fallbacks;
+        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         let (device_fits, refitted) = (&self.device_fits, &self.device_fits_refitted);
         self.run_with(b, Kind::Fit, queries, &[], &frames, &mut |first, o| {
             let n = o.results.len();
@@ -454,6 +485,7 @@ impl GpuEngine {
                         None => {
                             fallbacks.fetch_add(1, Ordering::Relaxed);
                             refitted.fetch_add(1, Ordering::Relaxed);
+                            host_lists.fetch_add(1, Ordering::Relaxed);
                             let m = super::cpu::member_list(grid, q);
                             let one = FitAsk {
                                 warm: ask.warm.get(first + i..=first + i).unwrap_or(&[]),
@@ -515,10 +547,41 @@ impl Engine for GpuEngine {
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
         if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
             self.count_batch(queries.len());
+            self.host_lists
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
             return self.on_cpu(queries.len(), || self.cpu.axial(queries));
         }
         let members = self.members(queries)?;
         Ok(self.on_host(|| super::axial_of_members(&members, queries)))
+    }
+
+    /// Where the extent kernel runs (f64 and the coordinates on the device, as for the
+    /// device fit) and the batch is not small, one device batch: the walk, the stats pass
+    /// and the member pass, then each query's ends over its list on the device; the host
+    /// reads one extent a query (and decides the flagged points). Where member lists are
+    /// the host's ([`GpuOptions::members`]; its member pass is the extent's), the CPU
+    /// engine's walk; without the kernel, the device's member lists.
+    fn extent(&self, queries: &[Query]) -> Result<Vec<super::Extent>, EngineError> {
+        if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
+            self.count_batch(queries.len());
+            self.host_lists
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
+            return self.on_cpu(queries.len(), || self.cpu.extent(queries));
+        }
+        if !self.device_extent {
+            let members = self.members(queries)?;
+            return Ok(self.on_host(|| {
+                members
+                    .iter()
+                    .zip(queries)
+                    .map(|(m, q)| super::Extent::of(m.iter().map(|m| m.t), q.seg.length()))
+                    .collect()
+            }));
+        }
+        self.count_batch(queries.len());
+        let (order, sent) = self.in_order(queries);
+        let ext = self.extent_batch(&mut self.lock(), &sent)?;
+        Ok(self.on_host(|| order.restore(ext)))
     }
 
     /// One device batch: the walk and the stats pass, a scan of the items' member counts
@@ -529,6 +592,8 @@ impl Engine for GpuEngine {
     /// [`GpuOptions::members`] resolved to the host (a software adapter, for the commands).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
+        self.host_lists
+            .fetch_add(queries.len() as u64, Ordering::Relaxed);
         if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
             return self.on_cpu(queries.len(), || self.cpu.members(queries));
         }
@@ -591,6 +656,7 @@ impl Engine for GpuEngine {
         let (out, steps) = self.on_cpu(0, || super::fit::gathered(&self.grid, job));
         self.queries.fetch_add(steps, Ordering::Relaxed);
         self.cpu_queries.fetch_add(steps, Ordering::Relaxed);
+        self.host_lists.fetch_add(steps, Ordering::Relaxed);
         Ok(out)
     }
 
@@ -603,6 +669,9 @@ impl Engine for GpuEngine {
             cpu_queries: self.cpu_queries.load(Ordering::Relaxed),
             device_fits: self.device_fits.load(Ordering::Relaxed),
             device_fits_refitted: self.device_fits_refitted.load(Ordering::Relaxed),
+            device_items: self.device_items.load(Ordering::Relaxed),
+            point_bytes: self.point_bytes.load(Ordering::Relaxed),
+            host_lists: self.host_lists.load(Ordering::Relaxed),
         }
     }
 

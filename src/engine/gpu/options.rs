@@ -28,7 +28,9 @@ pub struct GpuOptions {
     /// than such a batch. 0 (the default here, so that tests exercise the kernels with
     /// any batch): never. The commands use [`SMALL_BATCH`].
     pub small_batch: usize,
-    /// Where [`Engine::members`] lists are built (the edge fit, `--split-gaps`).
+    /// Where [`Engine::members`] lists are built (the edge fit, `--split-gaps`), and so
+    /// where [`Engine::extent`] walks (the end gaps: on the host with the lists, else on
+    /// the device's member pass).
     pub members: MembersOn,
     /// Whether [`GpuDevice::open`] runs two small evaluation batches over a tiny grid of
     /// its own before it returns: drivers that generate a kernel's machine code at its

@@ -2,8 +2,8 @@
 //! and its bindings right where it dispatches, in the order [`super::batch`] records them:
 //!
 //! ```text
-//! count ─ scan ─ size_items ─ emit ─ evaluate ─┬─────────────────────────┬─ reduce ─ (fit)
-//!  walk    scan     args       walk     eval    ├ members: gather, scan,  │   reduce    fit
+//! count ─ scan ─ size_items ─ emit ─ evaluate ─┬─────────────────────────┬─ reduce ─ (fit | extent)
+//!  walk    scan     args       walk     eval    ├ members: gather, scan,  │   reduce    fit, extent
 //!                                               │   scatter, eval members │
 //!                                               └ nearest: cut, eval below┘
 //! ```
@@ -321,6 +321,31 @@ impl Stage<'_> {
         ];
         let base = rec.base;
         rec.bind(fit, base, &bind);
+        let n = sz.n as u64 * FIT_WG as u64;
+        rec.dispatch(device::tiles(n, FIT_WG as u64, self.lim.max_x));
+    }
+
+    /// `extent.wgsl`: each query's extent over its member list, one workgroup per query,
+    /// after the reduction has counted its members. Nothing without the kernel or the
+    /// centers' coordinates on the device.
+    pub fn extent(&self, rec: &mut Recorder<'_>) {
+        let (sz, bd, h) = (self.sz, self.bd, device::head);
+        let (Some(fitq), Some(out), Some(extent), Some((world, world_bytes))) =
+            (&bd.fitq, &bd.fitout, &self.k.extent, &self.st.world)
+        else {
+            return;
+        };
+        let bind = [
+            h(fitq, sz.fitq),
+            h(&bd.scan, sz.scan),
+            h(&bd.partials, sz.partials),
+            h(&bd.results, sz.results),
+            h(&bd.aux, sz.members),
+            h(world, *world_bytes),
+            h(out, sz.fitout),
+        ];
+        let base = rec.base;
+        rec.bind(extent, base, &bind);
         let n = sz.n as u64 * FIT_WG as u64;
         rec.dispatch(device::tiles(n, FIT_WG as u64, self.lim.max_x));
     }
