@@ -29,12 +29,13 @@
 //! are all decided asks nothing but still applies; the loop ends only when every group's
 //! full scan has found nothing to do.
 
+use super::near::Near;
 use super::rules::{self, JoinCandidate, Made, MergeCandidate};
 use super::{Ctx, Item, Mode};
 use crate::engine::{CylStats, Engine, EngineError, Query, Want};
 use crate::geom::Segment;
 use rayon::prelude::*;
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub(super) enum Phase {
@@ -92,12 +93,16 @@ fn bits(s: &Segment) -> [u64; 6] {
 type Key = (u64, u64, Phase);
 
 /// The pairs of one phase not known to fail: in row `a` (pairs `(a, c)`, `c > a`), the
-/// columns in `pending[a]` and every column from `from[a]` on. Columns of dropped items
-/// are skipped (and removed) when a scan meets them.
+/// columns in `pending[a]` and every column from `from[a]` on that [`Near`] lists (the
+/// others fail the rules' CPU part). Columns of dropped items are skipped (and removed)
+/// when a scan meets them.
 struct Open {
     from: Vec<usize>,
     /// Sorted; columns below `from[a]` whose item changed after the scan passed them.
     pending: Vec<Vec<usize>>,
+    /// The rows that may hold an open pair (the others have `from[a] == m` and nothing
+    /// pending), so that a round does not walk every row of a large group.
+    rows: BTreeSet<usize>,
 }
 
 impl Open {
@@ -105,19 +110,24 @@ impl Open {
         Open {
             from: (1..=m).collect(),
             pending: vec![Vec::new(); m],
+            rows: (0..m).collect(),
         }
     }
 
-    /// Item `h` changed: every pair of it is open again, and only those.
-    fn reopen(&mut self, h: usize, alive: &[bool]) {
+    /// Item `h` changed: every pair of it is open again, and only those (`near` lists the
+    /// rows whose pair with `h` can pass a rule).
+    fn reopen(&mut self, h: usize, alive: &[bool], near: &mut Near, buf: &mut Vec<usize>) {
         self.from[h] = h + 1;
         self.pending[h].clear();
-        let rows = self.from.iter().zip(&mut self.pending).zip(alive);
-        for ((&from, pending), &alive) in rows.take(h) {
-            if alive && from > h {
+        self.rows.insert(h);
+        near.rows(h, alive, buf);
+        for &a in buf.iter() {
+            if self.from[a] > h {
+                let pending = &mut self.pending[a];
                 if let Err(at) = pending.binary_search(&h) {
                     pending.insert(at, h);
                 }
+                self.rows.insert(a);
             }
         }
     }
@@ -152,10 +162,16 @@ pub(super) struct Machine {
     failed: HashSet<Key>,
     /// Pairs (by identity) decided in favour in a round where an earlier pair won.
     won: HashMap<Key, Made>,
+    /// Which pairs can pass a rule at all; made at the first listing.
+    near: Option<Near>,
+    /// Groups of fewer items list every pair instead (tests set 0).
+    sweep_from: usize,
+    /// Scratch for [`Near`]'s answers.
+    buf: Vec<usize>,
 }
 
 impl Machine {
-    pub(super) fn new(items: Vec<Item>, mode: Mode, budget: usize) -> Self {
+    pub(super) fn new(items: Vec<Item>, mode: Mode, budget: usize, sweep_from: usize) -> Self {
         let n = items.len();
         Machine {
             items,
@@ -172,6 +188,9 @@ impl Machine {
             next_uid: n as u64,
             failed: Default::default(),
             won: Default::default(),
+            near: None,
+            sweep_from,
+            buf: Vec::new(),
         }
     }
 
@@ -194,6 +213,9 @@ impl Machine {
     fn list(&mut self, cx: Ctx) -> Listing {
         let mut l = Listing::default();
         let m = self.items.len();
+        if self.near.is_none() {
+            self.near = Some(Near::new(&self.items, &cx, self.sweep_from));
+        }
         if self.phase == Phase::Merge {
             let mut open = self.open_merge.take().unwrap_or_else(|| Open::new(m));
             let finished = self.scan(Phase::Merge, &mut open, &mut l, cx);
@@ -219,8 +241,30 @@ impl Machine {
     /// Lists the open pairs of `phase` in scan order; `false` when the listing stopped.
     fn scan(&mut self, phase: Phase, open: &mut Open, l: &mut Listing, cx: Ctx) -> bool {
         let m = self.items.len();
-        for a in 0..m {
+        let mut near = self.near.take().expect("made at the first listing");
+        let mut cols = std::mem::take(&mut self.buf);
+        let finished = self.scan_rows(phase, open, l, cx, &mut near, &mut cols, m);
+        self.near = Some(near);
+        self.buf = cols;
+        finished
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn scan_rows(
+        &mut self,
+        phase: Phase,
+        open: &mut Open,
+        l: &mut Listing,
+        cx: Ctx,
+        near: &mut Near,
+        cols: &mut Vec<usize>,
+        m: usize,
+    ) -> bool {
+        let mut next = open.rows.first().copied();
+        while let Some(a) = next {
+            next = open.rows.range(a + 1..).next().copied();
             if !self.alive[a] {
+                open.rows.remove(&a);
                 continue;
             }
             let pending = std::mem::take(&mut open.pending[a]);
@@ -246,19 +290,25 @@ impl Machine {
             if stopped {
                 return false;
             }
-            // The open columns from `from[a]` on: a failing prefix leaves the set.
-            let mut prefix = true;
-            for c in open.from[a]..m {
-                let offer = match self.alive[c] {
-                    true => self.offer(a, c, phase, l, cx),
-                    false => Offer::Fail,
-                };
-                match offer {
-                    Offer::Fail if prefix => open.from[a] = c + 1,
-                    Offer::Fail => {}
-                    Offer::Listed => prefix = false,
-                    Offer::Stop => return false,
+            // The open columns from `from[a]` on: a failing prefix leaves the set; the
+            // columns `near` leaves out fail.
+            if open.from[a] < m {
+                near.columns(a, open.from[a], &self.alive, cols);
+                let mut prefix = true;
+                for &c in cols.iter() {
+                    match self.offer(a, c, phase, l, cx) {
+                        Offer::Fail if prefix => open.from[a] = c + 1,
+                        Offer::Fail => {}
+                        Offer::Listed => prefix = false,
+                        Offer::Stop => return false,
+                    }
                 }
+                if prefix {
+                    open.from[a] = m;
+                }
+            }
+            if open.from[a] >= m && open.pending[a].is_empty() {
+                open.rows.remove(&a);
             }
         }
         true
@@ -382,6 +432,8 @@ impl Machine {
             Some((i, j, made, phase)) => {
                 self.items[i].seg = made.seg;
                 self.items[i].stats = made.stats;
+                let near = self.near.as_mut().expect("made at the first listing");
+                near.update(i, &self.items[i]);
                 self.uids[i] = self.next_uid;
                 self.next_uid += 1;
                 self.alive[j] = false;
@@ -398,7 +450,7 @@ impl Machine {
                 };
                 open.as_mut()
                     .expect("a listed phase has its open set")
-                    .reopen(i, &self.alive);
+                    .reopen(i, &self.alive, near, &mut self.buf);
                 self.phase = phase;
                 self.budget = self.first_budget;
             }
