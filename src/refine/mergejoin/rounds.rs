@@ -158,6 +158,11 @@ pub(super) struct Machine {
     /// Identity of each item's content: a success that changes an item gives it a new one.
     uids: Vec<u64>,
     next_uid: u64,
+    /// The item each identity was given to (it is that item's content while
+    /// `uids[item] == uid` and the item is alive).
+    item_of: Vec<u32>,
+    /// Size of the memo that makes it forget the decisions about identities gone.
+    memo_limit: usize,
     /// Pairs (by identity) decided against by their queries.
     failed: HashSet<Key>,
     /// Pairs (by identity) decided in favour in a round where an earlier pair won.
@@ -186,6 +191,8 @@ impl Machine {
             first_budget: budget,
             uids: (0..n as u64).collect(),
             next_uid: n as u64,
+            item_of: (0..n as u32).collect(),
+            memo_limit: MEMO_FIRST_LIMIT,
             failed: Default::default(),
             won: Default::default(),
             near: None,
@@ -435,6 +442,7 @@ impl Machine {
                 let near = self.near.as_mut().expect("made at the first listing");
                 near.update(i, &self.items[i]);
                 self.uids[i] = self.next_uid;
+                self.item_of.push(i as u32);
                 self.next_uid += 1;
                 self.alive[j] = false;
                 let open = match phase {
@@ -468,6 +476,48 @@ impl Machine {
                 self.budget = self.budget.saturating_mul(2);
             }
         }
+        self.forget();
+    }
+}
+
+/// The memo's size from which it is trimmed ([`Machine::forget`]); small in tests, so
+/// that they trim it.
+const MEMO_FIRST_LIMIT: usize = if cfg!(test) { 8 } else { 1 << 12 };
+
+impl Machine {
+    /// Whether `uid` is the content of an alive item.
+    fn live(&self, uid: u64) -> bool {
+        let i = self.item_of[uid as usize] as usize;
+        self.uids[i] == uid && self.alive[i]
+    }
+
+    /// Drops the decisions about identities no alive item has (a lookup only ever asks
+    /// about alive items' identities, so no answer changes), once the memo has doubled
+    /// since the last time: a cluster of many successes keeps a memo of its live pairs,
+    /// not of every pair it ever decided.
+    fn forget(&mut self) {
+        if self.phase == Phase::Done {
+            // Nothing is asked again: only the items are kept.
+            self.failed = Default::default();
+            self.won = Default::default();
+            self.near = None;
+            self.open_merge = None;
+            self.open_join = None;
+            return;
+        }
+        if self.failed.len() + self.won.len() <= self.memo_limit {
+            return;
+        }
+        let mut failed = std::mem::take(&mut self.failed);
+        failed.retain(|&(a, b, _)| self.live(a) && self.live(b));
+        self.failed = failed;
+        let mut won = std::mem::take(&mut self.won);
+        won.retain(|&(a, b, _), _| self.live(a) && self.live(b));
+        self.won = won;
+        self.failed.shrink_to_fit();
+        self.won.shrink_to_fit();
+        let kept = self.failed.len() + self.won.len();
+        self.memo_limit = self.memo_limit.max(2 * kept);
     }
 }
 
