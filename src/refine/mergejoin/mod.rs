@@ -14,7 +14,11 @@
 //! - `rounds`: the same loops for every group at once, one engine batch per round, with a
 //!   memo of decisions across restarts; [`merge_join`] and [`collinear_merge`] run it, and
 //!   tests check it against [`sequential`] segment for segment.
+//! - `near`: which pairs of a group can pass a rule's CPU part at all (an interval sweep
+//!   along the group's direction), so that a large cluster of short pieces costs about
+//!   linear time in its size, not quadratic.
 
+mod near;
 mod rounds;
 pub mod rules;
 pub mod sequential;
@@ -101,7 +105,7 @@ pub fn merge_join(
     clusters: &[Vec<usize>],
     s: &Settings,
 ) -> Result<LineSet, EngineError> {
-    Ok(merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET)?.0)
+    Ok(merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET, near::SWEEP_FROM)?.0)
 }
 
 /// [`merge_join`] with each result's members: the indices into `lines` of the segments
@@ -112,20 +116,22 @@ pub fn merge_join_traced(
     clusters: &[Vec<usize>],
     s: &Settings,
 ) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
-    merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET)
+    merge_join_budget(engine, lines, clusters, s, FIRST_BUDGET, near::SWEEP_FROM)
 }
 
+/// [`merge_join`] with the first round's budget and the smallest group that sweeps.
 fn merge_join_budget(
     engine: &dyn Engine,
     lines: &LineSet,
     clusters: &[Vec<usize>],
     s: &Settings,
     budget: usize,
+    sweep_from: usize,
 ) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
     let cx = Ctx::new(Mode::Cluster, s);
     let mut machines: Vec<rounds::Machine> = clusters
         .iter()
-        .map(|c| rounds::Machine::new(items_of(lines, c), Mode::Cluster, budget))
+        .map(|c| rounds::Machine::new(items_of(lines, c), Mode::Cluster, budget, sweep_from))
         .collect();
     rounds::run(engine, &mut machines, cx)?;
     let mut items = Vec::with_capacity(lines.len());
@@ -195,6 +201,16 @@ pub fn collinear_merge_traced(
     lines: &LineSet,
     s: &Settings,
 ) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
+    collinear_merge_from(engine, lines, s, near::SWEEP_FROM)
+}
+
+/// [`collinear_merge_traced`] with the smallest group that sweeps.
+fn collinear_merge_from(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    s: &Settings,
+    sweep_from: usize,
+) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
     let unchanged = || (lines.clone(), (0..lines.len()).map(|i| vec![i]).collect());
     let Some(groups) = &lines.groups else {
         return Ok(unchanged());
@@ -206,7 +222,10 @@ pub fn collinear_merge_traced(
     let cx = Ctx::new(Mode::Collinear, s);
     let mut machines: Vec<rounds::Machine> = members
         .iter()
-        .map(|m| rounds::Machine::new(items_of(lines, m), Mode::Collinear, FIRST_BUDGET))
+        .map(|m| {
+            let items = items_of(lines, m);
+            rounds::Machine::new(items, Mode::Collinear, FIRST_BUDGET, sweep_from)
+        })
         .collect();
     rounds::run(engine, &mut machines, cx)?;
     let results = machines

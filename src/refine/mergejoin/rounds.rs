@@ -29,12 +29,13 @@
 //! are all decided asks nothing but still applies; the loop ends only when every group's
 //! full scan has found nothing to do.
 
+use super::near::Near;
 use super::rules::{self, JoinCandidate, Made, MergeCandidate};
 use super::{Ctx, Item, Mode};
 use crate::engine::{CylStats, Engine, EngineError, Query, Want};
 use crate::geom::Segment;
 use rayon::prelude::*;
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub(super) enum Phase {
@@ -92,12 +93,16 @@ fn bits(s: &Segment) -> [u64; 6] {
 type Key = (u64, u64, Phase);
 
 /// The pairs of one phase not known to fail: in row `a` (pairs `(a, c)`, `c > a`), the
-/// columns in `pending[a]` and every column from `from[a]` on. Columns of dropped items
-/// are skipped (and removed) when a scan meets them.
+/// columns in `pending[a]` and every column from `from[a]` on that [`Near`] lists (the
+/// others fail the rules' CPU part). Columns of dropped items are skipped (and removed)
+/// when a scan meets them.
 struct Open {
     from: Vec<usize>,
     /// Sorted; columns below `from[a]` whose item changed after the scan passed them.
     pending: Vec<Vec<usize>>,
+    /// The rows that may hold an open pair (the others have `from[a] == m` and nothing
+    /// pending), so that a round does not walk every row of a large group.
+    rows: BTreeSet<usize>,
 }
 
 impl Open {
@@ -105,19 +110,24 @@ impl Open {
         Open {
             from: (1..=m).collect(),
             pending: vec![Vec::new(); m],
+            rows: (0..m).collect(),
         }
     }
 
-    /// Item `h` changed: every pair of it is open again, and only those.
-    fn reopen(&mut self, h: usize, alive: &[bool]) {
+    /// Item `h` changed: every pair of it is open again, and only those (`near` lists the
+    /// rows whose pair with `h` can pass a rule).
+    fn reopen(&mut self, h: usize, alive: &[bool], near: &mut Near, buf: &mut Vec<usize>) {
         self.from[h] = h + 1;
         self.pending[h].clear();
-        let rows = self.from.iter().zip(&mut self.pending).zip(alive);
-        for ((&from, pending), &alive) in rows.take(h) {
-            if alive && from > h {
+        self.rows.insert(h);
+        near.rows(h, alive, buf);
+        for &a in buf.iter() {
+            if self.from[a] > h {
+                let pending = &mut self.pending[a];
                 if let Err(at) = pending.binary_search(&h) {
                     pending.insert(at, h);
                 }
+                self.rows.insert(a);
             }
         }
     }
@@ -148,6 +158,11 @@ pub(super) struct Machine {
     /// Identity of each item's content: a success that changes an item gives it a new one.
     uids: Vec<u64>,
     next_uid: u64,
+    /// The item each identity was given to (it is that item's content while
+    /// `uids[item] == uid` and the item is alive).
+    item_of: Vec<u32>,
+    /// Size of the memo that makes it forget the decisions about identities gone.
+    memo_limit: usize,
     /// Pairs (by identity) decided against by their queries.
     failed: HashSet<Key>,
     /// Pairs (by identity) decided in favour in a round where an earlier pair won.
@@ -155,10 +170,16 @@ pub(super) struct Machine {
     /// The group's input items each item holds (its own, and those merged or joined
     /// into it): the provenance of the result.
     members: Vec<Vec<usize>>,
+    /// Which pairs can pass a rule at all; made at the first listing.
+    near: Option<Near>,
+    /// Groups of fewer items list every pair instead (tests set 0).
+    sweep_from: usize,
+    /// Scratch for [`Near`]'s answers.
+    buf: Vec<usize>,
 }
 
 impl Machine {
-    pub(super) fn new(items: Vec<Item>, mode: Mode, budget: usize) -> Self {
+    pub(super) fn new(items: Vec<Item>, mode: Mode, budget: usize, sweep_from: usize) -> Self {
         let n = items.len();
         Machine {
             items,
@@ -174,8 +195,13 @@ impl Machine {
             first_budget: budget,
             uids: (0..n as u64).collect(),
             next_uid: n as u64,
+            item_of: (0..n as u32).collect(),
+            memo_limit: MEMO_FIRST_LIMIT,
             failed: Default::default(),
             won: Default::default(),
+            near: None,
+            sweep_from,
+            buf: Vec::new(),
         }
     }
 
@@ -210,6 +236,9 @@ impl Machine {
     fn list(&mut self, cx: Ctx) -> Listing {
         let mut l = Listing::default();
         let m = self.items.len();
+        if self.near.is_none() {
+            self.near = Some(Near::new(&self.items, &cx, self.sweep_from));
+        }
         if self.phase == Phase::Merge {
             let mut open = self.open_merge.take().unwrap_or_else(|| Open::new(m));
             let finished = self.scan(Phase::Merge, &mut open, &mut l, cx);
@@ -235,8 +264,30 @@ impl Machine {
     /// Lists the open pairs of `phase` in scan order; `false` when the listing stopped.
     fn scan(&mut self, phase: Phase, open: &mut Open, l: &mut Listing, cx: Ctx) -> bool {
         let m = self.items.len();
-        for a in 0..m {
+        let mut near = self.near.take().expect("made at the first listing");
+        let mut cols = std::mem::take(&mut self.buf);
+        let finished = self.scan_rows(phase, open, l, cx, &mut near, &mut cols, m);
+        self.near = Some(near);
+        self.buf = cols;
+        finished
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn scan_rows(
+        &mut self,
+        phase: Phase,
+        open: &mut Open,
+        l: &mut Listing,
+        cx: Ctx,
+        near: &mut Near,
+        cols: &mut Vec<usize>,
+        m: usize,
+    ) -> bool {
+        let mut next = open.rows.first().copied();
+        while let Some(a) = next {
+            next = open.rows.range(a + 1..).next().copied();
             if !self.alive[a] {
+                open.rows.remove(&a);
                 continue;
             }
             let pending = std::mem::take(&mut open.pending[a]);
@@ -262,19 +313,25 @@ impl Machine {
             if stopped {
                 return false;
             }
-            // The open columns from `from[a]` on: a failing prefix leaves the set.
-            let mut prefix = true;
-            for c in open.from[a]..m {
-                let offer = match self.alive[c] {
-                    true => self.offer(a, c, phase, l, cx),
-                    false => Offer::Fail,
-                };
-                match offer {
-                    Offer::Fail if prefix => open.from[a] = c + 1,
-                    Offer::Fail => {}
-                    Offer::Listed => prefix = false,
-                    Offer::Stop => return false,
+            // The open columns from `from[a]` on: a failing prefix leaves the set; the
+            // columns `near` leaves out fail.
+            if open.from[a] < m {
+                near.columns(a, open.from[a], &self.alive, cols);
+                let mut prefix = true;
+                for &c in cols.iter() {
+                    match self.offer(a, c, phase, l, cx) {
+                        Offer::Fail if prefix => open.from[a] = c + 1,
+                        Offer::Fail => {}
+                        Offer::Listed => prefix = false,
+                        Offer::Stop => return false,
+                    }
                 }
+                if prefix {
+                    open.from[a] = m;
+                }
+            }
+            if open.from[a] >= m && open.pending[a].is_empty() {
+                open.rows.remove(&a);
             }
         }
         true
@@ -398,7 +455,10 @@ impl Machine {
             Some((i, j, made, phase)) => {
                 self.items[i].seg = made.seg;
                 self.items[i].stats = made.stats;
+                let near = self.near.as_mut().expect("made at the first listing");
+                near.update(i, &self.items[i]);
                 self.uids[i] = self.next_uid;
+                self.item_of.push(i as u32);
                 self.next_uid += 1;
                 self.absorb(i, j);
                 let open = match phase {
@@ -414,7 +474,7 @@ impl Machine {
                 };
                 open.as_mut()
                     .expect("a listed phase has its open set")
-                    .reopen(i, &self.alive);
+                    .reopen(i, &self.alive, near, &mut self.buf);
                 self.phase = phase;
                 self.budget = self.first_budget;
             }
@@ -432,6 +492,48 @@ impl Machine {
                 self.budget = self.budget.saturating_mul(2);
             }
         }
+        self.forget();
+    }
+}
+
+/// The memo's size from which it is trimmed ([`Machine::forget`]); small in tests, so
+/// that they trim it.
+const MEMO_FIRST_LIMIT: usize = if cfg!(test) { 8 } else { 1 << 12 };
+
+impl Machine {
+    /// Whether `uid` is the content of an alive item.
+    fn live(&self, uid: u64) -> bool {
+        let i = self.item_of[uid as usize] as usize;
+        self.uids[i] == uid && self.alive[i]
+    }
+
+    /// Drops the decisions about identities no alive item has (a lookup only ever asks
+    /// about alive items' identities, so no answer changes), once the memo has doubled
+    /// since the last time: a cluster of many successes keeps a memo of its live pairs,
+    /// not of every pair it ever decided.
+    fn forget(&mut self) {
+        if self.phase == Phase::Done {
+            // Nothing is asked again: only the items are kept.
+            self.failed = Default::default();
+            self.won = Default::default();
+            self.near = None;
+            self.open_merge = None;
+            self.open_join = None;
+            return;
+        }
+        if self.failed.len() + self.won.len() <= self.memo_limit {
+            return;
+        }
+        let mut failed = std::mem::take(&mut self.failed);
+        failed.retain(|&(a, b, _)| self.live(a) && self.live(b));
+        self.failed = failed;
+        let mut won = std::mem::take(&mut self.won);
+        won.retain(|&(a, b, _), _| self.live(a) && self.live(b));
+        self.won = won;
+        self.failed.shrink_to_fit();
+        self.won.shrink_to_fit();
+        let kept = self.failed.len() + self.won.len();
+        self.memo_limit = self.memo_limit.max(2 * kept);
     }
 }
 
