@@ -756,3 +756,162 @@ pub fn decide(
     out.sort_by_key(|d| d.segment);
     Ok(out)
 }
+
+/// What the model is near the lines, from the decisions (the report's
+/// `refine.diagnosis`): the kind most segments show, in words, and the counts.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Diagnosis {
+    /// `edges` (centres on the edges), `faces` (splats on the faces), `sunk` (splats
+    /// below the faces, off the edges) or `sparse` (too few members).
+    pub kind: String,
+    /// The kind in words, with how far the model's centres sit from the lines where they
+    /// are sunk.
+    pub text: String,
+    /// Segments of each kind.
+    pub edges: usize,
+    pub faces: usize,
+    pub sunk: usize,
+    pub sparse: usize,
+    /// Segments the rule moved, kept because the model knows the edge less well than the
+    /// line does, and kept for lack of members.
+    pub moved: usize,
+    pub model_knows_less: usize,
+    pub too_few_members: usize,
+    /// Median distance from the lines of the centres' ridge, where the model is sunk.
+    pub sunk_by: Option<f64>,
+}
+
+/// A corner whose floor is below this many r says the splats lie on the faces.
+pub const FACES_FLOOR: f64 = 0.15;
+
+/// A ridge whose floor is below this many r says the centres lie on the edges.
+pub const EDGES_FLOOR: f64 = 0.15;
+
+/// The diagnosis of the model near the lines from the rule's decisions; `None` when there
+/// are none.
+pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
+    if decisions.is_empty() {
+        return None;
+    }
+    let (mut edges, mut faces, mut sunk, mut sparse) = (0, 0, 0, 0);
+    let mut depth = Vec::new();
+    for d in decisions {
+        let corner = d.corner.as_ref().filter(|c| c.floor < FACES_FLOOR * r);
+        let ridge = d.ridge.as_ref().filter(|e| e.floor < EDGES_FLOOR * r);
+        if d.verdict == Verdict::TooFewMembers {
+            sparse += 1;
+        } else if corner.is_some() {
+            faces += 1;
+        } else if ridge.is_some() {
+            edges += 1;
+        } else {
+            sunk += 1;
+            if let Some(e) = &d.ridge {
+                depth.push(e.distance);
+            }
+        }
+    }
+    let count = |v: Verdict| decisions.iter().filter(|d| d.verdict == v).count();
+    let sunk_by = (!depth.is_empty()).then(|| median(&mut depth));
+    let most = [edges, faces, sunk, sparse].into_iter().max().unwrap_or(0);
+    let n = decisions.len();
+    let (kind, text) = if most == edges {
+        ("edges", "centres on the edges".to_string())
+    } else if most == faces {
+        ("faces", "splats on the faces".to_string())
+    } else if most == sunk {
+        (
+            "sunk",
+            match sunk_by {
+                Some(x) => format!(
+                    "sunk below the faces: the centres' ridge lies about {x:.3} from the lines"
+                ),
+                None => "sunk below the faces".to_string(),
+            },
+        )
+    } else {
+        ("sparse", "too sparse".to_string())
+    };
+    Some(Diagnosis {
+        kind: kind.to_string(),
+        text: format!("{text} ({most} of {n} segments)"),
+        edges,
+        faces,
+        sunk,
+        sparse,
+        moved: count(Verdict::Moved),
+        model_knows_less: count(Verdict::ModelKnowsLess),
+        too_few_members: count(Verdict::TooFewMembers),
+        sunk_by,
+    })
+}
+
+impl Decision {
+    /// The decision in words, with its numbers (`refine --explain N`), distances also in
+    /// units of `r`.
+    pub fn explain(&self, r: f64) -> String {
+        let u = |x: f64| format!("{x:.4} ({:.2} r)", x / r);
+        let mut s = match self.verdict {
+            Verdict::TooFewMembers => {
+                return "stayed: too few members for any estimate of the edge".to_string()
+            }
+            Verdict::Moved => format!(
+                "moved onto the {}: the line lay {} from it, more than {MOVE_MARGIN} x its \
+                 uncertainty {}",
+                self.estimate.map_or("estimate", Estimate::name),
+                u(self.distance),
+                u(self.sigma)
+            ),
+            Verdict::ModelKnowsLess => format!(
+                "stayed: the line lies {} from the {}, within {MOVE_MARGIN} x its uncertainty \
+                 {} (the model knows the edge less well than the line does)",
+                u(self.distance),
+                self.estimate.map_or("estimate", Estimate::name),
+                u(self.sigma)
+            ),
+        };
+        s += &format!("; {} members within r", self.members);
+        if let Some(c) = &self.corner {
+            s += &format!(
+                "\n  corner: {} from the line, floor {} (faces' residuals {:.4}, {:.4}; \
+                 {:.0} % of normals off both faces; faces {:.0} deg apart, {} and {} splats), \
+                 statistical {}",
+                u(c.distance),
+                u(c.floor),
+                c.residuals[0],
+                c.residuals[1],
+                100.0 * c.off_faces,
+                c.angle_deg,
+                c.counts[0],
+                c.counts[1],
+                u(c.statistical)
+            );
+        }
+        if let Some(e) = &self.ridge {
+            s += &format!(
+                "\n  ridge: {} from the line, floor {} (mode moves {} with a kernel twice as \
+                 wide; roundness {:.2}; {:.0} % of members with normals naming a surface), \
+                 statistical {} (spread {} over {:.0} members)",
+                u(e.distance),
+                u(e.floor),
+                u(e.wide),
+                e.roundness,
+                100.0 * e.face_share * e.face_agree,
+                u(e.statistical),
+                u(e.spread),
+                e.weight
+            );
+        }
+        s
+    }
+}
+
+impl Estimate {
+    /// The estimate's name in words.
+    pub fn name(self) -> &'static str {
+        match self {
+            Estimate::Corner => "corner of two faces",
+            Estimate::Ridge => "ridge of the centres",
+        }
+    }
+}
