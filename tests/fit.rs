@@ -6,7 +6,7 @@ mod common;
 use common::*;
 use glam::DVec3;
 use linegs_gpu::geom::Segment;
-use linegs_gpu::refine::fit::{fit_edges, gate, Attributes, How};
+use linegs_gpu::refine::fit::{decide, fit_edges, Attributes, How};
 use linegs_gpu::refine::{translate, Params};
 
 const R: f64 = 0.03;
@@ -177,7 +177,7 @@ fn fit_and_gate(
     attrs: &Attributes,
 ) -> linegs_gpu::refine::fit::FitResult {
     let mut f = fit_edges(e, &[input], attrs, R, &edge_params()).unwrap();
-    gate(e, &[input], &mut f, attrs, R, &edge_params()).unwrap();
+    decide(e, &[input], &mut f, attrs, R, &edge_params()).unwrap();
     f
 }
 
@@ -294,7 +294,7 @@ fn the_gate_decides_each_distinct_segment_once_and_every_copy_alike() {
     let moved = (0..2).filter(|&i| f.segments[i] != input[i]).count();
     assert!(moved >= 1);
     let before = e.counters().queries;
-    gate(&e, &input, &mut f, &attrs, R, &edge_params()).unwrap();
+    decide(&e, &input, &mut f, &attrs, R, &edge_params()).unwrap();
     // One member list per distinct moved segment, not one per copy.
     assert_eq!(e.counters().queries - before, moved as u64);
     let alone = [

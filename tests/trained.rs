@@ -1,8 +1,10 @@
 //! Real trained pairs (renders -> OpenSplat 3DGS model, Line3D++ on the same renders with
-//! exact cameras, exact edges; `tests/data/real_pairs/`): the `default` profile keeps
-//! accurate lines accurate on Gaussians a trainer really produced, which sit a splat's size
-//! off the edges. Each test fails when the move gate is off (the fit then moves the lines
-//! about 0.01 off the edges: F@0.005 below 0.1).
+//! exact cameras, exact edges; `tests/data/real_pairs/`) and the edge-sampled toy scene:
+//! the `default` profile's decision rule keeps accurate lines accurate on Gaussians a
+//! trainer really produced (coarse splats sunk below the faces; splats on the faces),
+//! brings lines 0.012 off back where the model knows the edge better (splats on the
+//! faces, centres on the edges), and names each kind. The clean-line tests fail when the
+//! rule is off (the fit then moves the lines about 0.01 off the edges: F@0.005 below 0.1).
 
 mod common;
 
@@ -134,4 +136,123 @@ fn the_gate_decides_alike_on_both_engines() {
         (c.fit_corner, c.fit_ridge, c.fit_unclear, c.fit_kept),
         (g.fit_corner, g.fit_ridge, g.fit_unclear, g.fit_kept)
     );
+}
+
+/// Each segment of `segs` moved `by` across itself (alternately along the two axes of its
+/// cross-section, either sign): the position bias of lines from noisier cameras.
+fn biased(segs: &[Segment], by: f64) -> Vec<Segment> {
+    segs.iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let (e1, e2) = linegs_gpu::refine::fit::basis(s.dir());
+            let v = match i % 4 {
+                0 => e1,
+                1 => e2,
+                2 => -e1,
+                _ => -e2,
+            } * by;
+            Segment::new(s.p1 + v, s.p2 + v)
+        })
+        .collect()
+}
+
+/// `refine` of `lines` against `scene`'s Gaussians with `params`.
+fn refine_lines(scene: &Scene, lines: Vec<Segment>, params: Params) -> Outcome {
+    let mut s = scene.clone();
+    s.lines = linegs_gpu::geom::LineSet::new(lines);
+    Job::new(params, Backend::Cpu).refine(&s, |_| {}).unwrap()
+}
+
+/// Splats lying on the faces (`real_pairs/proc_surf_crop`: 12 Line3D++ segments on corners
+/// of two faces and the Gaussians within 0.045 of them): the corner of the faces is known
+/// to about 0.003, so exact lines (0.0016 from the edges) stay and lines 0.012 off come
+/// back onto the corners. Fails when the rule moves every line (the exact ones then land
+/// on the corner estimate, 0.004 off) or none.
+#[test]
+fn splats_on_faces_keep_exact_lines_and_bring_biased_ones_back() {
+    let (scene, out) = refine("proc_surf_crop", params(), Backend::Cpu);
+    let truth = gt_of("proc_surf_crop", "gt_lines.txt");
+    let (acc_in, _, _) = scores(&scene.lines.segments, &truth);
+    let (acc, _, _) = scores(&out.lines.segments, &truth);
+    assert!(
+        acc <= acc_in + 1e-4,
+        "clean: accuracy {acc} vs input {acc_in}"
+    );
+    let notes = out.report.refine.as_ref().unwrap();
+    let d = notes.diagnosis.as_ref().unwrap();
+    assert_eq!(d.kind, "faces", "{d:?}");
+    assert_eq!(d.moved, 0, "{d:?}");
+
+    let off = biased(&scene.lines.segments, 0.012);
+    let (acc_off, _, _) = scores(&off, &truth);
+    assert!(acc_off > 0.01, "{acc_off}");
+    let out = refine_lines(&scene, off.clone(), params());
+    let (acc, _, _) = scores(&out.lines.segments, &truth);
+    assert!(acc <= 0.0065, "biased: accuracy {acc} (input {acc_off})");
+    let d = out
+        .report
+        .refine
+        .as_ref()
+        .unwrap()
+        .diagnosis
+        .clone()
+        .unwrap();
+    assert!(d.moved >= 10, "{d:?}");
+    // Without the edge fit they stay off.
+    let none = Params {
+        fit: Some(linegs_gpu::refine::Fit::None),
+        ..params()
+    };
+    let out = refine_lines(&scene, off, none);
+    let (acc, _, _) = scores(&out.lines.segments, &truth);
+    assert!(acc > 0.01, "fit none: accuracy {acc}");
+}
+
+/// Coarse trained splats (`real_pairs/proc`) sit below the faces: the diagnosis says so,
+/// every weighed segment stays because the model knows less than the line, and lines
+/// 0.012 off stay where they are too (no estimate is better than them).
+#[test]
+fn a_coarse_model_is_named_sunk_and_moves_nothing() {
+    let (scene, out) = refine("proc", params(), Backend::Cpu);
+    let d = out
+        .report
+        .refine
+        .as_ref()
+        .unwrap()
+        .diagnosis
+        .clone()
+        .unwrap();
+    assert_eq!(d.kind, "sunk", "{d:?}");
+    assert_eq!(d.moved, 0, "{d:?}");
+    let by = d.sunk_by.unwrap();
+    assert!((0.008..0.03).contains(&by), "{d:?}");
+    let truth = gt_of("proc", "gt_lines.txt");
+    let off = biased(&scene.lines.segments, 0.012);
+    let (acc_off, _, _) = scores(&off, &truth);
+    let out = refine_lines(&scene, off, params());
+    let (acc, _, _) = scores(&out.lines.segments, &truth);
+    assert!(acc <= acc_off + 1e-4, "biased: {acc} vs input {acc_off}");
+}
+
+/// Centres on the edges (the toy scene's edge samples): named so, and lines 0.012 off
+/// come back to within 0.005.
+#[test]
+fn edge_samples_are_named_and_biased_lines_come_back() {
+    let toy = linegs_gpu::synth::toy_scene(&linegs_gpu::synth::ToyParams::default());
+    let scene = Scene::from_arrays(toy.gaussians.clone(), toy.lines.clone()).unwrap();
+    let off = biased(&toy.gt, 0.012);
+    let (acc_off, _, _) = scores(&off, &toy.gt);
+    let out = refine_lines(&scene, off, params());
+    let (acc, _, _) = scores(&out.lines.segments, &toy.gt);
+    assert!(acc < 0.005, "biased: {acc} (input {acc_off})");
+    let d = out
+        .report
+        .refine
+        .as_ref()
+        .unwrap()
+        .diagnosis
+        .clone()
+        .unwrap();
+    assert_eq!(d.kind, "edges", "{d:?}");
+    assert!(d.moved > d.model_knows_less, "{d:?}");
 }

@@ -96,7 +96,8 @@ fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
     assert_eq!(out.report.before, ev.before);
     assert_eq!(out.report.after, ev.after);
     assert_eq!(out.report.input.n_box, scene.gaussians.len());
-    // Without the cut the wide band pulls the line onto itself.
+    // Without the cut the wide band makes the ridge unsure (its mode moves with the
+    // kernel's width) and the line does not reach the edge.
     let keep_all = Params {
         max_scale: Some(0.0),
         ..params.clone()
@@ -106,7 +107,7 @@ fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
         .unwrap();
     assert_eq!(out.report.refine.as_ref().unwrap().scale_cut, None);
     assert!(
-        mid_off_axis(&out.lines.segments[0]) > 0.35 * R,
+        mid_off_axis(&out.lines.segments[0]) > 0.2 * R,
         "{:?}",
         out.lines.segments[0]
     );
@@ -173,8 +174,9 @@ fn the_report_counts_the_placing_engines_batches_too() {
         run(linegs_gpu::refine::Fit::Edge),
         run(linegs_gpu::refine::Fit::None),
     );
-    // The edge fit (one batch) runs on the placing engine (no normals: no gate batch).
-    assert_eq!(edge.batches, none.batches + 1, "{edge:?} {none:?}");
+    // The edge fit (one batch) and its decision rule (one batch of members) run on the
+    // placing engine.
+    assert_eq!(edge.batches, none.batches + 2, "{edge:?} {none:?}");
     assert!(edge.queries > none.queries, "{edge:?} {none:?}");
 }
 

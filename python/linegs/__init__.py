@@ -66,7 +66,7 @@ class Gaussians:
     62-property layout), ``normals`` ``(N, 3)`` (each Gaussian's shortest axis, zero where
     it is not flat), ``max_scale`` ``(N,)`` (its largest standard deviation, scene units),
     ``opacity`` ``(N,)`` (in ``[0, 1]``) and ``min_scale`` ``(N,)`` (its smallest standard
-    deviation: a flat Gaussian's thickness, which the edge fit's move gate reads); ``None``
+    deviation: a flat Gaussian's thickness); ``None``
     where it does not.
 
     The arrays are read-only views of the model's own memory in the native module (the

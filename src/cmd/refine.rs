@@ -45,6 +45,11 @@ pub struct RefineArgs {
     /// otherwise stops the run (lines and model in different frames or units).
     #[arg(long)]
     pub no_frame_check: bool,
+    /// Print the edge fit's decision for input segment N (0-based): the estimates it
+    /// weighed, how well the Gaussians know each, and the verdict (every segment's is in
+    /// the report's `refine.fit_decisions`).
+    #[arg(long, value_name = "N")]
+    pub explain: Option<usize>,
     #[command(flatten)]
     pub params: ParamsArgs,
 }
@@ -134,6 +139,23 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
                 sh.median_r,
                 sh.p90_r
             );
+        }
+        if let Some(d) = &steps.diagnosis {
+            println!(
+                "the model near the lines: {}; the edge fit moved {}, kept {} where the model \
+                 knows the edge less well than the line, {} for lack of members",
+                d.text, d.moved, d.model_knows_less, d.too_few_members
+            );
+        }
+        if let Some(n) = a.explain {
+            match steps.fit_decisions.iter().find(|d| d.segment == n) {
+                Some(d) => println!("segment {n}: {}", d.explain(r.radius)),
+                None => println!(
+                    "segment {n}: no decision (the edge fit did not move it, or it is not \
+                     one of the {} input segments)",
+                    scene.lines.len()
+                ),
+            }
         }
     }
     println!("wrote {} in {:.2} s", a.output.display(), r.total_seconds);

@@ -13,6 +13,7 @@ use crate::geom::kernel::Columns;
 use crate::geom::Segment;
 use crate::refine::Params;
 use glam::{DVec2, DVec3};
+use serde::{Deserialize, Serialize};
 
 /// Per-point attributes of the working set (index = working-set id), where the file has them.
 #[derive(Clone, Debug, Default)]
@@ -22,8 +23,7 @@ pub struct Attributes {
     /// Opacity of each Gaussian in `[0, 1]`: the fit's per-point weight with
     /// `--fit-opacity-weight`.
     pub opacity: Option<Vec<f32>>,
-    /// Thickness of each Gaussian (its smallest standard deviation): the move gate widens
-    /// a face's slab of splats by it.
+    /// Thickness of each Gaussian (its smallest standard deviation).
     pub thickness: Option<Vec<f32>>,
 }
 
@@ -135,17 +135,121 @@ pub fn fit_edges(
     })
 }
 
-/// The move gate's ridge test: a ridge of centers stands only where less than this share
-/// of its kernel weight comes from flat Gaussians (face splats, [`Attributes::normals`]
-/// non-zero). Face splats mark surfaces, and their centers' densest line is not an edge:
-/// on trained models it sits a splat's size inside the faces (measured on the trained
-/// pairs: 0.35 to 1 of a fitted ridge's weight, median 0.8); a ridge sampled on an edge,
-/// or of small round or needle-shaped Gaussians, has none.
-pub const GATE_FACE_SHARE: f64 = 1.0 / 3.0;
+/// Which estimate of the edge a decision weighed ([`decide`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Estimate {
+    /// The corner of two faces: planes fitted to the positions of the splats whose normals
+    /// split them into two families.
+    Corner,
+    /// The ridge of the centers: the mode of their cross-section.
+    Ridge,
+}
 
-/// The move gate's slab: a face's splats, offsets along its normal, span this many robust
-/// standard deviations (1.4826 x the median absolute deviation) to each side.
-pub const GATE_SLAB_SIGMAS: f64 = 3.0;
+/// What [`decide`] did with one segment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Verdict {
+    /// The line lay outside the estimate's uncertainty by the margin: moved onto it.
+    Moved,
+    /// The line lies within the margin of the estimate's uncertainty: the model knows the
+    /// edge no better than the line does, and the line stays.
+    ModelKnowsLess,
+    /// Too few members for any estimate: the line stays.
+    TooFewMembers,
+}
+
+/// The corner's evidence: the two faces the normals split the members into.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CornerEvidence {
+    /// Distance between the corners of the faces' splats near it and far from it.
+    pub near_far: f64,
+    /// Members of each face.
+    pub counts: [usize; 2],
+    /// Robust spread (1.4826 x the median absolute deviation) of each face's splats about
+    /// their own plane, scene units.
+    pub residuals: [f64; 2],
+    /// Angle between the faces' normals, degrees.
+    pub angle_deg: f64,
+    /// Share of the members with a normal that is more than 20° off both faces (a rounded
+    /// corner, or normals that say nothing about the positions).
+    pub off_faces: f64,
+    /// How far the input line lies outside both faces (the smaller of its two distances,
+    /// each its ends' mean, on the side away from the other face's splats); negative where
+    /// it lies inside one: the splats sit that far below the line.
+    pub outside: f64,
+    /// Distance of the input line from the corner (its farther end), scene units.
+    pub distance: f64,
+    /// How well the corner is known: systematic floor (the faces' residuals) and
+    /// statistical part (the planes' standard errors), scene units.
+    pub floor: f64,
+    pub statistical: f64,
+}
+
+/// The ridge's evidence: the centers' cross-section about their mode.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RidgeEvidence {
+    /// Share of the members within r with a normal across the line, how much those
+    /// normals agree (resultant length of their doubled angles, 1: one face) and the robust
+    /// spread of the members' positions along their mean normal.
+    pub face_share: f64,
+    pub face_agree: f64,
+    pub face_residual: f64,
+    /// How far the mode moves when the kernel is twice as wide.
+    pub wide: f64,
+    /// Weight (members, or their opacities) within r/2 of the ridge.
+    pub weight: f64,
+    /// Share of the weight within r of the ridge that lies within r/2 of it.
+    pub inner: f64,
+    /// Root mean square distance from the ridge of the members within r/2 of it.
+    pub spread: f64,
+    /// Ratio of the smaller to the larger principal spread of those members (1: round
+    /// blob, 0: a face through the ridge).
+    pub roundness: f64,
+    /// Distance of the input line from the ridge (its farther end), scene units.
+    pub distance: f64,
+    /// How well the ridge is known: systematic floor and statistical part.
+    pub floor: f64,
+    pub statistical: f64,
+}
+
+/// One segment's decision with its numbers (the report's `refine.fit_decisions`,
+/// `refine --explain N`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Decision {
+    /// Index of the segment in the lines given to the step.
+    pub segment: usize,
+    pub verdict: Verdict,
+    /// The estimate weighed (the better known of the two), if any.
+    pub estimate: Option<Estimate>,
+    /// Members within r of the fitted line.
+    pub members: usize,
+    /// The input line's distance from the estimate and how well the estimate is known
+    /// (`sqrt(floor^2 + statistical^2)`), scene units; the line moves when `distance`
+    /// exceeds [`MOVE_MARGIN`] x `sigma`.
+    pub distance: f64,
+    pub sigma: f64,
+    pub corner: Option<CornerEvidence>,
+    pub ridge: Option<RidgeEvidence>,
+    /// The input segment and the fitted one (`x1 y1 z1 x2 y2 z2`).
+    pub input: [f64; 6],
+    pub fitted: [f64; 6],
+    /// The two estimates' lines, where they exist.
+    pub corner_line: Option<[f64; 6]>,
+    pub ridge_line: Option<[f64; 6]>,
+}
+
+/// A line moves onto an estimate only when it lies farther from it than this many times
+/// the estimate's uncertainty.
+pub const MOVE_MARGIN: f64 = 3.5;
+
+/// The ridge's floor counts how far its mode moves with a kernel twice as wide this many
+/// times.
+pub const RIDGE_WIDE: f64 = 2.0;
+
+/// The ridge's floor counts its spread this many times the share of its members that the
+/// normals name as surface.
+pub const RIDGE_SURFACE: f64 = 6.0;
 
 /// Median and robust standard deviation (1.4826 x the median absolute deviation) of `v`.
 fn median_sigma(v: &mut [f64]) -> (f64, f64) {
@@ -154,84 +258,75 @@ fn median_sigma(v: &mut [f64]) -> (f64, f64) {
     (m, 1.4826 * median(&mut dev))
 }
 
-/// What [`gate_corner`] reads of one fitted segment: its members (cross-section offsets,
-/// weights, working-set ids), the model's normals and thicknesses, the fitted line's
-/// cross-section frame and the input line's ends in it.
-#[derive(Clone, Copy)]
-struct CornerInput<'a> {
-    pts: &'a [(f64, DVec2)],
-    pw: &'a [f64],
-    normals: &'a [[f32; 3]],
-    thickness: Option<&'a [f32]>,
-    ids: &'a [u32],
-    frame: (DVec3, DVec3),
-    ends: [DVec2; 2],
+/// The farther of `ends` from `c`.
+fn farther(ends: &[DVec2; 2], c: DVec2) -> f64 {
+    (ends[0] - c).length().max((ends[1] - c).length())
 }
 
-/// The corner test: both faces' splats form slabs no thicker than the kernel `h` (each
-/// half-width [`GATE_SLAB_SIGMAS`] times the robust deviation of their offsets along the
-/// face's normal combined with the splats' median thickness), and an end of the input
-/// line (`ends`, offsets in the fitted line's frame) lies outside one of them. A line
-/// inside both slabs is as consistent with the faces as their intersection is: the splats
-/// cannot place the edge more finely than their slabs.
-fn gate_corner(c: &CornerInput<'_>, r: f64, h: f64, min_points: usize) -> bool {
-    let CornerInput {
-        pts,
-        pw,
-        normals,
-        thickness,
-        ids,
-        frame: (e1, e2),
-        ends,
-    } = *c;
-    let mut keep = Vec::new();
-    let mut n2 = Vec::new();
-    for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
-        if p.1.length() > r {
-            continue;
-        }
-        let n = crate::geom::p64(normals[*id as usize]);
-        let across = DVec2::new(n.dot(e1), n.dot(e2));
-        if across.length() > 0.866 {
-            keep.push(i);
-            n2.push(across.normalize());
-        }
-    }
-    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
-    let Some(fam) = families(&n2, &sub_w, min_points) else {
-        return false;
-    };
-    let mut thickest: f64 = 0.0;
-    let mut outside = false;
-    for (n, members) in &fam {
-        let mut off: Vec<f64> = members.iter().map(|&j| n.dot(pts[keep[j]].1)).collect();
-        let (c, sigma) = median_sigma(&mut off);
-        // Each splat's own extent along its normal adds to the spread of their centers.
-        let own = thickness.map_or(0.0, |th| {
-            let mut t: Vec<f64> = members
-                .iter()
-                .map(|&j| f64::from(th[ids[keep[j]] as usize]))
-                .collect();
-            median(&mut t)
-        });
-        let half = GATE_SLAB_SIGMAS * sigma.hypot(own);
-        thickest = thickest.max(half);
-        outside |= ends.iter().any(|e| (n.dot(*e) - c).abs() > half);
-    }
-    thickest <= h && outside
-}
-
-/// The ridge test: around the fitted line (mean shift with the kernel `h` from it), less
-/// than [`GATE_FACE_SHARE`] of the kernel weight comes from flat Gaussians (`flat`).
-fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> bool {
+/// The ridge of the cross-section `pts` (mean shift with the kernel `h` from the fitted
+/// line) and what the members say of how well it is known.
+fn ridge_evidence(
+    pts: &[(f64, DVec2)],
+    pw: &[f64],
+    ends: &[DVec2; 2],
+    r: f64,
+    h: f64,
+) -> Option<(DVec2, RidgeEvidence)> {
     let mut cols = Columns::new(pts.iter().map(|p| p.1), pw);
-    let mut c = DVec2::ZERO;
-    let mut sw = 0.0;
-    for _ in 0..50 {
-        let s;
-        (sw, s) = cols.round(c, h);
+    let c = mode(&mut cols, DVec2::ZERO, h)?;
+    let wide = mode(&mut cols, c, 2.0 * h).unwrap_or(c);
+    let (mut w_all, mut w_in) = (0.0, 0.0);
+    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
+    for (p, w) in pts.iter().zip(pw) {
+        let d = p.1 - c;
+        let l = d.length();
+        if l <= r {
+            w_all += w;
+        }
+        if l <= 0.5 * r {
+            w_in += w;
+            sxx += w * d.x * d.x;
+            syy += w * d.y * d.y;
+            sxy += w * d.x * d.y;
+        }
+    }
+    if w_in <= 0.0 {
+        return None;
+    }
+    let (sxx, syy, sxy) = (sxx / w_in, syy / w_in, sxy / w_in);
+    let tr = sxx + syy;
+    let det = sxx * syy - sxy * sxy;
+    let disc = (0.25 * tr * tr - det).max(0.0).sqrt();
+    let (l1, l2) = (0.5 * tr + disc, (0.5 * tr - disc).max(0.0));
+    let spread = tr.sqrt();
+    let roundness = if l1 > 0.0 { (l2 / l1).sqrt() } else { 1.0 };
+    let inner = w_in / w_all.max(w_in);
+    let statistical = spread / w_in.sqrt();
+    let floor = 0.0;
+    Some((
+        c,
+        RidgeEvidence {
+            face_share: 0.0,
+            face_agree: 0.0,
+            face_residual: 0.0,
+            wide: (wide - c).length(),
+            weight: w_in,
+            inner,
+            spread,
+            roundness,
+            distance: farther(ends, c),
+            floor,
+            statistical,
+        },
+    ))
+}
+
+/// The mode of the offsets in `cols` by mean shift with the kernel `h`, from `c`.
+fn mode(cols: &mut Columns, mut c: DVec2, h: f64) -> Option<DVec2> {
+    for _ in 0..100 {
+        let (sw, s) = cols.round(c, h);
         if sw <= 0.0 {
-            break;
+            return None;
         }
         let next = s / sw;
         let moved = (next - c).length();
@@ -240,36 +335,232 @@ fn gate_ridge(pts: &[(f64, DVec2)], pw: &[f64], flat: &[bool], h: f64) -> bool {
             break;
         }
     }
-    cols.round(c, h);
-    let faces: f64 = cols
-        .k
-        .iter()
-        .zip(pw)
-        .zip(flat)
-        .filter(|(_, f)| **f)
-        .map(|((k, w), _)| w * k)
-        .sum();
-    sw > 0.0 && faces / sw < GATE_FACE_SHARE
+    Some(c)
 }
 
-/// The move gate (`--fit-gate`): each segment the edge fit moved (`fitted`, from `input`)
-/// keeps its move only where the Gaussians within r of its new line explain it (a corner
-/// by `gate_corner`, a ridge by `gate_ridge`); the others go back to their input and
-/// are marked [`How::Kept`]. One engine batch of members, none without normals (every
-/// ridge then stands); the decision is the host's, so both engines agree. Returns how
-/// many moves it undid.
-pub fn gate(
+/// The face through the ridge `c`, where the members' normals name one: the share of the
+/// members within r of `c` with a normal across the line, the resultant length of those
+/// normals' doubled angles (1: all alike), and the robust spread of their offsets along
+/// the mean normal.
+fn face_through(
+    pts: &[(f64, DVec2)],
+    m: &[Member],
+    normals: &[[f32; 3]],
+    (e1, e2): (DVec3, DVec3),
+    c: DVec2,
+    r: f64,
+) -> (f64, f64, f64) {
+    let mut n_all = 0usize;
+    let mut q = Vec::new();
+    let mut across = Vec::new();
+    let mut dbl = DVec2::ZERO;
+    for (p, mm) in pts.iter().zip(m) {
+        if (p.1 - c).length() > r {
+            continue;
+        }
+        n_all += 1;
+        let n = crate::geom::p64(normals[mm.id as usize]);
+        let a = DVec2::new(n.dot(e1), n.dot(e2));
+        if a.length() > 0.866 {
+            let a = a.normalize();
+            dbl += DVec2::new(a.x * a.x - a.y * a.y, 2.0 * a.x * a.y);
+            q.push(p.1);
+            across.push(a);
+        }
+    }
+    if q.len() < 3 || n_all == 0 {
+        return (0.0, 0.0, 0.0);
+    }
+    // One face: the resultant of the doubled angles. Two faces: the two families'
+    // resultants, less what two halves of random directions reach (2/pi), rescaled.
+    let mut agree = dbl.length() / q.len() as f64;
+    if let Some(fam) = families(&across, &vec![1.0; across.len()], 2) {
+        let two: f64 = fam
+            .iter()
+            .map(|(_, m)| {
+                m.iter()
+                    .map(|&j| {
+                        let a = across[j];
+                        DVec2::new(a.x * a.x - a.y * a.y, 2.0 * a.x * a.y)
+                    })
+                    .sum::<DVec2>()
+                    .length()
+            })
+            .sum::<f64>()
+            / q.len() as f64;
+        let random = 2.0 / std::f64::consts::PI;
+        agree = agree.max((two - random) / (1.0 - random));
+    }
+    let ang = 0.5 * dbl.y.atan2(dbl.x);
+    let n = DVec2::new(ang.cos(), ang.sin());
+    let mut off: Vec<f64> = q.iter().map(|p| n.dot(*p)).collect();
+    let (_, s) = median_sigma(&mut off);
+    (q.len() as f64 / n_all as f64, agree, s)
+}
+
+/// The corner of the members' two faces (normals split them into families; each face's
+/// plane is the median offset of its splats' positions along the family's normal) and
+/// what the members say of how well it is known.
+fn corner_evidence(
+    c: &CornerInput<'_>,
+    r: f64,
+    min_points: usize,
+) -> Option<(DVec2, CornerEvidence)> {
+    let CornerInput {
+        pts,
+        pw,
+        normals,
+        ids,
+        frame: (e1, e2),
+        ends,
+    } = *c;
+    let d = e1.cross(e2);
+    let mut keep = Vec::new();
+    let mut n2 = Vec::new();
+    let mut with_normal = Vec::new();
+    for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
+        if p.1.length() > r {
+            continue;
+        }
+        let n = crate::geom::p64(normals[*id as usize]);
+        if n != DVec3::ZERO {
+            with_normal.push(n);
+        }
+        let across = DVec2::new(n.dot(e1), n.dot(e2));
+        if across.length() > 0.866 {
+            keep.push(i);
+            n2.push(across.normalize());
+        }
+    }
+    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
+    let fam = families(&n2, &sub_w, min_points)?;
+    let mut off_of: [Vec<f64>; 2] = Default::default();
+    let mut centre = [0.0; 2];
+    let mut resid = [0.0; 2];
+    let mut counts = [0; 2];
+    for (k, (n, members)) in fam.iter().enumerate() {
+        let mut off: Vec<f64> = members.iter().map(|&j| n.dot(pts[keep[j]].1)).collect();
+        let (m, s) = median_sigma(&mut off);
+        off_of[k] = members.iter().map(|&j| n.dot(pts[keep[j]].1)).collect();
+        centre[k] = m;
+        resid[k] = s;
+        counts[k] = members.len();
+    }
+    let (n1, n2v) = (fam[0].0, fam[1].0);
+    let det = n1.x * n2v.y - n1.y * n2v.x;
+    if det.abs() < 1e-9 {
+        return None;
+    }
+    let corner = DVec2::new(
+        (centre[0] * n2v.y - centre[1] * n1.y) / det,
+        (n1.x * centre[1] - n2v.x * centre[0]) / det,
+    );
+    let sin = det.abs();
+    let solve = |c0: f64, c1: f64| {
+        DVec2::new(
+            (c0 * n2v.y - c1 * n1.y) / det,
+            (n1.x * c1 - n2v.x * c0) / det,
+        )
+    };
+    // The planes of the members near the corner and of those farther off.
+    let part = |near: bool| -> Option<DVec2> {
+        let mut cc = [0.0; 2];
+        for (k, (n, members)) in fam.iter().enumerate() {
+            let mut off: Vec<f64> = members
+                .iter()
+                .filter(|&&j| ((pts[keep[j]].1 - corner).length() <= 0.5 * r) == near)
+                .map(|&j| n.dot(pts[keep[j]].1))
+                .collect();
+            if off.len() < 3 {
+                return None;
+            }
+            cc[k] = median(&mut off);
+        }
+        Some(solve(cc[0], cc[1]))
+    };
+    let near_far = match (part(true), part(false)) {
+        (Some(a), Some(b)) => (a - b).length(),
+        _ => -1.0,
+    };
+    // Normals more than 20° off both faces (3D: a normal along the line is off both).
+    let lift = |n: DVec2| e1 * n.x + e2 * n.y;
+    let cos20 = 20f64.to_radians().cos();
+    let off_faces = if with_normal.is_empty() {
+        0.0
+    } else {
+        let off = with_normal
+            .iter()
+            .filter(|n| n.dot(lift(n1)).abs() < cos20 && n.dot(lift(n2v)).abs() < cos20)
+            .count();
+        off as f64 / with_normal.len() as f64
+    };
+    let _ = d;
+    // The outside of face k: away from the other face's splats.
+    let mut outside = f64::INFINITY;
+    for k in 0..2 {
+        let n = fam[k].0;
+        let mut other: Vec<f64> = off_of[1 - k].iter().map(|_| 0.0).collect();
+        for (o, &j) in other.iter_mut().zip(&fam[1 - k].1) {
+            *o = n.dot(pts[keep[j]].1) - centre[k];
+        }
+        let inside = median(&mut other).signum();
+        let out = -inside * 0.5 * ((n.dot(ends[0]) - centre[k]) + (n.dot(ends[1]) - centre[k]));
+        outside = outside.min(out);
+    }
+    let floor = resid[0].hypot(resid[1]) / sin;
+    let se = |k: usize| 1.2533 * resid[k] / (counts[k] as f64).sqrt();
+    let statistical = se(0).hypot(se(1)) / sin;
+    let angle_deg = n1.dot(n2v).abs().min(1.0).acos().to_degrees();
+    Some((
+        corner,
+        CornerEvidence {
+            near_far,
+            counts,
+            residuals: resid,
+            angle_deg,
+            off_faces,
+            outside,
+            distance: farther(&ends, corner),
+            floor,
+            statistical,
+        },
+    ))
+}
+
+/// What [`corner_evidence`] reads of one fitted segment: its members (cross-section
+/// offsets, weights, working-set ids), the model's normals, the fitted line's
+/// cross-section frame and the input line's ends in it.
+#[derive(Clone, Copy)]
+struct CornerInput<'a> {
+    pts: &'a [(f64, DVec2)],
+    pw: &'a [f64],
+    normals: &'a [[f32; 3]],
+    ids: &'a [u32],
+    frame: (DVec3, DVec3),
+    ends: [DVec2; 2],
+}
+
+fn seg6(s: &Segment) -> [f64; 6] {
+    [s.p1.x, s.p1.y, s.p1.z, s.p2.x, s.p2.y, s.p2.z]
+}
+
+/// The decision rule (`--fit-gate`, on in `default`): for each segment the edge fit
+/// moved (`fitted`, from `input`), both estimates of the edge near its new line (the
+/// corner of two faces, where normals split the members into two; the ridge of the
+/// centers) with how well the members know each: a systematic floor that does not shrink
+/// with their count and a statistical part that does. The better known estimate is
+/// weighed: the line moves onto it only where the input line lies farther from it than
+/// [`MOVE_MARGIN`] times its uncertainty; otherwise it goes back to its input
+/// ([`How::Kept`]). One engine batch of members; the decision is the host's, so both
+/// engines agree. Returns every weighed segment's decision.
+pub fn decide(
     engine: &dyn Engine,
     input: &[Segment],
     fitted: &mut FitResult,
     attrs: &Attributes,
     r: f64,
     p: &Params,
-) -> Result<usize, EngineError> {
-    // Without normals every ridge stands and there is no corner: nothing to ask.
-    let Some(ns) = attrs.normals.as_deref() else {
-        return Ok(0);
-    };
+) -> Result<Vec<Decision>, EngineError> {
     let moved: Vec<usize> = (0..input.len())
         .filter(|&i| {
             fitted.segments[i] != input[i]
@@ -277,8 +568,25 @@ pub fn gate(
                 && fitted.segments[i].is_valid()
         })
         .collect();
+    let mut out: Vec<Decision> = (0..input.len())
+        .filter(|&i| fitted.how[i] == How::Unclear)
+        .map(|i| Decision {
+            segment: i,
+            verdict: Verdict::TooFewMembers,
+            estimate: None,
+            members: 0,
+            distance: 0.0,
+            sigma: 0.0,
+            corner: None,
+            ridge: None,
+            input: seg6(&input[i]),
+            fitted: seg6(&fitted.segments[i]),
+            corner_line: None,
+            ridge_line: None,
+        })
+        .collect();
     if moved.is_empty() {
-        return Ok(0);
+        return Ok(out);
     }
     // The decision is a function of the fitted and the input segment's bits and how the
     // line was found: copies of a segment (merged runs, busy areas) are decided once, and
@@ -309,7 +617,7 @@ pub fn gate(
     let members = engine.members(&queries)?;
     let h = p.fit_bandwidth * r;
     let min_points = p.fit_min_points.max(1) as usize;
-    let stands: Vec<bool> = {
+    let decided: Vec<(Decision, Option<Segment>)> = {
         use rayon::prelude::*;
         moved
             .par_iter()
@@ -319,42 +627,291 @@ pub fn gate(
                 let d = s.dir();
                 let (e1, e2) = basis(d);
                 let (pts, pw) = cross_section(m, (e1, e2), attrs, p);
-                match fitted.how[i] {
-                    How::Corner => {
-                        let ids: Vec<u32> = m.iter().map(|m| m.id).collect();
-                        let end = |q: glam::DVec3| {
-                            let v = q - s.p1;
-                            let o = v - d * v.dot(d);
-                            DVec2::new(o.dot(e1), o.dot(e2))
-                        };
-                        let ends = [end(input[i].p1), end(input[i].p2)];
-                        let input = CornerInput {
+                let end = |q: glam::DVec3| {
+                    let v = q - s.p1;
+                    let o = v - d * v.dot(d);
+                    DVec2::new(o.dot(e1), o.dot(e2))
+                };
+                let ends = [end(input[i].p1), end(input[i].p2)];
+                let mut ridge = ridge_evidence(&pts, &pw, &ends, r, h);
+                if let (Some((c, e)), Some(ns)) = (ridge.as_mut(), attrs.normals.as_deref()) {
+                    let (share, agree, res) = face_through(&pts, m, ns, (e1, e2), *c, r);
+                    e.face_share = share;
+                    e.face_agree = agree;
+                    e.face_residual = res;
+                }
+                let corner = attrs.normals.as_deref().and_then(|ns| {
+                    let ids: Vec<u32> = m.iter().map(|m| m.id).collect();
+                    corner_evidence(
+                        &CornerInput {
                             pts: &pts,
                             pw: &pw,
                             normals: ns,
-                            thickness: attrs.thickness.as_deref(),
                             ids: &ids,
                             frame: (e1, e2),
                             ends,
-                        };
-                        gate_corner(&input, r, h, min_points)
-                    }
-                    _ => {
-                        let flat: Vec<bool> =
-                            m.iter().map(|m| ns[m.id as usize] != [0.0; 3]).collect();
-                        gate_ridge(&pts, &pw, &flat, h)
+                        },
+                        r,
+                        min_points,
+                    )
+                });
+                let at = |c: DVec2| {
+                    let shift = e1 * c.x + e2 * c.y;
+                    seg6(&Segment::new(s.p1 + shift, s.p2 + shift))
+                };
+                let corner_line = corner.as_ref().map(|c| at(c.0));
+                let ridge_line = ridge.as_ref().map(|c| at(c.0));
+                // The corner's floor: its faces' residuals and the disagreement of the
+                // splats near it with those far off, over the share of the normals that
+                // agree with the faces.
+                let mut corner = corner;
+                if let Some((_, e)) = corner.as_mut() {
+                    e.floor = e.floor.hypot(e.near_far.max(0.0)) / (1.0 - e.off_faces).max(1e-3);
+                }
+                // The ridge's floor: how far its mode moves with a kernel twice as wide,
+                // how flat the cross-section is, and how much of it the normals name as
+                // surface (a face, or the corner's two).
+                if let Some((_, e)) = ridge.as_mut() {
+                    let agree = corner
+                        .as_ref()
+                        .map_or(e.face_agree, |c| e.face_agree.max(1.0 - c.1.off_faces));
+                    let surface = e.face_share * agree;
+                    e.floor = (RIDGE_WIDE * e.wide)
+                        .hypot(e.spread * (1.0 - e.roundness) / e.roundness.max(1e-3))
+                        .hypot(RIDGE_SURFACE * surface * e.spread);
+                }
+                let sig = |f: f64, s: f64| f.hypot(s);
+                // The better known estimate.
+                let mut best: Option<(Estimate, DVec2, f64, f64)> = None;
+                if let Some((c, e)) = &corner {
+                    best = Some((
+                        Estimate::Corner,
+                        *c,
+                        e.distance,
+                        sig(e.floor, e.statistical),
+                    ));
+                }
+                if let Some((c, e)) = &ridge {
+                    let s = sig(e.floor, e.statistical);
+                    if best.is_none_or(|b| s < b.3) {
+                        best = Some((Estimate::Ridge, *c, e.distance, s));
                     }
                 }
+                let (verdict, estimate, distance, sigma, seg) = match best {
+                    None => (Verdict::TooFewMembers, None, 0.0, 0.0, None),
+                    Some((est, c, dist, sigma)) => {
+                        if dist > MOVE_MARGIN * sigma {
+                            let shift = e1 * c.x + e2 * c.y;
+                            let seg = Segment::new(s.p1 + shift, s.p2 + shift);
+                            (Verdict::Moved, Some(est), dist, sigma, Some(seg))
+                        } else {
+                            (Verdict::ModelKnowsLess, Some(est), dist, sigma, None)
+                        }
+                    }
+                };
+                (
+                    Decision {
+                        segment: i,
+                        verdict,
+                        estimate,
+                        members: m.len(),
+                        distance,
+                        sigma,
+                        corner: corner.map(|c| c.1),
+                        ridge: ridge.map(|c| c.1),
+                        input: seg6(&input[i]),
+                        fitted: seg6(s),
+                        corner_line,
+                        ridge_line,
+                    },
+                    seg,
+                )
             })
             .collect()
     };
-    let mut undone = 0;
     for (&i, &d) in all.iter().zip(&of) {
-        if !stands[d] {
-            fitted.segments[i] = input[i];
-            fitted.how[i] = How::Kept;
-            undone += 1;
+        let (dec, seg) = &decided[d];
+        match (dec.verdict, seg) {
+            (Verdict::Moved, Some(seg)) => {
+                fitted.segments[i] = *seg;
+                fitted.how[i] = match dec.estimate {
+                    Some(Estimate::Corner) => How::Corner,
+                    _ => How::Ridge,
+                };
+            }
+            (Verdict::TooFewMembers, _) => {
+                fitted.segments[i] = input[i];
+                fitted.how[i] = How::Unclear;
+            }
+            _ => {
+                fitted.segments[i] = input[i];
+                fitted.how[i] = How::Kept;
+            }
+        }
+        out.push(Decision {
+            segment: i,
+            ..dec.clone()
+        });
+    }
+    out.sort_by_key(|d| d.segment);
+    Ok(out)
+}
+
+/// What the model is near the lines, from the decisions (the report's
+/// `refine.diagnosis`): the kind most segments show, in words, and the counts.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Diagnosis {
+    /// `edges` (centres on the edges), `faces` (splats on the faces), `sunk` (splats
+    /// below the faces, off the edges) or `sparse` (too few members).
+    pub kind: String,
+    /// The kind in words, with how far the model's centres sit from the lines where they
+    /// are sunk.
+    pub text: String,
+    /// Segments of each kind.
+    pub edges: usize,
+    pub faces: usize,
+    pub sunk: usize,
+    pub sparse: usize,
+    /// Segments the rule moved, kept because the model knows the edge less well than the
+    /// line does, and kept for lack of members.
+    pub moved: usize,
+    pub model_knows_less: usize,
+    pub too_few_members: usize,
+    /// Median distance from the lines of the centres' ridge, where the model is sunk.
+    pub sunk_by: Option<f64>,
+}
+
+/// A corner whose floor is below this many r says the splats lie on the faces.
+pub const FACES_FLOOR: f64 = 0.15;
+
+/// A ridge whose floor is below this many r says the centres lie on the edges.
+pub const EDGES_FLOOR: f64 = 0.15;
+
+/// The diagnosis of the model near the lines from the rule's decisions; `None` when there
+/// are none.
+pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
+    if decisions.is_empty() {
+        return None;
+    }
+    let (mut edges, mut faces, mut sunk, mut sparse) = (0, 0, 0, 0);
+    let mut depth = Vec::new();
+    for d in decisions {
+        let corner = d.corner.as_ref().filter(|c| c.floor < FACES_FLOOR * r);
+        let ridge = d.ridge.as_ref().filter(|e| e.floor < EDGES_FLOOR * r);
+        if d.verdict == Verdict::TooFewMembers {
+            sparse += 1;
+        } else if corner.is_some() {
+            faces += 1;
+        } else if ridge.is_some() {
+            edges += 1;
+        } else {
+            sunk += 1;
+            if let Some(e) = &d.ridge {
+                depth.push(e.distance);
+            }
         }
     }
-    Ok(undone)
+    let count = |v: Verdict| decisions.iter().filter(|d| d.verdict == v).count();
+    let sunk_by = (!depth.is_empty()).then(|| median(&mut depth));
+    let most = [edges, faces, sunk, sparse].into_iter().max().unwrap_or(0);
+    let n = decisions.len();
+    let (kind, text) = if most == edges {
+        ("edges", "centres on the edges".to_string())
+    } else if most == faces {
+        ("faces", "splats on the faces".to_string())
+    } else if most == sunk {
+        (
+            "sunk",
+            match sunk_by {
+                Some(x) => format!(
+                    "sunk below the faces: the centres' ridge lies about {x:.3} from the lines"
+                ),
+                None => "sunk below the faces".to_string(),
+            },
+        )
+    } else {
+        ("sparse", "too sparse".to_string())
+    };
+    Some(Diagnosis {
+        kind: kind.to_string(),
+        text: format!("{text} ({most} of {n} segments)"),
+        edges,
+        faces,
+        sunk,
+        sparse,
+        moved: count(Verdict::Moved),
+        model_knows_less: count(Verdict::ModelKnowsLess),
+        too_few_members: count(Verdict::TooFewMembers),
+        sunk_by,
+    })
+}
+
+impl Decision {
+    /// The decision in words, with its numbers (`refine --explain N`), distances also in
+    /// units of `r`.
+    pub fn explain(&self, r: f64) -> String {
+        let u = |x: f64| format!("{x:.4} ({:.2} r)", x / r);
+        let mut s = match self.verdict {
+            Verdict::TooFewMembers => {
+                return "stayed: too few members for any estimate of the edge".to_string()
+            }
+            Verdict::Moved => format!(
+                "moved onto the {}: the line lay {} from it, more than {MOVE_MARGIN} x its \
+                 uncertainty {}",
+                self.estimate.map_or("estimate", Estimate::name),
+                u(self.distance),
+                u(self.sigma)
+            ),
+            Verdict::ModelKnowsLess => format!(
+                "stayed: the line lies {} from the {}, within {MOVE_MARGIN} x its uncertainty \
+                 {} (the model knows the edge less well than the line does)",
+                u(self.distance),
+                self.estimate.map_or("estimate", Estimate::name),
+                u(self.sigma)
+            ),
+        };
+        s += &format!("; {} members within r", self.members);
+        if let Some(c) = &self.corner {
+            s += &format!(
+                "\n  corner: {} from the line, floor {} (faces' residuals {:.4}, {:.4}; \
+                 {:.0} % of normals off both faces; faces {:.0} deg apart, {} and {} splats), \
+                 statistical {}",
+                u(c.distance),
+                u(c.floor),
+                c.residuals[0],
+                c.residuals[1],
+                100.0 * c.off_faces,
+                c.angle_deg,
+                c.counts[0],
+                c.counts[1],
+                u(c.statistical)
+            );
+        }
+        if let Some(e) = &self.ridge {
+            s += &format!(
+                "\n  ridge: {} from the line, floor {} (mode moves {} with a kernel twice as \
+                 wide; roundness {:.2}; {:.0} % of members with normals naming a surface), \
+                 statistical {} (spread {} over {:.0} members)",
+                u(e.distance),
+                u(e.floor),
+                u(e.wide),
+                e.roundness,
+                100.0 * e.face_share * e.face_agree,
+                u(e.statistical),
+                u(e.spread),
+                e.weight
+            );
+        }
+        s
+    }
+}
+
+impl Estimate {
+    /// The estimate's name in words.
+    pub fn name(self) -> &'static str {
+        match self {
+            Estimate::Corner => "corner of two faces",
+            Estimate::Ridge => "ridge of the centres",
+        }
+    }
 }

@@ -92,6 +92,12 @@ pub struct StepNotes {
     /// existed, but the Gaussians did not explain the move.
     #[serde(default)]
     pub fit_kept: usize,
+    /// Edge fit: each weighed segment's decision with its numbers (`--fit-gate`).
+    #[serde(default)]
+    pub fit_decisions: Vec<fit::Decision>,
+    /// Edge fit: what the model is near the lines, from the decisions (`--fit-gate`).
+    #[serde(default)]
+    pub diagnosis: Option<fit::Diagnosis>,
     pub lengths: Vec<StageLength>,
     /// `--max-scale`: Gaussians left out as wider than `max_scale x r` (null when off).
     pub scale_cut: Option<usize>,
@@ -182,6 +188,8 @@ pub fn run_steps_traced(
         fit_ridge: 0,
         fit_unclear: 0,
         fit_kept: 0,
+        fit_decisions: Vec::new(),
+        diagnosis: None,
         lengths: Vec::new(),
         scale_cut: None,
         curved_dropped: None,
@@ -208,7 +216,8 @@ pub fn run_steps_traced(
         Fit::Edge => {
             let mut f = fit::fit_edges(place, &lines.segments, attrs, r, p)?;
             if p.fit_gate {
-                fit::gate(place, &lines.segments, &mut f, attrs, r, p)?;
+                notes.fit_decisions = fit::decide(place, &lines.segments, &mut f, attrs, r, p)?;
+                notes.diagnosis = fit::diagnose(&notes.fit_decisions, r);
             }
             notes.fit_iterations = f.iterations;
             let count = |h| f.how.iter().filter(|&&x| x == h).count();

@@ -455,12 +455,12 @@ impl Machine {
             Some((i, j, made, phase)) => {
                 self.items[i].seg = made.seg;
                 self.items[i].stats = made.stats;
+                self.absorb(i, j);
                 let near = self.near.as_mut().expect("made at the first listing");
                 near.update(i, &self.items[i]);
                 self.uids[i] = self.next_uid;
                 self.item_of.push(i as u32);
                 self.next_uid += 1;
-                self.absorb(i, j);
                 let open = match phase {
                     Phase::Merge => {
                         // The join scan starts afresh once the merge loop ends.
