@@ -135,6 +135,39 @@ fn our_gsplat_normalization_is_gsplats_own() {
     assert!(best < 1e-7, "T differs by {best}");
 }
 
+/// nerfstudio's COLMAP dataparser (`colmap_dataparser.py`, `camera_utils.py`:
+/// `auto_orient_and_center_poses` with `up` and `poses`, auto scale) transcribed line by
+/// line from torch to numpy and run on this model: `scale * transform @ applied_transform`.
+const NERFSTUDIO: [[f64; 4]; 3] = [
+    [
+        0.34213037825438314,
+        0.003655647469634812,
+        -0.003644463823476181,
+        -0.17067660549136124,
+    ],
+    [
+        -0.003644463823476181,
+        0.34214824167428376,
+        0.0010678024655387138,
+        -0.17534200302480454,
+    ],
+    [
+        0.003655647469634812,
+        -0.001028863569084743,
+        0.34214824167428376,
+        -0.8511383951918992,
+    ],
+];
+
+#[test]
+fn our_nerfstudio_normalization_is_its_dataparsers() {
+    let m = read_colmap(&model_dir()).unwrap();
+    let n = autoframe::nerfstudio_normalization(&m).unwrap();
+    // nerfstudio computes in float32.
+    let d = max_diff(&n.to_model, &mat(&NERFSTUDIO));
+    assert!(d < 1e-6, "differs by {d}");
+}
+
 /// The proc pair's model mapped by gsplat's normalization of its COLMAP model.
 fn gsplat_normalized_model(dir: &Path) -> PathBuf {
     let opts = PlyOptions {
