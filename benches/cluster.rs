@@ -1,4 +1,4 @@
-//! Clustering (SPEC 3 step 7).
+//! Clustering (docs/method.md, step 7).
 //!
 //! `cargo bench --bench cluster`: 10^4 and 10^5 segments, 5 noisy copies of each edge, the
 //! candidate index of the default profile (criterion). Target: 10^5 segments in under 2 s.

@@ -1,4 +1,4 @@
-//! Merge and join with duplicates (SPEC 3 steps 7-8): the whole refinement (steps 4-9, CPU
+//! Merge and join with duplicates: the whole refinement (steps 4-9, CPU
 //! engine) of `n` exact copies of one segment, and `reference` on the real Line3D++ output
 //! with Gaussians sampled around it (as the tests do).
 //! Targets: 10^4 copies <= 2 s; 10^5 copies <= 12x that; Line3D++ reference <= 5 s.

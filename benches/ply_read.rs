@@ -1,6 +1,6 @@
 //! Read throughput of a 3DGS `point_cloud.ply` (10^6 Gaussians, all 62 float properties,
 //! binary little endian) from the page cache, and the memory the read needs beyond the
-//! centers it returns. SPEC 6 targets: >= 1 GB/s, < 40 MB beyond the centers.
+//! centers it returns. Targets: >= 1 GB/s, < 40 MB beyond the centers.
 //!
 //! `cargo bench --bench ply_read`
 

@@ -1,4 +1,4 @@
-//! CPU engine versus GPU engine on batches of cylinder queries (SPEC 8):
+//! CPU engine versus GPU engine on batches of cylinder queries:
 //! `cargo bench --bench queries`. Scenes are the tests' random scenes (centers in the unit
 //! cube, denser along a few lines), grid cell = query radius = 0.03.
 //! The GPU side is whatever adapter wgpu picks (`WGPU_ADAPTER_NAME=llvmpipe` for lavapipe);

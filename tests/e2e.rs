@@ -1,4 +1,4 @@
-//! End to end on the paper's toy scene and on real line files (SPEC 8).
+//! End to end on the paper's toy scene and on real line files.
 
 mod common;
 

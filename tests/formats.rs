@@ -1,4 +1,4 @@
-//! The files users have from other tools (SPEC 6): SuperSplat compressed PLY, Niantic SPZ
+//! The files users have from other tools: SuperSplat compressed PLY, Niantic SPZ
 //! v1–v4, antimatter15 `.splat`, LIMAP tracks, EMAP/EdgeGaussians edges; frame
 //! transforms; the frame-mismatch stop; `convert`. Real files where we have them, and the
 //! bad inputs each reader must refuse with the file and the place.

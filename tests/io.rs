@@ -1,5 +1,6 @@
 //! The `io` module against real files from Line3D++, 3DGS and ABC-NEF, hand-made edge
-//! cases of every format, every bad input of SPEC 6, and round trips of every writer.
+//! cases of every format, every bad input docs/robustness.md lists, and round trips of
+//! every writer.
 
 use std::path::{Path, PathBuf};
 

@@ -1,4 +1,4 @@
-//! CPU/GPU parity (SPEC 2, SPEC 4, SPEC 8): every query kind on random and adversarial
+//! CPU/GPU parity: every query kind on random and adversarial
 //! scenes, on whatever adapter wgpu picks (lavapipe in CI). Membership is exact on the GPU
 //! engine (points within the f32 error bound of a boundary are decided on the host in
 //! f64), so counts, side counts, coverage and k-nearest sets equal the CPU engine's; sums

@@ -1,4 +1,4 @@
-//! Each refinement step does its job on a scene built for it (SPEC 8).
+//! Each refinement step does its job on a scene built for it.
 
 mod common;
 

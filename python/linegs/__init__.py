@@ -3,7 +3,7 @@ Splatting model (the LineGS method), on the CPU or the GPU.
 
 The Python face of ``linegs-gpu``: the same library entry point as the command line, so
 ``refine`` returns exactly the segments that ``linegs-gpu refine`` writes, and the report
-dict has the shape of ``linegs-gpu refine --report`` (SPEC 7).
+dict has the shape of ``linegs-gpu refine --report``.
 
 >>> import linegs
 >>> g = linegs.read_gaussians("point_cloud.ply")          # Gaussians: centers + attributes

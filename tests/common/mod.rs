@@ -156,7 +156,8 @@ pub fn seg(a: [f64; 3], b: [f64; 3]) -> Segment {
     Segment::from_arrays(a, b)
 }
 
-/// A CPU engine over the working set of `points` for `segments` (SPEC 2 box).
+/// A CPU engine over the working set of `points` for `segments` (the centers in the
+/// segments' bounding box grown by 0.1, `WorkingSet::new`).
 pub fn cpu_engine(
     points: &[[f32; 3]],
     segments: &[Segment],
