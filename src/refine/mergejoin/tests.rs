@@ -520,7 +520,9 @@ fn batched_rounds_give_the_sequential_result_on_random_clusters() {
         let want = sequential::merge_join_sequential(&e, &lines, &clusters, &st).unwrap();
         // Every group swept (`0`) or listing every pair (these groups are small).
         for (budget, sweep) in [(FIRST_BUDGET, near::SWEEP_FROM), (2, 0), (FIRST_BUDGET, 0)] {
-            let got = merge_join_budget(&e, &lines, &clusters, &st, budget, sweep).unwrap().0;
+            let got = merge_join_budget(&e, &lines, &clusters, &st, budget, sweep)
+                .unwrap()
+                .0;
             assert_eq!(got, want, "seed {seed}, budget {budget}, {fixes:?}");
         }
         let want = sequential::collinear_merge_sequential(&e, &lines, &st).unwrap();
