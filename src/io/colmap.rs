@@ -349,7 +349,7 @@ fn images_text(path: &Path, text: &str) -> Result<Vec<Image>, Error> {
         let mut points2d = Vec::new();
         if let Some((pl, p)) = lines.next() {
             let toks: Vec<&str> = p.split_whitespace().collect();
-            if toks.len() % 3 != 0 {
+            if !toks.len().is_multiple_of(3) {
                 return Err(Error::parse(
                     path,
                     Position::Line(pl),
@@ -395,7 +395,7 @@ fn points_text(path: &Path, text: &str) -> Result<Vec<Point3D>, Error> {
         }
         let error = num::<f64>(path, line, 8, t(7), "the error")?;
         let rest = toks.len().saturating_sub(8);
-        if rest % 2 != 0 {
+        if !rest.is_multiple_of(2) {
             return Err(Error::parse(
                 path,
                 Position::Line(line),
