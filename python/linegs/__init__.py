@@ -220,6 +220,7 @@ def refine(
     gt: Any = None,
     radii: Optional[Sequence[float]] = None,
     frame_check: bool = True,
+    colmap: Optional[Union[str, os.PathLike]] = None,
     **params: Any,
 ) -> Tuple[np.ndarray, Dict[str, Any]]:
     """Refines ``segments`` ``(M, 2, 3)`` against the Gaussians (LineGS:
@@ -241,6 +242,10 @@ def refine(
     Gaussian center within ``r`` (lines and model in different frames or units), it raises
     :class:`InputError` with the command line's message; ``frame_check=False`` refines
     anyway (``--no-frame-check``). A doubtful frame is a warning in ``report["warnings"]``.
+    ``colmap``: the COLMAP sparse model (folder, text or binary) the Gaussians were trained
+    from, as ``--colmap``: where the lines and the Gaussians are not in one frame, the
+    normalization gsplat or nerfstudio applied is recomputed from it and undone on a copy of
+    the centers (the found matrix and its residual in ``report["warnings"]``).
 
     The computation runs without the GIL. Raises :class:`InputError` for bad arrays or
     options (with the command line's messages), :class:`LinegsError` otherwise.
@@ -256,6 +261,7 @@ def refine(
         gt_f64=None if gt is None else _segments(gt, "gt"),
         sweep=None if radii is None else [float(r) for r in radii],
         frame_check=bool(frame_check),
+        colmap=None if colmap is None else os.fspath(colmap),
     )
     return segs, json.loads(report)
 

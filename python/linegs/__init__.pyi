@@ -58,6 +58,7 @@ def refine(
     gt: Optional[ArrayLike] = None,
     radii: Optional[Sequence[float]] = None,
     frame_check: bool = True,
+    colmap: Optional[PathLike] = None,
     **params: Any,
 ) -> Tuple[NDArray[np.float64], Dict[str, Any]]:
     """``gaussians``: a model, a path or ``(N, 3)`` centers; ``segments`` and ``gt``:

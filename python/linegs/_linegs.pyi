@@ -53,6 +53,7 @@ def refine(
     gt_f64: Optional[NDArray[np.float64]] = None,
     sweep: Optional[List[float]] = None,
     frame_check: bool = True,
+    colmap: Optional[str] = None,
 ) -> Tuple[NDArray[np.float64], str]:
     """``segments_f64`` and ``gt_f64`` ``(M, 2, 3)``; returns ``(K, 2, 3)`` and the report JSON."""
 def evaluate(

@@ -421,7 +421,7 @@ fn frame_error(e: RunError) -> RunError {
 
 /// `(segments (K, 2, 3) float64, report JSON)`.
 #[pyfunction]
-#[pyo3(signature = (model, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, frame_check = true))]
+#[pyo3(signature = (model, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, frame_check = true, colmap = None))]
 #[allow(clippy::too_many_arguments)]
 fn refine<'py>(
     py: Python<'py>,
@@ -433,7 +433,13 @@ fn refine<'py>(
     gt_f64: Option<PyReadonlyArray3<'py, f64>>,
     sweep: Option<Vec<f64>>,
     frame_check: bool,
+    colmap: Option<PathBuf>,
 ) -> PyResult<(Bound<'py, PyArray3<f64>>, String)> {
+    // The command line's `--colmap`: read before any work (a bad model is an InputError).
+    let colmap = match &colmap {
+        Some(dir) => Some(py.detach(|| io::read_colmap(dir)).map_err(io_to_py)?),
+        None => None,
+    };
     let job = Job {
         sweep,
         gt: gt_f64.map(|g| exact_gt(&segments(g.as_array()))),
@@ -458,6 +464,25 @@ fn refine<'py>(
     let (out, report) = py
         .detach(|| {
             model.with_scene(lines, |s| {
+                // The automatic frame maps the Gaussians: on a copy, so that the model's
+                // arrays (the caller's views) stay as they are.
+                let framed;
+                let s = match &colmap {
+                    Some(cm) if job.check_frames => {
+                        let mut c = s.clone();
+                        let found = c.find_frame(cm, &job.params)?;
+                        match (&found.transform, found.message()) {
+                            (Some(_), Some(m)) => {
+                                c.warnings.push(format!("Gaussians mapped by the frame {m}"))
+                            }
+                            (None, Some(m)) => c.warnings.push(m),
+                            _ => {}
+                        }
+                        framed = c;
+                        &framed
+                    }
+                    _ => s,
+                };
                 let out = job.refine(s, |_| {}).map_err(frame_error)?;
                 Ok((out.lines.segments, out.report.to_json()))
             })

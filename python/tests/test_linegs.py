@@ -279,6 +279,38 @@ def test_refine_runs_the_cli_frame_check_with_its_message(toy, tmp_path):
                for w in ev["warnings"]), ev["warnings"]
 
 
+# gsplat's normalize_world_space of the proc pair's COLMAP model (its own normalize.py on
+# this model, as in tests/colmap.rs): world -> normalized, rows of a 3x4 similarity.
+GSPLAT_T = np.array([
+    [0.25240093389433954, 0.1859043494733914, 0.005289548200010699, -0.2148115121128586],
+    [-0.18593829416518007, 0.2520549179070143, 0.013780675812568666, -0.040371865927562214],
+    [0.003918830977224797, -0.014231272247529245, 0.31317207978682987, -0.04309457514890258],
+])
+
+
+def test_refine_finds_a_gsplat_normalized_frame_from_the_colmap_model(tmp_path):
+    g = linegs.read_gaussians(REAL / "point_cloud.ply")
+    lines, groups = linegs.read_lines(REAL / "lines.txt", groups=True)
+    centers = np.asarray(g.centers, dtype=np.float64)
+    moved = (centers @ GSPLAT_T[:, :3].T + GSPLAT_T[:, 3]).astype(np.float32)
+    before = moved.copy()
+    with pytest.raises(linegs.InputError):
+        linegs.refine(moved, lines, groups=groups, backend="cpu")
+    refined, report = linegs.refine(moved, lines, groups=groups, backend="cpu",
+                                     colmap=REAL / "colmap_text_model")
+    assert any(w.startswith("Gaussians mapped by the frame ") and "residual" in w
+               for w in report["warnings"]), report["warnings"]
+    # the same segments as on the model in the lines' own frame (centers only, both)
+    want, _ = linegs.refine(centers.astype(np.float32), lines, groups=groups, backend="cpu")
+    assert refined.shape == want.shape
+    assert np.abs(refined - want).max() < 1e-4
+    # the caller's array is not moved
+    assert np.array_equal(moved, before)
+    # a COLMAP model that is not one: the reader's message, an InputError
+    with pytest.raises(linegs.InputError, match="cameras"):
+        linegs.refine(moved, lines, groups=groups, backend="cpu", colmap=tmp_path)
+
+
 def test_pip_install_puts_the_command_line_on_path(toy, tmp_path):
     import sys
 

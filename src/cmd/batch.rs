@@ -1,4 +1,4 @@
-use super::input_error;
+use super::{input_error, FormatArg};
 use super::params::{BackendArg, ParamsArgs, ProtocolArg};
 use anyhow::Result;
 use clap::Args;
@@ -42,9 +42,10 @@ pub struct BatchArgs {
     /// they are set, else all scenes.
     #[arg(long, value_name = "i/n")]
     pub shard: Option<Shard>,
-    /// Format of the refined segments: obj, stl, ply, txt or npy.
-    #[arg(long, default_value = "obj")]
-    pub format: String,
+    /// Format of the refined segments (`<name>/refined.<format>`): obj, stl, ply, txt or
+    /// npy (`auto` is obj).
+    #[arg(long, value_enum, default_value_t = FormatArg::Obj)]
+    pub format: FormatArg,
     /// How the manifest's `gt` edges score the lines: `exact` (every sample, `<=`
     /// thresholds) or `emap` (the published ABC-NEF tables' rules; see `eval --help`).
     #[arg(long, value_enum, default_value_t = ProtocolArg::Exact)]
@@ -83,6 +84,15 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
             .map_err(input_error)?
             .unwrap_or_default(),
     };
+    let format = match a.format {
+        FormatArg::Auto => "obj",
+        f => f.extension().ok_or_else(|| {
+            input_error(
+                "--format: batch writes a segment file a scene (`refined.<format>`): obj, \
+                 stl, ply, txt or npy",
+            )
+        })?,
+    };
     let m = read_manifest(&a.manifest)?;
     if a.list {
         for e in &m.entries {
@@ -91,7 +101,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
         return Ok(());
     }
     if a.summary_only {
-        batch::check_paths(&m, &a.output, &a.format, None, true)?;
+        batch::check_paths(&m, &a.output, format, None, true)?;
         let removed = batch::remove_partial_dirs(&a.output)?;
         let s = batch::write_summary(&m, &a.output)?;
         println!(
@@ -121,7 +131,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
         gpu: super::env::gpu_setup().clone(),
         shard,
         skip_existing: a.skip_existing,
-        format: a.format.trim_start_matches('.').to_string(),
+        format: format.to_string(),
         protocol: a.protocol.into(),
         summary: !a.no_summary,
     };

@@ -83,6 +83,35 @@ pub struct InputArgs {
     pub strict: bool,
 }
 
+/// `--format`: how the refined segments are written (`refine`, `batch`). `auto`: by the
+/// output's extension; `obj` ... `npy`: that segment file; `limap`: LIMAP `finaltracks/`;
+/// `emap`: EMAP/EdgeGaussians `parametric_edges.json`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FormatArg {
+    Auto,
+    Obj,
+    Stl,
+    Ply,
+    Txt,
+    Npy,
+    Limap,
+    Emap,
+}
+
+impl FormatArg {
+    /// The segment file's extension, for the formats that are one.
+    pub fn extension(self) -> Option<&'static str> {
+        match self {
+            FormatArg::Obj => Some("obj"),
+            FormatArg::Stl => Some("stl"),
+            FormatArg::Ply => Some("ply"),
+            FormatArg::Txt => Some("txt"),
+            FormatArg::Npy => Some("npy"),
+            FormatArg::Auto | FormatArg::Limap | FormatArg::Emap => None,
+        }
+    }
+}
+
 /// The engine choice of the commands that query the Gaussians (`render` only draws).
 #[derive(Args, Debug, Clone)]
 pub struct BackendArgs {

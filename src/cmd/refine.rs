@@ -1,17 +1,12 @@
 use super::params::{BackendArg, ParamsArgs};
-use super::{load_framed, metrics_table, print_engine, BackendArgs, InputArgs};
+use super::{
+    input_error, load_framed, metrics_table, print_engine, BackendArgs, FormatArg, InputArgs,
+};
 use anyhow::Result;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use linegs_gpu::pipeline::{Job, LinesOut, Outputs, RunError};
 
-/// `--format` of `refine`.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum FormatArg {
-    Auto,
-    Limap,
-    Emap,
-}
 use std::path::PathBuf;
 
 #[derive(Args, Debug)]
@@ -60,9 +55,22 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         report: a.report.clone(),
         compare_ply: a.compare_ply.clone(),
         format: match a.format {
-            FormatArg::Auto => LinesOut::ByExtension,
             FormatArg::Limap => LinesOut::Limap,
             FormatArg::Emap => LinesOut::Emap,
+            FormatArg::Auto => LinesOut::ByExtension,
+            f => {
+                // A segment file's format is its extension: `--format` only confirms it.
+                let ext = f.extension().unwrap_or_default();
+                let has = a.output.extension().and_then(|e| e.to_str());
+                if !has.is_some_and(|e| e.eq_ignore_ascii_case(ext)) {
+                    return Err(input_error(format!(
+                        "--format {ext}: -o {} has another extension; a segment file's format \
+                         is its extension (`--format auto`)",
+                        a.output.display()
+                    )));
+                }
+                LinesOut::ByExtension
+            }
         },
         provenance: a.provenance.clone(),
     };
