@@ -945,3 +945,42 @@ fn a_full_or_closed_standard_output_ends_quietly_with_the_right_code() {
     assert_eq!(o.status.code(), Some(141), "{}", stderr(&o));
     assert_eq!(stderr(&o), "");
 }
+
+#[test]
+fn eval_table_columns_stay_apart_for_extreme_radii() {
+    let o = run(&[
+        "eval",
+        "--gaussians",
+        data("gaussians/tile_lod2.ply").to_str().unwrap(),
+        "--lines",
+        data("line3dpp/line3dpp_optimized.txt").to_str().unwrap(),
+        "--radii",
+        "1e-30,0.05,1e30",
+        "--backend",
+        "cpu",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let header = out
+        .lines()
+        .find(|l| l.starts_with("metric "))
+        .unwrap_or_else(|| panic!("no table: {out}"));
+    let words: Vec<&str> = header.split_whitespace().collect();
+    assert_eq!(
+        words,
+        ["metric", "r_e=1e-30", "r_e=0.05", "r_e=1e30"],
+        "{out}"
+    );
+    let row = out.lines().find(|l| l.starts_with("r_e ")).unwrap();
+    let words: Vec<&str> = row.split_whitespace().collect();
+    assert_eq!(words, ["r_e", "1e-30", "0.05", "1e30"], "{out}");
+    // every row has one cell a column, each right-aligned under its header
+    for l in out
+        .lines()
+        .skip_while(|l| !l.starts_with("metric "))
+        .take(8)
+    {
+        assert_eq!(l.len(), header.len(), "{l:?} in {out}");
+        assert!(l.split_whitespace().count() >= 4, "{l:?}");
+    }
+}

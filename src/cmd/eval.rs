@@ -189,7 +189,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
         };
         let cols: Vec<(String, &Metrics)> = metrics
             .iter()
-            .map(|m| (format!("r_e={}", m.radius), *m))
+            .map(|m| (format!("r_e={}", super::fmt_radius(m.radius)), *m))
             .collect();
         let refs: Vec<(&str, &Metrics)> = cols.iter().map(|(n, m)| (n.as_str(), *m)).collect();
         print!("{}", metrics_table(&refs));
