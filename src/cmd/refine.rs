@@ -95,8 +95,9 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             metrics_table(&[("before", &r.before), ("after", after)])
         );
     }
-    // The report's warnings: the frame check's, the steps', the scale cut's.
-    for w in &r.warnings {
+    // The report's warnings: the frame check's, the steps', the scale cut's; loading
+    // printed the scene's own, which the report starts with.
+    for w in r.warnings.iter().skip(scene.warnings.len()) {
         eprintln!("warning: {w}");
     }
     if let Some(steps) = &r.refine {
