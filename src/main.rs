@@ -178,16 +178,29 @@ fn main() -> ExitCode {
     }
     let _runtime_dir = private_runtime_dir();
     let verbose = cli.verbose;
-    let result = match cli.command {
-        Command::Refine(a) => cmd::refine::run(*a, verbose),
-        Command::Eval(a) => cmd::eval::run(*a, verbose),
-        Command::Info(a) => cmd::info::run(a),
-        Command::Convert(a) => cmd::convert::run(a),
-        Command::Demo(a) => cmd::demo::run(a, verbose),
-        Command::Synth(a) => cmd::synth::run(a),
-        Command::Render(a) => cmd::render::run(a),
-        Command::Bench(a) => cmd::bench::run(a, verbose),
-        Command::Batch(a) => cmd::batch::run(*a, verbose),
+    // The commands that run an engine refuse bad `LINEGS_GPU_*` values before any work.
+    let engine = matches!(
+        cli.command,
+        Command::Refine(_)
+            | Command::Eval(_)
+            | Command::Demo(_)
+            | Command::Bench(_)
+            | Command::Batch(_)
+    );
+    let result = if let Some(Err(e)) = engine.then(cmd::env::gpu_setup) {
+        Err(e)
+    } else {
+        match cli.command {
+            Command::Refine(a) => cmd::refine::run(*a, verbose),
+            Command::Eval(a) => cmd::eval::run(*a, verbose),
+            Command::Info(a) => cmd::info::run(a),
+            Command::Convert(a) => cmd::convert::run(a),
+            Command::Demo(a) => cmd::demo::run(a, verbose),
+            Command::Synth(a) => cmd::synth::run(a),
+            Command::Render(a) => cmd::render::run(a),
+            Command::Bench(a) => cmd::bench::run(a, verbose),
+            Command::Batch(a) => cmd::batch::run(*a, verbose),
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

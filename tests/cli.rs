@@ -984,3 +984,54 @@ fn eval_table_columns_stay_apart_for_extreme_radii() {
         assert!(l.split_whitespace().count() >= 4, "{l:?}");
     }
 }
+
+#[test]
+fn a_bad_linegs_gpu_value_is_refused_naming_the_variable() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let out = dir.path().join("out.obj");
+    for (k, v, accepted) in [
+        ("LINEGS_GPU_FIT", "gpu", "expected `device` or `host`"),
+        ("LINEGS_GPU_MEMBERS", "on", "expected `device` or `host`"),
+        (
+            "LINEGS_GPU_SMALL_BATCH",
+            "x",
+            "expected a whole number >= 0",
+        ),
+    ] {
+        let o = linegs()
+            .args([
+                "refine",
+                "-g",
+                g.to_str().unwrap(),
+                "-l",
+                l.to_str().unwrap(),
+            ])
+            .args(["-o", out.to_str().unwrap(), "--backend", "cpu"])
+            .env(k, v)
+            .output()
+            .unwrap();
+        let e = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{k}={v}: {e}");
+        assert!(
+            e.contains(&format!("{k}=\"{v}\": {accepted}")),
+            "{k}={v}: {e}"
+        );
+        assert_eq!(e.trim_end().lines().count(), 1, "{e}");
+        assert!(!out.exists(), "{k}={v}: wrote {}", out.display());
+    }
+    // empty is unset
+    let o = linegs()
+        .args([
+            "refine",
+            "-g",
+            g.to_str().unwrap(),
+            "-l",
+            l.to_str().unwrap(),
+        ])
+        .args(["-o", out.to_str().unwrap(), "--backend", "cpu"])
+        .env("LINEGS_GPU_FIT", "")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+}

@@ -108,7 +108,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
     let opts = BatchOptions {
         params: a.params.into(),
         backend: a.backend.into(),
-        gpu: super::env::gpu_setup().clone(),
+        gpu: super::env::gpu_setup()?.clone(),
         shard,
         skip_existing: a.skip_existing,
         format: a.format.trim_start_matches('.').to_string(),

@@ -108,7 +108,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
             ..Params::default()
         },
         backend: a.engine.backend.into(),
-        gpu: super::env::gpu_setup().clone(),
+        gpu: super::env::gpu_setup()?.clone(),
         sweep: a.radii.clone(),
         gt: ground_truth(&a)?,
         check_frames: true,

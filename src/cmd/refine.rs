@@ -59,7 +59,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     );
     let job = Job {
         check_frames: !a.no_frame_check,
-        ..super::env::job(a.params.into(), a.engine.backend.into())
+        ..super::env::job(a.params.into(), a.engine.backend.into())?
     };
     let refined = job.refine(&scene, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));
