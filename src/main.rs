@@ -121,17 +121,28 @@ enum Command {
 /// says nothing, and no real error is hidden. Done at the start of `main`, before any
 /// thread exists, since changing the environment races with threads that read it.
 /// The folder is locked while the process lives, and the folders of killed runs are
-/// removed (`io::clean_stale_runtime_dirs`).
+/// removed (`io::clean_stale_runtime_dirs_in`). It is made in the temporary folder
+/// (`TMPDIR`), or where that is missing or read-only in `/dev/shm`, `/tmp` or `/var/tmp`.
 fn private_runtime_dir() -> Option<(tempfile::TempDir, Option<std::fs::File>)> {
     let current = std::env::var_os("XDG_RUNTIME_DIR");
     if current.is_some_and(|d| std::path::Path::new(&d).is_dir()) {
         return None;
     }
-    linegs_gpu::io::clean_stale_runtime_dirs();
-    let dir = tempfile::Builder::new()
-        .prefix(linegs_gpu::io::RUNTIME_PREFIX)
-        .tempdir()
-        .ok()?;
+    let mut bases = vec![std::env::temp_dir()];
+    if cfg!(unix) {
+        for b in ["/dev/shm", "/tmp", "/var/tmp"] {
+            if !bases.iter().any(|p| p == std::path::Path::new(b)) {
+                bases.push(b.into());
+            }
+        }
+    }
+    let dir = bases.iter().find_map(|base| {
+        linegs_gpu::io::clean_stale_runtime_dirs_in(base);
+        tempfile::Builder::new()
+            .prefix(linegs_gpu::io::RUNTIME_PREFIX)
+            .tempdir_in(base)
+            .ok()
+    })?;
     let lock = std::fs::File::open(dir.path()).ok();
     if let Some(f) = &lock {
         let _ = linegs_gpu::io::try_lock(f);
