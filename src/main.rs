@@ -121,17 +121,28 @@ enum Command {
 /// says nothing, and no real error is hidden. Done at the start of `main`, before any
 /// thread exists, since changing the environment races with threads that read it.
 /// The folder is locked while the process lives, and the folders of killed runs are
-/// removed (`io::clean_stale_runtime_dirs`).
+/// removed (`io::clean_stale_runtime_dirs_in`). It is made in the temporary folder
+/// (`TMPDIR`), or where that is missing or read-only in `/dev/shm`, `/tmp` or `/var/tmp`.
 fn private_runtime_dir() -> Option<(tempfile::TempDir, Option<std::fs::File>)> {
     let current = std::env::var_os("XDG_RUNTIME_DIR");
     if current.is_some_and(|d| std::path::Path::new(&d).is_dir()) {
         return None;
     }
-    linegs_gpu::io::clean_stale_runtime_dirs();
-    let dir = tempfile::Builder::new()
-        .prefix(linegs_gpu::io::RUNTIME_PREFIX)
-        .tempdir()
-        .ok()?;
+    let mut bases = vec![std::env::temp_dir()];
+    if cfg!(unix) {
+        for b in ["/dev/shm", "/tmp", "/var/tmp"] {
+            if !bases.iter().any(|p| p == std::path::Path::new(b)) {
+                bases.push(b.into());
+            }
+        }
+    }
+    let dir = bases.iter().find_map(|base| {
+        linegs_gpu::io::clean_stale_runtime_dirs_in(base);
+        tempfile::Builder::new()
+            .prefix(linegs_gpu::io::RUNTIME_PREFIX)
+            .tempdir_in(base)
+            .ok()
+    })?;
     let lock = std::fs::File::open(dir.path()).ok();
     if let Some(f) = &lock {
         let _ = linegs_gpu::io::try_lock(f);
@@ -196,16 +207,29 @@ pub fn run(args: impl IntoIterator<Item = std::ffi::OsString>) -> u8 {
     }
     let _runtime_dir = private_runtime_dir();
     let verbose = cli.verbose;
-    let result = match cli.command {
-        Command::Refine(a) => cmd::refine::run(*a, verbose),
-        Command::Eval(a) => cmd::eval::run(*a, verbose),
-        Command::Info(a) => cmd::info::run(a),
-        Command::Convert(a) => cmd::convert::run(a),
-        Command::Demo(a) => cmd::demo::run(a, verbose),
-        Command::Synth(a) => cmd::synth::run(a),
-        Command::Render(a) => cmd::render::run(a),
-        Command::Bench(a) => cmd::bench::run(a, verbose),
-        Command::Batch(a) => cmd::batch::run(*a, verbose),
+    // The commands that run an engine refuse bad `LINEGS_GPU_*` values before any work.
+    let engine = matches!(
+        cli.command,
+        Command::Refine(_)
+            | Command::Eval(_)
+            | Command::Demo(_)
+            | Command::Bench(_)
+            | Command::Batch(_)
+    );
+    let result = if let Some(Err(e)) = engine.then(cmd::env::gpu_setup) {
+        Err(e)
+    } else {
+        match cli.command {
+            Command::Refine(a) => cmd::refine::run(*a, verbose),
+            Command::Eval(a) => cmd::eval::run(*a, verbose),
+            Command::Info(a) => cmd::info::run(a),
+            Command::Convert(a) => cmd::convert::run(a),
+            Command::Demo(a) => cmd::demo::run(a, verbose),
+            Command::Synth(a) => cmd::synth::run(a),
+            Command::Render(a) => cmd::render::run(a),
+            Command::Bench(a) => cmd::bench::run(a, verbose),
+            Command::Batch(a) => cmd::batch::run(*a, verbose),
+        }
     };
     match result {
         Ok(()) => 0,

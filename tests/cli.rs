@@ -749,6 +749,35 @@ fn a_gpu_run_without_xdg_runtime_dir_prints_no_error() {
     assert!(left.is_empty(), "left in the temp folder: {left:?}");
 }
 
+/// With `TMPDIR` unusable too, the private runtime folder is made elsewhere (`/dev/shm`,
+/// `/tmp`), so Mesa's `XDG_RUNTIME_DIR is invalid or not set` is still never printed.
+#[test]
+fn a_gpu_run_with_an_unusable_tmpdir_prints_no_xdg_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let out = dir.path().join("r.obj");
+    let o = linegs()
+        .args(["refine", "-g", g.to_str().unwrap()])
+        .args(["-l", l.to_str().unwrap()])
+        .args(["-o", out.to_str().unwrap(), "--backend", "gpu"])
+        .env_remove("XDG_RUNTIME_DIR")
+        .env("TMPDIR", "/nonexistent")
+        .output()
+        .unwrap();
+    let e = stderr(&o);
+    if !o.status.success()
+        && e.contains("adapter")
+        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
+    {
+        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({e})");
+        return;
+    }
+    assert!(o.status.success(), "{e}");
+    assert!(!e.contains("XDG_RUNTIME_DIR"), "stderr: {e}");
+    assert!(!e.to_lowercase().contains("error"), "stderr: {e}");
+    assert!(out.exists());
+}
+
 /// `scripts/bench-gpu.sh` (the real-GPU benchmark anyone with a GPU is asked to run), at a
 /// tiny size: it must run `bench` with options that exist and print both engines' columns
 /// and the ratio.
@@ -944,4 +973,94 @@ fn a_full_or_closed_standard_output_ends_quietly_with_the_right_code() {
         .unwrap();
     assert_eq!(o.status.code(), Some(141), "{}", stderr(&o));
     assert_eq!(stderr(&o), "");
+}
+
+#[test]
+fn eval_table_columns_stay_apart_for_extreme_radii() {
+    let o = run(&[
+        "eval",
+        "--gaussians",
+        data("gaussians/tile_lod2.ply").to_str().unwrap(),
+        "--lines",
+        data("line3dpp/line3dpp_optimized.txt").to_str().unwrap(),
+        "--radii",
+        "1e-30,0.05,1e30",
+        "--backend",
+        "cpu",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    let header = out
+        .lines()
+        .find(|l| l.starts_with("metric "))
+        .unwrap_or_else(|| panic!("no table: {out}"));
+    let words: Vec<&str> = header.split_whitespace().collect();
+    assert_eq!(
+        words,
+        ["metric", "r_e=1e-30", "r_e=0.05", "r_e=1e30"],
+        "{out}"
+    );
+    let row = out.lines().find(|l| l.starts_with("r_e ")).unwrap();
+    let words: Vec<&str> = row.split_whitespace().collect();
+    assert_eq!(words, ["r_e", "1e-30", "0.05", "1e30"], "{out}");
+    // every row has one cell a column, each right-aligned under its header
+    for l in out
+        .lines()
+        .skip_while(|l| !l.starts_with("metric "))
+        .take(8)
+    {
+        assert_eq!(l.len(), header.len(), "{l:?} in {out}");
+        assert!(l.split_whitespace().count() >= 4, "{l:?}");
+    }
+}
+
+#[test]
+fn a_bad_linegs_gpu_value_is_refused_naming_the_variable() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = toy(dir.path());
+    let out = dir.path().join("out.obj");
+    for (k, v, accepted) in [
+        ("LINEGS_GPU_FIT", "gpu", "expected `device` or `host`"),
+        ("LINEGS_GPU_MEMBERS", "on", "expected `device` or `host`"),
+        (
+            "LINEGS_GPU_SMALL_BATCH",
+            "x",
+            "expected a whole number >= 0",
+        ),
+    ] {
+        let o = linegs()
+            .args([
+                "refine",
+                "-g",
+                g.to_str().unwrap(),
+                "-l",
+                l.to_str().unwrap(),
+            ])
+            .args(["-o", out.to_str().unwrap(), "--backend", "cpu"])
+            .env(k, v)
+            .output()
+            .unwrap();
+        let e = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{k}={v}: {e}");
+        assert!(
+            e.contains(&format!("{k}=\"{v}\": {accepted}")),
+            "{k}={v}: {e}"
+        );
+        assert_eq!(e.trim_end().lines().count(), 1, "{e}");
+        assert!(!out.exists(), "{k}={v}: wrote {}", out.display());
+    }
+    // empty is unset
+    let o = linegs()
+        .args([
+            "refine",
+            "-g",
+            g.to_str().unwrap(),
+            "-l",
+            l.to_str().unwrap(),
+        ])
+        .args(["-o", out.to_str().unwrap(), "--backend", "cpu"])
+        .env("LINEGS_GPU_FIT", "")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
 }

@@ -1118,3 +1118,52 @@ fn too_many_open_files_is_a_resource_limit() {
     }
     assert!(seen > 0, "no limit from 4 to 12 open files ran out");
 }
+
+/// A PLY `double` of 1e308 is a finite number that overflows f32: the one warning says so
+/// (not "NaN or infinite"), once per command, and `--strict` refuses it with the value.
+#[test]
+fn a_double_beyond_f32_is_called_an_overflow_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut bin = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty double x\nproperty double y\nproperty double z\nend_header\n".to_vec();
+    for v in [0.0f64, 0.0, 0.0, 1e308, 0.0, 0.0, 0.5, 0.5, 0.5] {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    let models = [
+        file(dir.path(), "bin.ply", &bin),
+        file(
+            dir.path(),
+            "ascii.ply",
+            b"ply\nformat ascii 1.0\nelement vertex 3\nproperty double x\nproperty double y\nproperty double z\nproperty double opacity\nend_header\n0 0 0 1\n0 -1e308 0 1\n0.5 0.5 0.5 1\n",
+        ),
+    ];
+    let l = file(dir.path(), "l.txt", b"0 0 0 1 1 1\n");
+    for g in &models {
+        let (g, l) = (g.to_str().unwrap(), l.to_str().unwrap());
+        let out = dir.path().join("o.obj");
+        let o_ply = dir.path().join("o.ply");
+        for args in [
+            vec!["refine", "-g", g, "-l", l, "-o", out.to_str().unwrap()],
+            vec!["eval", "-g", g, "-l", l],
+            vec!["convert", g, "-o", o_ply.to_str().unwrap()],
+        ] {
+            let mut args = args;
+            if args[0] != "convert" {
+                args.extend(["--backend", "cpu"]);
+            }
+            let o = run(&args);
+            let e = stderr(&o);
+            assert!(o.status.success(), "{args:?}: {e}");
+            let warnings: Vec<&str> = e.lines().filter(|w| w.starts_with("warning:")).collect();
+            assert_eq!(warnings.len(), 1, "{args:?}: {e}");
+            assert!(
+                warnings[0].contains(
+                    "skipped 1 Gaussian whose center has a coordinate that overflows f32"
+                ) && warnings[0].contains(g)
+                    && !warnings[0].contains("NaN"),
+                "{args:?}: {e}"
+            );
+        }
+        let o = run(&["eval", "-g", g, "-l", l, "--strict", "--backend", "cpu"]);
+        assert_exit_2(&o, g, "e308 overflows f32");
+    }
+}

@@ -325,7 +325,7 @@ fn backend(name: &str) -> PyResult<Backend> {
 /// process environment read as `linegs-gpu` reads it (docs/troubleshooting.md#environment).
 fn job(args: Vec<(String, String)>, backend_name: &str) -> PyResult<Job> {
     Ok(Job {
-        gpu: GpuSetup::from_vars(|k| std::env::var(k).ok()),
+        gpu: GpuSetup::from_vars(|k| std::env::var(k).ok()).map_err(InputError::new_err)?,
         ..Job::new(params(args)?, backend(backend_name)?)
     })
 }

@@ -128,7 +128,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
     let opts = BatchOptions {
         params: a.params.into(),
         backend: a.backend.into(),
-        gpu: super::env::gpu_setup().clone(),
+        gpu: super::env::gpu_setup()?.clone(),
         shard,
         skip_existing: a.skip_existing,
         format: format.to_string(),

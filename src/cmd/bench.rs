@@ -155,7 +155,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
             let synth_seconds = t.elapsed().as_secs_f64();
             let mut runs = Vec::new();
             for &b in &a.backend {
-                let job = super::env::job(params.clone(), b.into());
+                let job = super::env::job(params.clone(), b.into())?;
                 let mut best: Option<RunTiming> = None;
                 for _ in 0..a.repeat {
                     mem::reset_peak_rss();

@@ -82,7 +82,7 @@ pub fn run(a: DemoArgs, verbose: bool) -> Result<()> {
             edges: gt::GtEdges::from_segments(&toy_gt),
             protocol: gt::Protocol::Exact,
         }),
-        ..super::env::job(Params::default(), a.engine.backend.into())
+        ..super::env::job(Params::default(), a.engine.backend.into())?
     };
     let mut out = job.refine(&input, |_| {})?;
     print_engine(&out.report, verbose);

@@ -109,7 +109,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
     let job = Job {
         params,
         backend: a.engine.backend.into(),
-        gpu: super::env::gpu_setup().clone(),
+        gpu: super::env::gpu_setup()?.clone(),
         sweep: a.radii.clone(),
         gt: ground_truth(&a)?,
         check_frames: true,
@@ -190,7 +190,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
         };
         let cols: Vec<(String, &Metrics)> = metrics
             .iter()
-            .map(|m| (format!("r_e={}", m.radius), *m))
+            .map(|m| (format!("r_e={}", super::fmt_radius(m.radius)), *m))
             .collect();
         let refs: Vec<(&str, &Metrics)> = cols.iter().map(|(n, m)| (n.as_str(), *m)).collect();
         print!("{}", metrics_table(&refs));

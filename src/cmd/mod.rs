@@ -261,17 +261,23 @@ fn fmt_opt(v: Option<f64>, prec: usize) -> String {
     }
 }
 
-/// The metrics as a small aligned table, one column per labelled set.
-pub fn metrics_table(cols: &[(&str, &Metrics)]) -> String {
-    let mut out = String::new();
-    out.push_str(&format!("{:<16}", "metric"));
-    for (name, _) in cols {
-        out.push_str(&format!("{name:>14}"));
+/// A radius for a table header or cell: as written when short, else in exponent form
+/// (`1e-30`, not 32 digits), so a column stays narrow for any radius.
+pub fn fmt_radius(r: f64) -> String {
+    let s = format!("{r}");
+    if s.len() <= 12 {
+        s
+    } else {
+        format!("{r:e}")
     }
-    out.push('\n');
+}
+
+/// The metrics as a small aligned table, one column per labelled set. A column is 14
+/// characters wide, wider where a header or cell needs it, always with a space before it.
+pub fn metrics_table(cols: &[(&str, &Metrics)]) -> String {
     type Cell = Box<dyn Fn(&Metrics) -> String>;
     let rows: [(&str, Cell); 7] = [
-        ("r_e", Box::new(|m: &Metrics| format!("{}", m.radius))),
+        ("r_e", Box::new(|m: &Metrics| fmt_radius(m.radius))),
         ("E_rms (cm)", Box::new(|m: &Metrics| fmt_opt(m.e_rms_cm, 4))),
         (
             "R_covered (%)",
@@ -282,10 +288,33 @@ pub fn metrics_table(cols: &[(&str, &Metrics)]) -> String {
         ("segments", Box::new(|m: &Metrics| m.segments.to_string())),
         ("skipped", Box::new(|m: &Metrics| m.skipped.to_string())),
     ];
-    for (label, f) in rows.iter() {
+    let cells: Vec<Vec<String>> = rows
+        .iter()
+        .map(|(_, f)| cols.iter().map(|(_, m)| f(m)).collect())
+        .collect();
+    let widths: Vec<usize> = cols
+        .iter()
+        .enumerate()
+        .map(|(j, (name, _))| {
+            let widest = cells
+                .iter()
+                .map(|r| r[j].chars().count())
+                .chain([name.chars().count()])
+                .max()
+                .unwrap_or(0);
+            (widest + 1).max(14)
+        })
+        .collect();
+    let mut out = String::new();
+    out.push_str(&format!("{:<16}", "metric"));
+    for ((name, _), w) in cols.iter().zip(&widths) {
+        out.push_str(&format!("{name:>w$}"));
+    }
+    out.push('\n');
+    for ((label, _), row) in rows.iter().zip(&cells) {
         out.push_str(&format!("{label:<16}"));
-        for (_, m) in cols {
-            out.push_str(&format!("{:>14}", f(m)));
+        for (c, w) in row.iter().zip(&widths) {
+            out.push_str(&format!("{c:>w$}"));
         }
         out.push('\n');
     }

@@ -97,7 +97,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     );
     let job = Job {
         check_frames: !a.no_frame_check,
-        ..super::env::job(params, a.engine.backend.into())
+        ..super::env::job(params, a.engine.backend.into())?
     };
     let refined = job.refine(&scene, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));
@@ -133,8 +133,9 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             metrics_table(&[("before", &r.before), ("after", after)])
         );
     }
-    // The report's warnings: the frame check's, the steps', the scale cut's.
-    for w in &r.warnings {
+    // The report's warnings: the frame check's, the steps', the scale cut's; loading
+    // printed the scene's own, which the report starts with.
+    for w in r.warnings.iter().skip(scene.warnings.len()) {
         eprintln!("warning: {w}");
     }
     if let Some(steps) = &r.refine {

@@ -229,6 +229,18 @@ impl Error {
         e
     }
 
+    /// A Gaussian center with a finite coordinate `value` beyond the range of f32 (a PLY
+    /// `double`) under `--strict`.
+    pub(crate) fn strict_overflow(path: &Path, pos: Position, value: f64) -> Self {
+        Error::Parse {
+            path: path.to_path_buf(),
+            pos,
+            msg: format!(
+                "Gaussian center coordinate {value:e} overflows f32 (beyond ±3.4e38); without --strict such Gaussians are skipped with a warning"
+            ),
+        }
+    }
+
     /// No Gaussian of a non-empty model survived the skips: says how many each skip took.
     pub(crate) fn none_usable(
         path: &Path,
@@ -338,14 +350,35 @@ pub(crate) fn is_resource_limit(e: &std::io::Error) -> bool {
     }
 }
 
-/// The one warning for Gaussians skipped for a NaN or infinite center.
-pub(crate) fn skipped_centers_warning(path: &Path, n: usize, first: Option<&Position>) -> String {
+/// The one warning for Gaussians skipped for a NaN or infinite center; `overflow` of the
+/// `n` were finite numbers in the file (a PLY `double`) beyond the range of f32.
+pub(crate) fn skipped_centers_warning(
+    path: &Path,
+    n: usize,
+    overflow: usize,
+    first: Option<&Position>,
+) -> String {
     let first = first
         .map(|p| format!(" (first at {p})"))
         .unwrap_or_default();
+    let why = if overflow == n {
+        "has a coordinate that overflows f32 (beyond ±3.4e38)"
+    } else if overflow > 0 {
+        "is NaN, infinite or overflows f32 (beyond ±3.4e38)"
+    } else {
+        "is NaN or infinite"
+    };
     format!(
-        "{}: skipped {n} Gaussian{} whose center is NaN or infinite{first}; --strict makes this an error",
+        "{}: skipped {n} Gaussian{} whose center {why}{first}; --strict makes this an error",
         path.display(),
         if n == 1 { "" } else { "s" },
     )
+}
+
+/// A center read as f64 (PLY `double`) narrowed to f32, with the first coordinate that
+/// was finite in the file but overflowed in the narrowing.
+pub(crate) fn narrow_center(v: &[f64]) -> ([f32; 3], Option<f64>) {
+    let c = [v[0] as f32, v[1] as f32, v[2] as f32];
+    let over = (0..3).find(|&i| v[i].is_finite() && !c[i].is_finite());
+    (c, over.map(|i| v[i]))
 }

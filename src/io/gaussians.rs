@@ -286,12 +286,7 @@ fn read_ply_with_opacity(
     let mut sink = Sink::new(path, opts, op.is_some());
     body.for_each(path, vertex, &wanted, |loc, v| {
         let logit = v.get(3).copied().unwrap_or(0.0) as f32;
-        sink.push(
-            [v[0] as f32, v[1] as f32, v[2] as f32],
-            sigmoid(logit as f64),
-            logit,
-            || loc.position("vertex"),
-        )
+        sink.push_f64(v, sigmoid(logit as f64), logit, || loc.position("vertex"))
     })?;
     let (mut cloud, opacity) = sink.finish(vertex.count, header.format())?;
     cloud.properties = checked.properties;
@@ -314,6 +309,8 @@ pub(crate) struct Sink<'a> {
     centers: Vec<[f32; 3]>,
     logits: Vec<f32>,
     nonfinite: usize,
+    /// Of `nonfinite`: centers finite in the file that overflow f32.
+    overflow: usize,
     first_nonfinite: Option<Position>,
     low: usize,
     /// Appended to the cloud's warnings (format-specific notes).
@@ -330,6 +327,7 @@ impl<'a> Sink<'a> {
             centers: Vec::new(),
             logits: Vec::new(),
             nonfinite: 0,
+            overflow: 0,
             first_nonfinite: None,
             low: 0,
             warnings: Vec::new(),
@@ -376,6 +374,27 @@ impl<'a> Sink<'a> {
         Ok(())
     }
 
+    /// [`Self::push`] of a center read as f64: one beyond the range of f32 is counted
+    /// (or refused under strict) as an overflow, not as NaN or infinite.
+    pub(crate) fn push_f64(
+        &mut self,
+        v: &[f64],
+        opacity: f64,
+        logit: f32,
+        pos: impl FnOnce() -> Position,
+    ) -> Result<(), Error> {
+        let (c, over) = super::error::narrow_center(v);
+        if let Some(value) = over {
+            let at = pos();
+            if self.strict {
+                return Err(Error::strict_overflow(self.path, at, value));
+            }
+            self.overflow += 1;
+            return self.push(c, opacity, logit, || at);
+        }
+        self.push(c, opacity, logit, pos)
+    }
+
     /// The cloud, or the error for a model with nothing usable. `total` is the number of
     /// Gaussians in the file; `format` what `info` shows.
     pub(crate) fn finish(
@@ -388,6 +407,7 @@ impl<'a> Sink<'a> {
             warnings.push(super::error::skipped_centers_warning(
                 self.path,
                 self.nonfinite,
+                self.overflow,
                 self.first_nonfinite.as_ref(),
             ));
         }

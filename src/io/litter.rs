@@ -208,7 +208,13 @@ pub fn clean_stale_temps(dir: &Path) -> usize {
 /// Removes the runtime folders that killed runs of `main` left in the system's temporary
 /// folder and returns how many.
 pub fn clean_stale_runtime_dirs() -> usize {
-    let Ok(rd) = std::fs::read_dir(std::env::temp_dir()) else {
+    clean_stale_runtime_dirs_in(&std::env::temp_dir())
+}
+
+/// [`clean_stale_runtime_dirs`] in `base` (the folder the private runtime folder is made
+/// in when the temporary folder is unusable).
+pub fn clean_stale_runtime_dirs_in(base: &Path) -> usize {
+    let Ok(rd) = std::fs::read_dir(base) else {
         return 0;
     };
     rd.flatten()

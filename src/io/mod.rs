@@ -41,7 +41,8 @@ pub use journal::recover as finish_output_sets;
 pub(crate) use journal::Stop;
 pub use limap::{read_supports, track_text, Support};
 pub use litter::{
-    clean_stale_runtime_dirs, clean_stale_temps, temp_prefix, try_lock, RUNTIME_PREFIX, STALE_AGE,
+    clean_stale_runtime_dirs, clean_stale_runtime_dirs_in, clean_stale_temps, temp_prefix,
+    try_lock, RUNTIME_PREFIX, STALE_AGE,
 };
 
 pub(crate) use input::{read_input, read_small};

@@ -178,7 +178,8 @@ pub fn skip_gpu_tests() -> bool {
 /// `WGPU_ADAPTER_NAME`, new buffers filled with garbage where `LINEGS_GPU_GARBAGE` is set
 /// (scripts/test.sh sets it), and `opts` otherwise.
 pub fn gpu_setup(opts: linegs_gpu::engine::gpu::GpuOptions) -> linegs_gpu::engine::gpu::GpuSetup {
-    let env = linegs_gpu::engine::gpu::GpuSetup::from_vars(|k| std::env::var(k).ok());
+    let env = linegs_gpu::engine::gpu::GpuSetup::from_vars(|k| std::env::var(k).ok())
+        .unwrap_or_else(|e| panic!("{e}"));
     linegs_gpu::engine::gpu::GpuSetup {
         options: linegs_gpu::engine::gpu::GpuOptions {
             fill_garbage: opts.fill_garbage || env.options.fill_garbage,

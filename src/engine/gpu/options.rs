@@ -140,31 +140,46 @@ impl GpuSetup {
     /// - `WGPU_ADAPTER_NAME`: [`GpuSetup::adapter_name`];
     /// - `LINEGS_GPU_PCI_BUS_ID`: [`GpuSetup::adapter_pci_bus_id`];
     /// - `LINEGS_GPU_SMALL_BATCH=N`: [`GpuOptions::small_batch`] (0 sends every batch to
-    ///   the device; not a number: the default [`SMALL_BATCH`]);
+    ///   the device);
     /// - `LINEGS_GPU_FIT=device|host`: [`GpuOptions::fit`] (else by adapter);
     /// - `LINEGS_GPU_MEMBERS=device|host`: [`GpuOptions::members`] (else by adapter);
     /// - `LINEGS_GPU_GARBAGE` (any value): [`GpuOptions::fill_garbage`].
-    pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> GpuSetup {
+    ///
+    /// An empty value is the same as an unset one; any other value that is not one of
+    /// those accepted is an error naming the variable, its value and the accepted ones.
+    pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<GpuSetup, String> {
+        let set = |k: &str| var(k).filter(|v| !v.trim().is_empty());
+        let bad = |k: &str, v: &str, accepted: &str| {
+            format!("{k}={v:?}: expected {accepted} (or unset for the default)")
+        };
         let mut options = GpuOptions::for_commands();
-        if let Some(n) = var("LINEGS_GPU_SMALL_BATCH").and_then(|v| v.trim().parse().ok()) {
-            options.small_batch = n;
+        if let Some(v) = set("LINEGS_GPU_SMALL_BATCH") {
+            options.small_batch = v.trim().parse().map_err(|_| {
+                bad(
+                    "LINEGS_GPU_SMALL_BATCH",
+                    &v,
+                    "a whole number >= 0 (0 sends every batch to the device)",
+                )
+            })?;
         }
-        options.fit = match var("LINEGS_GPU_FIT").as_deref() {
+        options.fit = match set("LINEGS_GPU_FIT").as_deref().map(str::trim) {
+            None => FitOn::Auto,
             Some("device") => FitOn::Device,
             Some("host") => FitOn::Host,
-            _ => FitOn::Auto,
+            Some(v) => return Err(bad("LINEGS_GPU_FIT", v, "`device` or `host`")),
         };
-        options.members = match var("LINEGS_GPU_MEMBERS").as_deref() {
+        options.members = match set("LINEGS_GPU_MEMBERS").as_deref().map(str::trim) {
+            None => MembersOn::Auto,
             Some("device") => MembersOn::Device,
             Some("host") => MembersOn::Host,
-            _ => MembersOn::Auto,
+            Some(v) => return Err(bad("LINEGS_GPU_MEMBERS", v, "`device` or `host`")),
         };
         options.fill_garbage |= var("LINEGS_GPU_GARBAGE").is_some();
-        GpuSetup {
+        Ok(GpuSetup {
             adapter_name: var("WGPU_ADAPTER_NAME"),
             adapter_pci_bus_id: var("LINEGS_GPU_PCI_BUS_ID").filter(|v| !v.trim().is_empty()),
             options,
-        }
+        })
     }
 }
 
@@ -191,7 +206,7 @@ mod tests {
 
     #[test]
     fn the_variables_set_what_they_name() {
-        let none = GpuSetup::from_vars(|_| None);
+        let none = GpuSetup::from_vars(|_| None).unwrap();
         assert_eq!(none, GpuSetup::default());
         assert_eq!(none.options.small_batch, SMALL_BATCH);
         let vars = |k: &str| {
@@ -205,13 +220,30 @@ mod tests {
             }
             .map(String::from)
         };
-        let s = GpuSetup::from_vars(vars);
+        let s = GpuSetup::from_vars(vars).unwrap();
         assert_eq!(s.adapter_name.as_deref(), Some("llvmpipe"));
         assert_eq!(s.options.small_batch, 0);
         assert_eq!(s.options.fit, FitOn::Host);
         assert_eq!(s.options.members, MembersOn::Device);
         assert!(s.options.fill_garbage && s.options.warm_up);
-        let odd = GpuSetup::from_vars(|k| (k == "LINEGS_GPU_SMALL_BATCH").then(|| "x".into()));
-        assert_eq!(odd.options.small_batch, SMALL_BATCH);
+        // an empty value is an unset one
+        let empty = GpuSetup::from_vars(|k| (k != "WGPU_ADAPTER_NAME").then(|| " ".into()));
+        assert_eq!(empty.unwrap().options.fit, FitOn::Auto);
+    }
+
+    #[test]
+    fn a_bad_value_is_an_error_naming_the_variable_and_the_accepted_values() {
+        for (k, v, accepted) in [
+            ("LINEGS_GPU_SMALL_BATCH", "x", "a whole number >= 0"),
+            ("LINEGS_GPU_SMALL_BATCH", "-1", "a whole number >= 0"),
+            ("LINEGS_GPU_FIT", "gpu", "`device` or `host`"),
+            ("LINEGS_GPU_MEMBERS", "Device", "`device` or `host`"),
+        ] {
+            let e = GpuSetup::from_vars(|q| (q == k).then(|| v.into())).unwrap_err();
+            assert!(
+                e.starts_with(&format!("{k}=\"{v}\": expected {accepted}")),
+                "{e}"
+            );
+        }
     }
 }

@@ -49,6 +49,8 @@ struct Collect<'a> {
     min_opacity: Option<OpacityCut>,
     strict: bool,
     nonfinite: usize,
+    /// Of `nonfinite`: centers finite in the file that overflow f32.
+    overflow: usize,
     first_nonfinite: Option<Position>,
     low: usize,
 }
@@ -79,6 +81,26 @@ impl Collect<'_> {
         }
         self.centers.push(c);
         Ok(())
+    }
+
+    /// [`Self::push`] of a center read as f64: one beyond the range of f32 is counted
+    /// (or refused under strict) as an overflow, not as NaN or infinite.
+    fn push_f64(
+        &mut self,
+        v: &[f64],
+        opacity: f32,
+        loc: impl FnOnce() -> Position,
+    ) -> Result<(), Error> {
+        let (c, over) = super::error::narrow_center(v);
+        if let Some(value) = over {
+            let pos = loc();
+            if self.strict {
+                return Err(Error::strict_overflow(self.path, pos, value));
+            }
+            self.overflow += 1;
+            return self.push(c, opacity, || pos);
+        }
+        self.push(c, opacity, loc)
     }
 }
 
@@ -322,6 +344,7 @@ fn gaussians_from<R: Read>(
         min_opacity: opts.min_opacity.map(OpacityCut::new),
         strict: opts.strict,
         nonfinite: 0,
+        overflow: 0,
         first_nonfinite: None,
         low: 0,
     };
@@ -355,9 +378,7 @@ fn gaussians_from<R: Read>(
             wanted.extend(opacity.map(|o| o.0));
             body.for_each(path, vertex, &wanted, |loc, v| {
                 let op = v.get(3).copied().unwrap_or(0.0) as f32;
-                col.push([v[0] as f32, v[1] as f32, v[2] as f32], op, || {
-                    loc.position("vertex")
-                })
+                col.push_f64(v, op, || loc.position("vertex"))
             })?;
         }
     }
@@ -370,6 +391,7 @@ fn gaussians_from<R: Read>(
         warnings.push(super::error::skipped_centers_warning(
             path,
             col.nonfinite,
+            col.overflow,
             col.first_nonfinite.as_ref(),
         ));
     }
