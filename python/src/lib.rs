@@ -472,9 +472,9 @@ fn refine<'py>(
                         let mut c = s.clone();
                         let found = c.find_frame(cm, &job.params)?;
                         match (&found.transform, found.message()) {
-                            (Some(_), Some(m)) => {
-                                c.warnings.push(format!("Gaussians mapped by the frame {m}"))
-                            }
+                            (Some(_), Some(m)) => c
+                                .warnings
+                                .push(format!("Gaussians mapped by the frame {m}")),
                             (None, Some(m)) => c.warnings.push(m),
                             _ => {}
                         }

@@ -1,5 +1,5 @@
-use super::{input_error, FormatArg};
 use super::params::{BackendArg, ParamsArgs, ProtocolArg};
+use super::{input_error, FormatArg};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::batch::{self, BatchOptions, Manifest, Shard, Status};
