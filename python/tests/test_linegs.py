@@ -220,7 +220,9 @@ def test_arrays_cross_without_copies(tmp_path):
     assert len(g) == n
     # the centers alone are 3.6 MB; one copy of them (or of the refined segments'
     # bytes) would show
-    assert peak < n * 12 / 4, f"Python allocated {peak} bytes for {n} Gaussians"
+    # a third of the centers: one copy of them fails it; the report dict (with the edge
+    # fit's per-segment decisions) does not
+    assert peak < n * 12 / 3, f"Python allocated {peak} bytes for {n} Gaussians"
     for a in (g.centers, g.normals, g.max_scale, g.opacity, g.min_scale):
         if a is not None:
             assert not a.flags.owndata and not a.flags.writeable
