@@ -12,6 +12,8 @@ pub mod io;
 pub mod mem;
 pub mod pipeline;
 pub mod refine;
+/// Pictures (PNG, SVG, HTML): only with the `cli` feature (resvg, ab_glyph).
+#[cfg(feature = "cli")]
 pub mod render;
 pub mod report;
 pub mod synth;

@@ -23,14 +23,22 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 /// The command line, compiled into the module as it is into the binary (its modules
-/// beside it: `cmd`, `oom`); [`main`] runs it. Its allocator (the library's `HugeBlocks`
-/// with the command line's out-of-memory message) is the module's.
+/// beside it: `cmd`, `oom`) with the `cli` feature (`pip install .` turns it on); [`main`]
+/// runs it. Its allocator (the library's `HugeBlocks` with the command line's
+/// out-of-memory message) is the module's.
+#[cfg(feature = "cli")]
 #[path = "../../src/main.rs"]
 #[allow(dead_code)]
 mod cli;
 // `crate::cmd`, `crate::oom` and `crate::stdio` (the print macros), as the command line's
 // modules name each other.
+#[cfg(feature = "cli")]
 use cli::{cmd, oom, stdio};
+
+/// Without the command line, the library's allocator alone (large blocks on huge pages).
+#[cfg(not(feature = "cli"))]
+#[global_allocator]
+static ALLOC: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
 
 create_exception!(
     _linegs,
@@ -295,7 +303,9 @@ impl Model {
 }
 
 /// Runs the command line with `argv` (the program's name first) and returns its exit
-/// code: `linegs-gpu`, as `pip install .` installs it (`linegs._cli`).
+/// code: `linegs-gpu`, as `pip install .` installs it (`linegs._cli`). Only with the
+/// `cli` feature.
+#[cfg(feature = "cli")]
 #[pyfunction]
 fn main(py: Python<'_>, argv: Vec<std::ffi::OsString>) -> u8 {
     py.detach(|| cli::run(argv))
@@ -325,7 +335,8 @@ fn backend(name: &str) -> PyResult<Backend> {
 /// process environment read as `linegs-gpu` reads it (docs/troubleshooting.md#environment).
 fn job(args: Vec<(String, String)>, backend_name: &str) -> PyResult<Job> {
     Ok(Job {
-        gpu: GpuSetup::from_vars(|k| std::env::var(k).ok()).map_err(InputError::new_err)?,
+        gpu: GpuSetup::from_vars(|k| std::env::var(k).ok())
+            .map_err(|e| InputError::new_err(e.to_string()))?,
         ..Job::new(params(args)?, backend(backend_name)?)
     })
 }
@@ -525,6 +536,7 @@ fn _linegs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("LinegsError", m.py().get_type::<LinegsError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_class::<Model>()?;
+    #[cfg(feature = "cli")]
     m.add_function(wrap_pyfunction!(main, m)?)?;
     m.add_function(wrap_pyfunction!(param_names, m)?)?;
     m.add_function(wrap_pyfunction!(read_gaussians, m)?)?;
