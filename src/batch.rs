@@ -272,11 +272,28 @@ impl Default for Shard {
     }
 }
 
+/// A `--shard` value or a Slurm array task's variables that name no shard.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum ShardError {
+    /// `--shard` is not `i/n` with `0 <= i < n`.
+    #[error("expected `i/n` with 0 <= i < n (e.g. `0/4`), got `{0}`")]
+    Syntax(String),
+    /// A `SLURM_ARRAY_TASK_*` variable is not a whole number.
+    #[error("{name}={value} is not a task number")]
+    NotANumber { name: &'static str, value: String },
+    /// The task id is outside the array's `count` tasks from `min`.
+    #[error(
+        "SLURM_ARRAY_TASK_ID={id} is not one of {count} tasks from {min}; \
+         use a contiguous --array range or pass --shard i/n"
+    )]
+    OutsideArray { id: usize, count: usize, min: usize },
+}
+
 impl std::str::FromStr for Shard {
-    type Err = String;
+    type Err = ShardError;
     /// `i/n` with `0 <= i < n`.
-    fn from_str(s: &str) -> Result<Shard, String> {
-        let err = || format!("expected `i/n` with 0 <= i < n (e.g. `0/4`), got `{s}`");
+    fn from_str(s: &str) -> Result<Shard, ShardError> {
+        let err = || ShardError::Syntax(s.to_string());
         let (i, n) = s.split_once('/').ok_or_else(err)?;
         let (index, count) = (
             i.trim().parse::<usize>().map_err(|_| err())?,
@@ -292,15 +309,18 @@ impl std::str::FromStr for Shard {
 impl Shard {
     /// The shard of a Slurm array task: `SLURM_ARRAY_TASK_ID - SLURM_ARRAY_TASK_MIN` of
     /// `SLURM_ARRAY_TASK_COUNT`, or `None` outside an array job.
-    pub fn from_env(var: impl Fn(&str) -> Option<String>) -> Result<Option<Shard>, String> {
+    pub fn from_env(var: impl Fn(&str) -> Option<String>) -> Result<Option<Shard>, ShardError> {
         let (Some(id), Some(count)) = (var("SLURM_ARRAY_TASK_ID"), var("SLURM_ARRAY_TASK_COUNT"))
         else {
             return Ok(None);
         };
-        let num = |name: &str, v: &str| {
+        let num = |name: &'static str, v: &str| {
             v.trim()
                 .parse::<usize>()
-                .map_err(|_| format!("{name}={v} is not a task number"))
+                .map_err(|_| ShardError::NotANumber {
+                    name,
+                    value: v.to_string(),
+                })
         };
         let id = num("SLURM_ARRAY_TASK_ID", &id)?;
         let count = num("SLURM_ARRAY_TASK_COUNT", &count)?;
@@ -308,12 +328,10 @@ impl Shard {
             Some(m) => num("SLURM_ARRAY_TASK_MIN", &m)?,
             None => 0,
         };
-        let index = id.checked_sub(min).filter(|&i| i < count).ok_or_else(|| {
-            format!(
-                "SLURM_ARRAY_TASK_ID={id} is not one of {count} tasks from {min}; \
-                 use a contiguous --array range or pass --shard i/n"
-            )
-        })?;
+        let index = id
+            .checked_sub(min)
+            .filter(|&i| i < count)
+            .ok_or(ShardError::OutsideArray { id, count, min })?;
         Ok(Some(Shard { index, count }))
     }
 
@@ -1118,7 +1136,15 @@ mod tests {
             ("SLURM_ARRAY_TASK_ID", "4"),
             ("SLURM_ARRAY_TASK_COUNT", "4"),
         ]));
-        assert!(s.is_err());
+        assert_eq!(
+            s.unwrap_err().to_string(),
+            "SLURM_ARRAY_TASK_ID=4 is not one of 4 tasks from 0; use a contiguous --array \
+             range or pass --shard i/n"
+        );
+        assert_eq!(
+            "x/2".parse::<Shard>().unwrap_err().to_string(),
+            "expected `i/n` with 0 <= i < n (e.g. `0/4`), got `x/2`"
+        );
         let every: Vec<usize> = (0..7)
             .filter(|&i| Shard { index: 1, count: 3 }.includes(i))
             .collect();

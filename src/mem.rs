@@ -27,6 +27,25 @@ pub fn current_rss_bytes() -> Option<u64> {
     status_field("VmRSS")
 }
 
+/// The process's address-space limit in bytes (`ulimit -v`, `RLIMIT_AS`), or `None`
+/// where there is none (or the system has no such limit).
+pub fn address_space_limit() -> Option<u64> {
+    #[cfg(unix)]
+    {
+        let mut r = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        // SAFETY: getrlimit writes the struct it is given and nothing else.
+        if unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut r) } == 0
+            && r.rlim_cur != libc::RLIM_INFINITY
+        {
+            return Some(r.rlim_cur as u64);
+        }
+    }
+    None
+}
+
 /// Resets the peak to the current RSS (`echo 5 > /proc/self/clear_refs`), so a benchmark
 /// can measure the peak of one phase; `false` where the kernel does not allow it.
 pub fn reset_peak_rss() -> bool {

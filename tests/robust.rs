@@ -926,6 +926,63 @@ fn out_of_memory_names_what_did_not_fit_and_a_hint() {
     assert!(!png.exists());
 }
 
+/// A GPU driver that cannot start under a memory limit (lavapipe under `ulimit -v`: wgpu
+/// finds no adapter at 150 MB, and its device is "lost" at 300 MB): one line that says
+/// out of memory and the phase (the adapter search, the device's opening), exit 1 (a
+/// resource limit), no output; not "no GPU adapter found" or "Parent device is lost".
+#[cfg(unix)]
+#[test]
+fn a_gpu_driver_that_does_not_fit_under_a_memory_limit_says_out_of_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let out = dir.path().join("p.obj");
+    let args = |out: &Path| {
+        let mut a: Vec<String> = ["refine", "--backend", "gpu", "-g"]
+            .map(String::from)
+            .into();
+        for p in [&g, Path::new("-l"), &l, Path::new("-o"), out] {
+            a.push(p.display().to_string());
+        }
+        a
+    };
+    // Without a limit: the adapter exists (else the test skips or fails as GPU tests do).
+    let free = run(&args(&out).iter().map(String::as_str).collect::<Vec<_>>());
+    if free.status.code() != Some(0) {
+        let e = stderr(&free);
+        assert!(
+            common::skip_gpu_tests() && e.contains("no GPU adapter found"),
+            "{e}"
+        );
+        println!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter");
+        return;
+    }
+    std::fs::remove_file(&out).unwrap();
+    for kb in [150_000, 300_000] {
+        let a = args(&out);
+        let o = run_limited(kb, &a.iter().map(String::as_str).collect::<Vec<_>>());
+        let e = stderr(&o);
+        if kb > 150_000 && o.status.code() == Some(0) {
+            // A driver that starts in 300 MB: nothing to say.
+            std::fs::remove_file(&out).unwrap();
+            continue;
+        }
+        assert_eq!(o.status.code(), Some(1), "{kb} kB: {e}");
+        assert_eq!(e.lines().count(), 1, "{kb} kB: {e}");
+        assert!(
+            e.starts_with("error: out of memory while looking for a GPU adapter: ")
+                || e.starts_with("error: out of memory while opening the GPU device "),
+            "{kb} kB: {e}"
+        );
+        assert!(
+            e.contains("did not start under the memory limit of ")
+                && e.trim_end()
+                    .ends_with("raise the limit (ulimit -v) or use --backend cpu"),
+            "{kb} kB: {e}"
+        );
+        assert!(!out.exists(), "{kb} kB");
+    }
+}
+
 // ----------------------------------------------------------------------------- results
 
 /// A scene 1e7 from the origin, where the f32 centers collapse the refined segments to

@@ -328,7 +328,8 @@ fn params(args: Vec<(String, String)>) -> PyResult<Params> {
 }
 
 fn backend(name: &str) -> PyResult<Backend> {
-    name.parse().map_err(InputError::new_err)
+    name.parse()
+        .map_err(|e: linegs_gpu::engine::select::BackendError| InputError::new_err(e.to_string()))
 }
 
 /// A job on `backend_name` whose GPU engine opens as the command line's would: the

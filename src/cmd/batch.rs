@@ -81,7 +81,7 @@ pub fn run(a: BatchArgs, verbose: bool) -> Result<()> {
     let shard = match a.shard {
         Some(s) => s,
         None => Shard::from_env(|k| std::env::var(k).ok())
-            .map_err(input_error)?
+            .map_err(|e| input_error(e.to_string()))?
             .unwrap_or_default(),
     };
     let format = match a.format {

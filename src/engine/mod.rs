@@ -360,8 +360,45 @@ pub enum EngineError {
     NoAdapter(String),
     #[error("GPU error: {0}")]
     Gpu(String),
+    /// Memory ran out while `phase` (`opening the GPU device llvmpipe`): the device's, or
+    /// the host's under an address-space limit, where a driver reports no adapter or a
+    /// lost device instead ([`EngineError::under_memory_limit`]).
+    #[error("out of memory while {phase}: {why}; free memory, raise the limit (ulimit -v) or use --backend cpu")]
+    OutOfMemory { phase: String, why: String },
     #[error("invalid query {index}: {why}")]
     BadQuery { index: usize, why: String },
+}
+
+impl EngineError {
+    /// `self`, or [`EngineError::OutOfMemory`] while `phase` where the process runs under
+    /// an address-space limit (`ulimit -v`): a GPU driver that cannot map its memory under
+    /// one reports no adapter ("vulkan found no adapters") or a lost device ("Parent
+    /// device is lost"), never the cause. A lack of memory the driver names (wgpu's
+    /// `Not enough memory left.`) is out of memory with or without a limit.
+    pub fn under_memory_limit(self, phase: &str) -> EngineError {
+        let why = match &self {
+            EngineError::NoAdapter(w) | EngineError::Gpu(w) => w.clone(),
+            _ => return self,
+        };
+        let named = why.contains("Not enough memory") || why.contains("Out of Memory");
+        match crate::mem::address_space_limit() {
+            Some(limit) => {
+                log::info!("{phase} failed under the memory limit: {why}");
+                EngineError::OutOfMemory {
+                    phase: phase.to_string(),
+                    why: format!(
+                        "the GPU driver did not start under the memory limit of {:.0} MiB",
+                        limit as f64 / (1u64 << 20) as f64
+                    ),
+                }
+            }
+            None if named => EngineError::OutOfMemory {
+                phase: phase.to_string(),
+                why,
+            },
+            None => self,
+        }
+    }
 }
 
 /// Answers batches of cylinder queries over one fixed set of Gaussian centers.

@@ -31,14 +31,21 @@ impl Backend {
     }
 }
 
+/// A backend name that is not `auto`, `gpu` or `cpu`.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum BackendError {
+    #[error("backend `{0}`: expected `auto`, `gpu` or `cpu`")]
+    Unknown(String),
+}
+
 impl std::str::FromStr for Backend {
-    type Err = String;
+    type Err = BackendError;
     /// `auto`, `gpu` or `cpu`, in any case.
-    fn from_str(s: &str) -> Result<Self, String> {
+    fn from_str(s: &str) -> Result<Self, BackendError> {
         [Backend::Auto, Backend::Gpu, Backend::Cpu]
             .into_iter()
             .find(|b| b.as_str().eq_ignore_ascii_case(s))
-            .ok_or_else(|| format!("backend `{s}`: expected `auto`, `gpu` or `cpu`"))
+            .ok_or_else(|| BackendError::Unknown(s.to_string()))
     }
 }
 
@@ -80,7 +87,7 @@ pub fn prepare(backend: Backend, gpu: &GpuSetup) -> Pending {
             let pick = match &gpu.adapter_pci_bus_id {
                 Some(bus) => match crate::engine::gpu::find_pci_bus_id(&infos, bus) {
                     Ok(i) => Pick::Hardware(i),
-                    Err(why) => Pick::None(why),
+                    Err(why) => Pick::None(why.to_string()),
                 },
                 None => auto_pick(&infos),
             };
@@ -262,14 +269,16 @@ mod tests {
         }
         assert_eq!(find_pci_bus_id(&infos, "00000000:D8:00.0"), Ok(1));
         assert_eq!(find_pci_bus_id(&infos, "0000:3b:00.0"), Ok(0));
-        let none = find_pci_bus_id(&infos, "0000:5e:00.0").unwrap_err();
+        let none = find_pci_bus_id(&infos, "0000:5e:00.0")
+            .unwrap_err()
+            .to_string();
         assert!(
             none.contains("matches none of")
                 && none.contains("at 0000:d8:00.0")
                 && none.contains("at no PCI address"),
             "{none}"
         );
-        let bad = find_pci_bus_id(&infos, "3").unwrap_err();
+        let bad = find_pci_bus_id(&infos, "3").unwrap_err().to_string();
         assert!(bad.contains("expected a PCI address"), "{bad}");
     }
 
@@ -329,6 +338,9 @@ mod tests {
             assert_eq!(b.as_str().parse::<Backend>().unwrap(), b);
             assert_eq!(b.as_str().to_uppercase().parse::<Backend>().unwrap(), b);
         }
-        assert!("tpu".parse::<Backend>().unwrap_err().contains("`tpu`"));
+        assert_eq!(
+            "tpu".parse::<Backend>().unwrap_err().to_string(),
+            "backend `tpu`: expected `auto`, `gpu` or `cpu`"
+        );
     }
 }

@@ -317,7 +317,22 @@ pub struct Outcome {
 
 /// `--max-scale`'s scene (only where it left some Gaussians out) and what it did: how
 /// many Gaussians were left out, or why none.
-type ScaleCut = (Option<Scene>, Result<usize, String>);
+type ScaleCut = (Option<Scene>, Result<usize, ScaleCutWarning>);
+
+/// Why `--max-scale` left no Gaussian out (a warning of the report).
+#[derive(Clone, Debug, thiserror::Error)]
+enum ScaleCutWarning {
+    #[error(
+        "--max-scale {k}: the Gaussians carry no scales (or a frame transform is given); \
+         nothing was left out"
+    )]
+    NoScales { k: f64 },
+    #[error(
+        "--max-scale {k}: every Gaussian is wider than {limit} (largest standard deviation); \
+         none was left out"
+    )]
+    AllWider { k: f64, limit: f64 },
+}
 
 impl Job {
     /// The job with `params` on `backend`, nothing extra.
@@ -353,13 +368,7 @@ impl Job {
             if self.params.max_scale.is_none() {
                 return Ok(None);
             }
-            return Ok(Some((
-                None,
-                Err(format!(
-                    "--max-scale {k}: the Gaussians carry no scales (or a frame transform is \
-                     given); nothing was left out"
-                )),
-            )));
+            return Ok(Some((None, Err(ScaleCutWarning::NoScales { k }))));
         };
         let r = match self.params.radius {
             RadiusArg::Fixed(r) => r,
@@ -379,13 +388,7 @@ impl Job {
             return Ok(Some((None, Ok(0))));
         }
         if kept == 0 {
-            return Ok(Some((
-                None,
-                Err(format!(
-                    "--max-scale {k}: every Gaussian is wider than {limit} (largest standard \
-                     deviation); none was left out"
-                )),
-            )));
+            return Ok(Some((None, Err(ScaleCutWarning::AllWider { k, limit }))));
         }
         fn pick_of<T: Copy>(v: &[T], keep: &[bool]) -> Vec<T> {
             v.iter()
@@ -461,7 +464,7 @@ impl Job {
         let mut steps = out.steps;
         match cut_note {
             Some(Ok(n)) => steps.scale_cut = Some(n),
-            Some(Err(w)) => report.warnings.push(w),
+            Some(Err(w)) => report.warnings.push(w.to_string()),
             None => {}
         }
         report.refine = Some(steps);

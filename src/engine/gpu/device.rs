@@ -25,6 +25,9 @@ pub struct Context {
     stray: Arc<Mutex<Option<String>>>,
 }
 
+/// The phase of an adapter search, for [`EngineError::under_memory_limit`].
+const SEARCH: &str = "looking for a GPU adapter";
+
 /// Picks the adapter: the first whose name contains `name` (case-insensitive; the
 /// commands' `WGPU_ADAPTER_NAME`) when given, else wgpu's default choice (`WGPU_POWER_PREF`
 /// honoured); `WGPU_BACKEND` restricts the backends in both cases ([`default_backends`]).
@@ -46,10 +49,15 @@ pub fn pick_adapter(name: Option<&str>) -> Result<wgpu::Adapter, EngineError> {
             .into_iter()
             .find(|a| a.get_info().name.to_lowercase().contains(&want))
             .ok_or_else(|| {
-                EngineError::NoAdapter(format!(
+                let e = EngineError::NoAdapter(format!(
                     "WGPU_ADAPTER_NAME={name} matches none of [{}]",
                     names.join(", ")
-                ))
+                ));
+                if names.is_empty() {
+                    e.under_memory_limit(SEARCH)
+                } else {
+                    e
+                }
             });
         if let Ok(a) = &found {
             log::info!("adapter picked: {}", describe(&a.get_info()));
@@ -66,7 +74,7 @@ pub fn pick_adapter(name: Option<&str>) -> Result<wgpu::Adapter, EngineError> {
         options.power_preference
     );
     let found = pollster::block_on(instance.request_adapter(&options))
-        .map_err(|e| EngineError::NoAdapter(e.to_string()));
+        .map_err(|e| EngineError::NoAdapter(e.to_string()).under_memory_limit(SEARCH));
     match &found {
         Ok(a) => log::info!("adapter picked: {}", describe(&a.get_info())),
         Err(e) => log::info!("adapter search found none: {e}"),
@@ -84,7 +92,14 @@ pub fn pick_adapter_at(bus: &str) -> Result<wgpu::Adapter, EngineError> {
     let adapters = pollster::block_on(instance.enumerate_adapters(backends));
     log_adapters(&adapters);
     let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
-    let i = find_pci_bus_id(&infos, bus).map_err(EngineError::NoAdapter)?;
+    let i = find_pci_bus_id(&infos, bus).map_err(|e| {
+        let e = EngineError::NoAdapter(e.to_string());
+        if infos.is_empty() {
+            e.under_memory_limit(SEARCH)
+        } else {
+            e
+        }
+    })?;
     log::info!("adapter picked: {}", describe(&infos[i]));
     Ok(adapters.into_iter().nth(i).expect("an index of the list"))
 }
@@ -103,11 +118,20 @@ pub fn parse_pci_bus_id(s: &str) -> Option<[u32; 4]> {
     Some([hex(domain)?, hex(bus)?, hex(device)?, hex(function)?])
 }
 
+/// Why `LINEGS_GPU_PCI_BUS_ID` names no adapter ([`find_pci_bus_id`]).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum PciBusError {
+    /// The value is not a PCI address.
+    #[error("LINEGS_GPU_PCI_BUS_ID={0}: expected a PCI address domain:bus:device.function in hex, e.g. 0000:65:00.0")]
+    Malformed(String),
+    /// No adapter is at that address; `seen` lists each adapter and its address.
+    #[error("LINEGS_GPU_PCI_BUS_ID={bus} matches none of [{seen}]")]
+    NoMatch { bus: String, seen: String },
+}
+
 /// The index of the adapter among `infos` at the PCI address `bus`, or why none is.
-pub fn find_pci_bus_id(infos: &[wgpu::AdapterInfo], bus: &str) -> Result<usize, String> {
-    let want = parse_pci_bus_id(bus).ok_or_else(|| {
-        format!("LINEGS_GPU_PCI_BUS_ID={bus}: expected a PCI address domain:bus:device.function in hex, e.g. 0000:65:00.0")
-    })?;
+pub fn find_pci_bus_id(infos: &[wgpu::AdapterInfo], bus: &str) -> Result<usize, PciBusError> {
+    let want = parse_pci_bus_id(bus).ok_or_else(|| PciBusError::Malformed(bus.to_string()))?;
     infos
         .iter()
         .position(|i| parse_pci_bus_id(&i.device_pci_bus_id) == Some(want))
@@ -123,10 +147,10 @@ pub fn find_pci_bus_id(infos: &[wgpu::AdapterInfo], bus: &str) -> Result<usize, 
                     format!("{} at {at}", i.name)
                 })
                 .collect();
-            format!(
-                "LINEGS_GPU_PCI_BUS_ID={bus} matches none of [{}]",
-                seen.join(", ")
-            )
+            PciBusError::NoMatch {
+                bus: bus.to_string(),
+                seen: seen.join(", "),
+            }
         })
 }
 
@@ -239,8 +263,12 @@ impl Context {
             required_limits: limits.clone(),
             ..Default::default()
         };
-        let (device, queue) = pollster::block_on(adapter.request_device(&desc))
-            .map_err(|e| EngineError::Gpu(format!("cannot open the device: {e}")))?;
+        let (device, queue) = pollster::block_on(adapter.request_device(&desc)).map_err(|e| {
+            EngineError::Gpu(format!("cannot open the device: {e}")).under_memory_limit(&format!(
+                "opening the GPU device {}",
+                adapter.get_info().name
+            ))
+        })?;
         let stray = Arc::new(Mutex::new(None));
         let sink = stray.clone();
         device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
@@ -293,7 +321,13 @@ impl Context {
             pollster::block_on(oom.pop()),
         ];
         if let Some(e) = errors.into_iter().flatten().next() {
-            return Err(EngineError::Gpu(format!("{what}: {e}")));
+            return Err(match e {
+                wgpu::Error::OutOfMemory { .. } => EngineError::OutOfMemory {
+                    phase: what.to_string(),
+                    why: format!("the GPU device's memory is full ({e})"),
+                },
+                _ => EngineError::Gpu(format!("{what}: {e}")),
+            });
         }
         self.check_stray(what)?;
         Ok(out)

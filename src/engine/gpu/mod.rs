@@ -57,12 +57,13 @@ mod stages;
 
 pub use device::{
     describe as describe_adapter, enumerate_adapters, find_pci_bus_id, parse_pci_bus_id,
+    PciBusError,
 };
 pub use kernels::{
     common_wgsl, eval_source, f64_kernel_source, fit_source, kernel_source, walk_source,
 };
 pub use layout::CHUNK;
-pub use options::{FitOn, GpuOptions, GpuSetup, MembersOn, SMALL_BATCH};
+pub use options::{FitOn, GpuOptions, GpuSetup, GpuSetupError, MembersOn, SMALL_BATCH};
 pub use resources::PointStore;
 
 use super::{

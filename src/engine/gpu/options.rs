@@ -147,10 +147,12 @@ impl GpuSetup {
     ///
     /// An empty value is the same as an unset one; any other value that is not one of
     /// those accepted is an error naming the variable, its value and the accepted ones.
-    pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<GpuSetup, String> {
+    pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<GpuSetup, GpuSetupError> {
         let set = |k: &str| var(k).filter(|v| !v.trim().is_empty());
-        let bad = |k: &str, v: &str, accepted: &str| {
-            format!("{k}={v:?}: expected {accepted} (or unset for the default)")
+        let bad = |var: &'static str, v: &str, accepted: &'static str| GpuSetupError::BadValue {
+            var,
+            value: v.to_string(),
+            accepted,
         };
         let mut options = GpuOptions::for_commands();
         if let Some(v) = set("LINEGS_GPU_SMALL_BATCH") {
@@ -181,6 +183,18 @@ impl GpuSetup {
             options,
         })
     }
+}
+
+/// A `LINEGS_GPU_*` variable with a value that is not one of those accepted
+/// ([`GpuSetup::from_vars`]).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum GpuSetupError {
+    #[error("{var}={value:?}: expected {accepted} (or unset for the default)")]
+    BadValue {
+        var: &'static str,
+        value: String,
+        accepted: &'static str,
+    },
 }
 
 impl Default for GpuOptions {
@@ -239,7 +253,9 @@ mod tests {
             ("LINEGS_GPU_FIT", "gpu", "`device` or `host`"),
             ("LINEGS_GPU_MEMBERS", "Device", "`device` or `host`"),
         ] {
-            let e = GpuSetup::from_vars(|q| (q == k).then(|| v.into())).unwrap_err();
+            let e = GpuSetup::from_vars(|q| (q == k).then(|| v.into()))
+                .unwrap_err()
+                .to_string();
             assert!(
                 e.starts_with(&format!("{k}=\"{v}\": expected {accepted}")),
                 "{e}"
