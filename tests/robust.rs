@@ -983,6 +983,33 @@ fn a_gpu_driver_that_does_not_fit_under_a_memory_limit_says_out_of_memory() {
     }
 }
 
+/// A radius near f64's range (`--radius 1e308`): the clustering's cell grid cannot span
+/// it (its margin overflows to infinity); the run ends normally, not in an index out of
+/// bounds (exit 101).
+#[test]
+fn a_radius_near_the_f64_range_is_no_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, l) = scene(dir.path());
+    let out = dir.path().join("p.obj");
+    let o = run(&[
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        g.to_str().unwrap(),
+        "-l",
+        l.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--radius",
+        "1e308",
+    ]);
+    let e = stderr(&o);
+    assert!(!e.contains("panicked"), "{e}");
+    assert_eq!(o.status.code(), Some(0), "{e}");
+    assert!(out.exists());
+}
+
 // ----------------------------------------------------------------------------- results
 
 /// A scene 1e7 from the origin, where the f32 centers collapse the refined segments to

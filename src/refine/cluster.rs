@@ -362,6 +362,11 @@ fn edges_hashed(
     let h = bound.max(total_len / n as f64 / 4.0);
     let margin = DVec3::splat(bound + 2.0 * h);
     let (lo, hi) = (lo - margin, hi + margin);
+    if !(lo.is_finite() && hi.is_finite()) {
+        // A radius near f64's range (`--radius 1e308`): no grid spans it, and every pair
+        // is a candidate anyway.
+        return edges_all_pairs(lines, r_c, true, min_w, min_cos);
+    }
     // At most CELLS_PER_SEGMENT cells a segment (and MAX_CELLS): the cell table is
     // allocated and scanned whole, and a few hundred segments in a wide scene would
     // otherwise pay for millions of empty cells (12 ms of a 0.13 s run at 318 segments).
