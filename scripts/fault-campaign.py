@@ -71,11 +71,18 @@ class Campaign:
             "temp names shown": 0,
         }
         self.findings = []
+        # What each kind of trial ended in: exit codes and the set found, to show that the
+        # faults hit (a kill that never lands, a disk never full, prove nothing).
+        self.outcomes = {}
         self.env = dict(os.environ)
         self.env.setdefault("XDG_RUNTIME_DIR", tempfile.mkdtemp(prefix="fc-rt-"))
         self.env["RAYON_NUM_THREADS"] = "2"
 
     # ------------------------------------------------------------------ bookkeeping
+    def outcome(self, trial, what):
+        t = self.outcomes.setdefault(trial, {})
+        t[what] = t.get(what, 0) + 1
+
     def finding(self, kind, what):
         self.counts[kind] += 1
         self.findings.append(f"{kind}: {what}")
@@ -123,7 +130,7 @@ class Campaign:
 
     # ------------------------------------------------------------------ the scene
     def setup(self):
-        n = 30000 if self.size == "small" else 300000
+        n = 100000 if self.size == "small" else 1000000
         self.scene = os.path.join(self.work, "scene")
         os.makedirs(self.scene, exist_ok=True)
         self.g = os.path.join(self.scene, "g.ply")
@@ -220,7 +227,8 @@ class Campaign:
                                    + self.refine_args(d, "0.05"),
                                    env=self.env, capture_output=True, text=True, errors="replace")
                 self.check_run(f"kill at {c} #{k}", p.returncode, p.stderr)
-                self.settle(d, f"kill at {c} #{k}")
+                s = self.settle(d, f"kill at {c} #{k}")
+                self.outcome("kills at syscalls", f"rc {p.returncode}, set {s}")
                 n += 1
         print(f"  {n} kills at {counts}", flush=True)
         self.counts["kills at syscalls"] = n
@@ -237,7 +245,8 @@ class Campaign:
             p.send_signal(signal.SIGKILL)
             err = p.communicate()[1].decode(errors="replace")
             self.check_run(f"random kill {i}", p.returncode, err)
-            self.settle(d, f"random kill {i}")
+            s = self.settle(d, f"random kill {i}")
+            self.outcome("random kills", f"rc {p.returncode}, set {s}")
         self.counts["random kills"] = trials
 
     # ------------------------------------------------------------------ concurrency
@@ -266,6 +275,7 @@ class Campaign:
             err_r = p.communicate()[1].decode(errors="replace")
             self.check_run(f"concurrent refine {i}", p.returncode, err_r, expect=[0, 1])
             s = self.which_set(d)
+            self.outcome("refine + batch", f"refine rc {p.returncode}, batch rc {rc}, set {s}")
             if s not in ("A", "B"):
                 self.finding("mixed sets", f"concurrent {i}: {s} (refine rc {p.returncode}: {err_r.strip()[:200]})")
             self.inputs_intact(f"concurrent {i}")
@@ -299,6 +309,7 @@ class Campaign:
                 rc, err = self.run(self.refine_args(mnt, "0.05"), expect=[0, 1],
                                    what=f"full disk, {kb} KiB free")
                 s = self.which_set(mnt)
+                self.outcome("full disk", f"{kb} KiB free: rc {rc}, set {s}")
                 if s not in ("A", "B"):
                     self.finding("mixed sets", f"full disk {kb} KiB: {s}")
                 self.inputs_intact(f"full disk {kb} KiB")
@@ -430,16 +441,18 @@ class Campaign:
         for backend in backends:
             for kb in [60000, 100000, 150000, 200000, 300000, 500000, 1000000]:
                 d = self.fresh_folder("mem")
-                self.run(self.refine_args(d, "0.05", backend), limit=f"ulimit -v {kb}",
-                         expect=[0, 1], what=f"refine --backend {backend} under ulimit -v {kb}")
+                rc, _ = self.run(self.refine_args(d, "0.05", backend), limit=f"ulimit -v {kb}",
+                                 expect=[0, 1], what=f"refine --backend {backend} under ulimit -v {kb}")
+                self.outcome("ulimit -v", f"{backend} rc {rc}")
                 s = self.which_set(d)
                 if s not in ("A", "B"):
                     self.finding("mixed sets", f"ulimit -v {kb}: {s}")
                 n += 1
         for files in [4, 6, 8, 10, 12, 16, 20, 32]:
             d = self.fresh_folder("files")
-            self.run(self.refine_args(d, "0.05"), limit=f"ulimit -n {files}", expect=[0, 1],
-                     what=f"refine under ulimit -n {files}")
+            rc, _ = self.run(self.refine_args(d, "0.05"), limit=f"ulimit -n {files}",
+                             expect=[0, 1], what=f"refine under ulimit -n {files}")
+            self.outcome("ulimit -n", f"rc {rc}")
             s = self.which_set(d)
             if s not in ("A", "B"):
                 self.finding("mixed sets", f"ulimit -n {files}: {s}")
@@ -471,10 +484,9 @@ def main():
     t = time.time()
     try:
         c.setup()
-        trials = 12 if a.size == "small" else 40
         c.kills_at_syscalls()
-        c.kills_at_random(trials)
-        c.batch_and_refine(8 if a.size == "small" else 30)
+        c.kills_at_random(40 if a.size == "small" else 200)
+        c.batch_and_refine(16 if a.size == "small" else 60)
         c.full_disk()
         c.hostile_paths()
         c.hostile_numbers()
@@ -485,6 +497,9 @@ def main():
     print(f"\nfault campaign ({a.size}, {time.time() - t:.0f} s):")
     for k, v in c.counts.items():
         print(f"  {k:20} {v}")
+    print("outcomes:")
+    for trial, t in c.outcomes.items():
+        print(f"  {trial}: " + "; ".join(f"{w} x{n}" for w, n in sorted(t.items())))
     harm = c.counts["mixed sets"] + c.counts["overwritten inputs"] + c.counts["panics"]
     others = c.counts["wrong exit codes"] + c.counts["multi-line errors"] + c.counts["temp names shown"]
     sys.exit(1 if harm or others else 0)

@@ -198,3 +198,44 @@ fn the_readme_is_short_and_nothing_tells_history() {
     }
     assert!(bad.is_empty(), "{bad:#?}");
 }
+
+/// The docs are reference, not a log: each page holds at most one date (when its numbers
+/// were measured). docs/benchmarks.md is left out of this check while its per-section
+/// tables are being consolidated by their own change.
+#[test]
+fn each_page_holds_at_most_one_date() {
+    let mut bad = Vec::new();
+    for e in std::fs::read_dir(root().join("docs")).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_none_or(|x| x != "md") || p.ends_with("benchmarks.md") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&p).unwrap();
+        let b = text.as_bytes();
+        // YYYY-MM-DD
+        let dates: BTreeSet<&str> = (0..b.len().saturating_sub(9))
+            .filter(|&i| {
+                let d = |k: usize| b[i + k].is_ascii_digit();
+                (i == 0 || !b[i - 1].is_ascii_alphanumeric())
+                    && d(0)
+                    && d(1)
+                    && d(2)
+                    && d(3)
+                    && b[i + 4] == b'-'
+                    && d(5)
+                    && d(6)
+                    && b[i + 7] == b'-'
+                    && d(8)
+                    && d(9)
+            })
+            .map(|i| &text[i..i + 10])
+            .collect();
+        let count = (0..b.len().saturating_sub(9))
+            .filter(|&i| dates.contains(&text.get(i..i + 10).unwrap_or("")))
+            .count();
+        if count > 1 {
+            bad.push(format!("{}: {count} dates {dates:?}", p.display()));
+        }
+    }
+    assert!(bad.is_empty(), "{bad:#?}");
+}
