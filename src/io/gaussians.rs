@@ -55,7 +55,8 @@ pub fn detect_gaussians(
 }
 
 /// True when `path` holds Gaussians (any readable model format) rather than lines: a PLY
-/// without an `edge` element, an SPZ or a `.splat`. Folders and unreadable files are not.
+/// without an `edge` element, or any other Gaussian format. Folders and unreadable files
+/// are not.
 pub fn is_gaussian_model(path: &Path) -> Result<bool, Error> {
     if path.is_dir() {
         return Ok(false);
@@ -161,7 +162,7 @@ pub fn parse_gaussians_and_attributes(
 }
 
 /// [`read_gaussians`] on bytes already in memory (any model format); `path` names them
-/// in messages, and its extension tells a `.splat` (which has no magic).
+/// in messages, and its extension tells a format that has no signature.
 pub fn parse_gaussian_model(
     path: &Path,
     bytes: &[u8],
