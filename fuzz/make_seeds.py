@@ -7,15 +7,18 @@ ZSTD streams are single raw blocks (a valid frame that needs no compressor).
 
     python3 fuzz/make_seeds.py    # from the repository root; rewrites fuzz/seeds/*/gen_*
 
-A seed of the `models` and `lines` targets starts with one byte that picks the file name
-(see fuzz/src/lib.rs and fuzz/fuzz_targets/lines.rs)."""
+A seed of the `models` and `lines` targets starts with one byte that picks the file name:
+the names are `linegs_gpu::io::file_names` (one per extension of the format registry, in its
+order; fuzz/src/lib.rs), and tests/robust.rs checks that every seed picks the name with its
+own extension."""
 import gzip
 import os
 import struct
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "seeds")
+# The index of each name in io::file_names("m", true) and io::file_names("l", false).
 MODEL_PLY, MODEL_SPZ, MODEL_SPLAT = 0, 1, 2
-LINES_TXT, LINES_OBJ, LINES_STL, LINES_PLY, LINES_NPY, LINES_BARE = range(6)
+LINES_TXT, LINES_STL, LINES_NPY, LINES_OBJ, LINES_JSON, LINES_PLY, LINES_BARE = range(7)
 
 CENTERS = [(0.0, 0.0, 0.0), (1.0, 0.5, -0.25), (-2.0, 3.0, 1.5), (0.125, -0.75, 4.0)]
 
@@ -159,7 +162,7 @@ def main():
         '{"lines_end_pts": [[0, 0, 0, 1, 0, 0], [[0, 1, 0], [0, 1, 1]]],\n'
         ' "curves_ctl_pts": [[[0, 0, 2], [1, 0, 2], [1, 1, 2], [2, 1, 2]]]}\n'
     )
-    put("lines", "edges.json", edges.encode(), LINES_BARE)
+    put("lines", "edges.json", edges.encode(), LINES_JSON)
     groups = "2 0 0 0 1 0 0 1 0 0 2 0 0 0\n1 0 1 0 0 1 1 0\n"
     put("lines", "line3dpp_groups.txt", groups.encode(), LINES_TXT)
 

@@ -6,8 +6,8 @@
 use std::path::{Path, PathBuf};
 
 use linegs_gpu::io::{
-    encode_spz, info, read_gaussians, read_gaussians_with_opacity, read_lines, read_lines_with,
-    write_gaussians_ply, Curves, Error, LineFormat, LineOptions, PlyOptions, Position,
+    self, encode_spz, info, read_gaussians, read_gaussians_with_opacity, read_lines,
+    read_lines_with, write_gaussians_ply, Curves, Error, LineOptions, PlyOptions, Position,
     POLYLINE_PIECES,
 };
 
@@ -407,13 +407,13 @@ fn limap_finaltracks_folders_and_alltracks_keep_track_ids() {
     // LIMAP's side files in the folder are not tracks.
     write(&tracks, "config.npy", b"\x93NUMPY");
     let f = read_lines(&tracks).unwrap();
-    assert_eq!(f.format, LineFormat::LimapTracks);
+    assert_eq!(f.format.id, "limap-tracks");
     assert_eq!(f.lines.len(), 3);
     assert_eq!(f.lines.groups, Some(vec![0, 1, 2]));
     assert_eq!(f.lines.segments[1].p2.to_array(), [1.0, 1.0, 0.5]);
     // One track file alone.
     let one = read_lines(&tracks.join("track_2.txt")).unwrap();
-    assert_eq!(one.format, LineFormat::LimapTracks);
+    assert_eq!(one.format.id, "limap-tracks");
     assert_eq!(one.lines.segments[0].p2.to_array(), [2.0, 3.0, 0.0]);
 
     // alltracks.txt, as save_txt_linetracks writes it (with its odd spacing).
@@ -429,7 +429,7 @@ fn limap_finaltracks_folders_and_alltracks_keep_track_ids() {
     }
     let p = write(dir.path(), "alltracks.txt", &all);
     let f = read_lines(&p).unwrap();
-    assert_eq!(f.format, LineFormat::LimapAllTracks);
+    assert_eq!(f.format.id, "limap-alltracks");
     assert_eq!(f.lines.groups, Some(vec![10, 11, 12]));
     assert_eq!(f.lines.segments[2].p1.to_array(), [2.0, 0.0, 0.0]);
 
@@ -488,7 +488,7 @@ fn edge_json_lines_are_read_and_curves_skipped_or_sampled() {
         "raw_points_on_lines": []}"#;
     let p = write(dir.path(), "parametric_edges.json", json);
     let f = read_lines(&p).unwrap();
-    assert_eq!(f.format, LineFormat::EdgesJson);
+    assert_eq!(f.format.id, "emap");
     assert_eq!(f.lines.len(), 2);
     assert_eq!(f.lines.segments[1].p2.to_array(), [0.0, 1.0, 1.0]);
     assert!(
@@ -692,4 +692,122 @@ fn refine_stops_on_a_frame_mismatch_and_the_transform_fixes_it() {
     }
     assert!(!results[0].is_empty());
     assert_eq!(results[0].len(), results[1].len());
+}
+
+// --------------------------------------------------------------------------- the registry
+
+/// docs/formats.md's table of formats is the registry's (`io::format_table`), between its
+/// two marker comments; a format added to the registry fails here until the page has it.
+#[test]
+fn the_format_table_of_the_docs_is_the_registry() {
+    let page =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/formats.md"))
+            .unwrap();
+    let begin = "<!-- The table is io::format_table(); tests/formats.rs checks it. -->\n";
+    let end = "<!-- end of the table -->";
+    let (Some(a), Some(b)) = (page.find(begin), page.find(end)) else {
+        panic!("docs/formats.md has no table markers");
+    };
+    let table = &page[a + begin.len()..b];
+    let want = io::format_table();
+    assert_eq!(
+        table.trim(),
+        want.trim(),
+        "docs/formats.md's table differs from the registry; it should read:\n{want}"
+    );
+    let html = |s: &str| s.replace('<', "&lt;").replace('>', "&gt;");
+    for f in io::GAUSSIAN_FORMATS {
+        assert!(table.contains(&html(f.name)), "{}", f.id);
+    }
+    for f in io::LINE_FORMATS {
+        assert!(table.contains(&html(f.name)), "{}", f.id);
+    }
+}
+
+/// A sample of every format of the registry, named by the format's first extension, is
+/// detected as that format; a format added without a sample here fails.
+#[test]
+fn every_registered_format_reads_its_sample() {
+    let seeds = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds");
+    // The `models` and `lines` seeds start with the byte that picks the fuzz file name.
+    let gaussians = [
+        ("ply", "gaussians/gen_3dgs.ply", false),
+        ("ply-compressed", "models/gen_compressed.ply", true),
+        ("spz", "models/gen_spz_v4.spz", true),
+        ("splat", "models/gen_opacities.splat", true),
+    ];
+    let lines = [
+        ("line3dpp", "lines/line3dpp.txt"),
+        ("stl", "lines/binary.stl"),
+        ("npy", "lines/c_f8.npy"),
+        ("limap-tracks", "lines/gen_limap_track.txt"),
+        ("limap-alltracks", "lines/gen_limap_alltracks.txt"),
+        ("obj", "lines/polyline.obj"),
+        ("emap", "lines/gen_edges.json"),
+        ("plain", "lines/plain.txt"),
+        ("ply", "lines/edges_binary.ply"),
+    ];
+    fn ids(mut v: Vec<&str>) -> Vec<&str> {
+        v.sort();
+        v
+    }
+    assert_eq!(
+        ids(gaussians.iter().map(|g| g.0).collect()),
+        ids(io::GAUSSIAN_FORMATS.iter().map(|f| f.id).collect()),
+        "a Gaussian format without a sample, or a sample of no format"
+    );
+    assert_eq!(
+        ids(lines.iter().map(|l| l.0).collect()),
+        ids(io::LINE_FORMATS.iter().map(|f| f.id).collect()),
+        "a line format without a sample, or a sample of no format"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    for (id, file, picked) in gaussians {
+        let f = io::gaussian_format(id).unwrap();
+        let bytes = std::fs::read(seeds.join(file)).unwrap();
+        let bytes = if picked { &bytes[1..] } else { &bytes[..] };
+        let p = write(dir.path(), &format!("sample.{}", f.extensions[0]), bytes);
+        let found = io::detect_gaussians(&p, bytes, bytes.len() as u64).unwrap();
+        assert_eq!(found, f, "{file}");
+        let cloud = read_gaussians(&p, &opts(None)).unwrap_or_else(|e| panic!("{e}"));
+        assert!(!cloud.centers.is_empty(), "{file}");
+    }
+    for (id, file) in lines {
+        let f = io::line_format(id).unwrap();
+        let bytes = std::fs::read(seeds.join(file)).unwrap();
+        let p = write(
+            dir.path(),
+            &format!("sample.{}", f.extensions[0]),
+            &bytes[1..],
+        );
+        let read = read_lines(&p).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(read.format, f, "{file}");
+        assert_eq!(read.format.id, id);
+    }
+}
+
+/// The format lists of the `--help` texts are the registry's words.
+#[test]
+fn the_help_lists_the_registry() {
+    let o = run(&["refine", "--help"]);
+    let help = stdout(&o);
+    for f in io::GAUSSIAN_FORMATS {
+        assert!(help.contains(f.help), "{}: {help}", f.id);
+    }
+    for f in io::LINE_FORMATS {
+        if let Some(words) = f.help {
+            assert!(help.contains(words), "{}: {help}", f.id);
+        }
+    }
+    for w in io::LINE_WRITERS {
+        assert!(help.contains(w.help), ".{}: {help}", w.ext);
+    }
+    let convert = stdout(&run(&["convert", "--help"]));
+    assert!(convert.contains(&io::line_output_words(false)), "{convert}");
+    assert!(
+        convert.contains(&io::gaussian_family_words(true)),
+        "{convert}"
+    );
+    let info = stdout(&run(&["info", "--help"]));
+    assert!(info.contains(&io::gaussian_family_words(false)), "{info}");
 }

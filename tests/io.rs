@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use linegs_gpu::geom::Segment;
 use linegs_gpu::io::{
     gaussian_3dgs_properties, info, read_gaussians, read_lines, write_gaussians_3dgs, write_lines,
-    write_lines_ply_layers, Error, FileKind, LineFormat, PlyOptions, Position,
+    write_lines_ply_layers, Error, FileKind, PlyOptions, Position, LINE_WRITERS,
 };
 
 mod common;
@@ -81,9 +81,9 @@ fn line3dpp_txt_obj_and_stl_hold_the_same_2503_segments() {
     let txt = read_lines(&data("line3dpp/line3dpp_optimized.txt")).unwrap();
     let obj = read_lines(&data("line3dpp/line3dpp_optimized.obj")).unwrap();
     let stl = read_lines(&data("line3dpp/line3dpp_optimized.stl")).unwrap();
-    assert_eq!(txt.format, LineFormat::Line3dppTxt);
-    assert_eq!(obj.format, LineFormat::Obj);
-    assert_eq!(stl.format, LineFormat::Stl);
+    assert_eq!(txt.format.id, "line3dpp");
+    assert_eq!(obj.format.id, "obj");
+    assert_eq!(stl.format.id, "stl");
     for f in [&txt, &obj, &stl] {
         assert_eq!(f.lines.len(), 2503);
         assert_eq!(f.dropped_invalid, 0);
@@ -146,7 +146,7 @@ fn min_opacity_compares_the_sigmoid_of_the_stored_logit() {
 #[test]
 fn abc_ground_truth_and_nef_predictions_are_plain_text() {
     let gt = read_lines(&data("abc_00000006/gt_sharp_lines.txt")).unwrap();
-    assert_eq!(gt.format, LineFormat::PlainText);
+    assert_eq!(gt.format.id, "plain");
     assert_eq!(gt.lines.len(), 12);
     assert_eq!(
         gt.lines.segments[1],
@@ -844,7 +844,7 @@ fn f32_npy_from_limap_is_read() {
     );
     let (_d, p) = file("limap.npy", &bytes);
     let f = read_lines(&p).unwrap();
-    assert_eq!(f.format, LineFormat::Npy);
+    assert_eq!(f.format.id, "npy");
     assert_eq!(
         f.lines.segments,
         vec![
@@ -980,7 +980,7 @@ fn truncated_stl_files() {
     }
     std::fs::write(&p, &bytes).unwrap();
     let f = read_lines(&p).unwrap();
-    assert_eq!(f.format, LineFormat::Stl);
+    assert_eq!(f.format.id, "stl");
     assert_eq!(f.lines.segments[2], seg([2.0, 0.0, 0.0], [2.0, 1.0, 0.0]));
     std::fs::write(&p, &bytes[..84 + 50 + 30]).unwrap();
     let e = read_lines(&p).unwrap_err();
@@ -1023,17 +1023,14 @@ fn awkward_segments() -> Vec<Segment> {
 fn every_line_writer_round_trips_through_the_reader() {
     let dir = tempfile::tempdir().unwrap();
     let segs = awkward_segments();
-    for (ext, format) in [
-        ("obj", LineFormat::Obj),
-        ("stl", LineFormat::Stl),
-        ("ply", LineFormat::Ply),
-        ("txt", LineFormat::PlainText),
-        ("npy", LineFormat::Npy),
-    ] {
+    // Every writer of the registry, by its extension, and the format it says it writes.
+    assert_eq!(LINE_WRITERS.len(), 5);
+    for w in LINE_WRITERS {
+        let ext = w.ext;
         let p = dir.path().join(format!("out.{ext}"));
         write_lines(&p, &segs).unwrap();
         let f = read_lines(&p).unwrap_or_else(|e| panic!("{ext}: {e}"));
-        assert_eq!(f.format, format, "{ext}");
+        assert_eq!(f.format, w.format, "{ext}");
         assert_eq!(f.lines.segments, segs, "{ext}: not bit-exact");
         assert!(f.warnings.is_empty(), "{ext}: {:?}", f.warnings);
     }

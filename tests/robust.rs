@@ -688,14 +688,43 @@ fn the_fuzz_regression_corpus_is_read_or_refused() {
     assert!(n > 0, "the corpus is empty");
 }
 
-const NAMES: [&str; 6] = ["l.txt", "l.obj", "l.stl", "l.ply", "l.npy", "l"];
+/// The file names the first byte of a `models` (`gaussians`) or `lines` input picks, as
+/// the fuzz targets pick them (fuzz/src/lib.rs).
+fn fuzz_names(gaussians: bool) -> Vec<String> {
+    linegs_gpu::io::file_names(if gaussians { "m" } else { "l" }, gaussians)
+}
+
+/// Every seed of the `models` and `lines` targets picks the file name with its own
+/// extension (fuzz/make_seeds.py writes the picks by index).
+#[test]
+fn every_fuzz_seed_picks_the_name_of_its_extension() {
+    let seeds = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds");
+    let mut n = 0;
+    for (target, gaussians) in [("models", true), ("lines", false)] {
+        let names = fuzz_names(gaussians);
+        for e in std::fs::read_dir(seeds.join(target)).unwrap() {
+            let p = e.unwrap().path();
+            let bytes = std::fs::read(&p).unwrap();
+            let name = &names[bytes[0] as usize % names.len()];
+            let ext = p.extension().unwrap().to_string_lossy();
+            assert!(
+                name.ends_with(&format!(".{ext}")),
+                "{}: picks {name}",
+                p.display()
+            );
+            n += 1;
+        }
+    }
+    assert!(n > 20, "{n} seeds");
+}
 
 /// What the fuzz targets do with one input (fuzz/src/lib.rs), as a plain function.
 fn read_any(target: &str, data: &[u8]) {
     match target {
         "models" => {
             if let Some((&k, rest)) = data.split_first() {
-                let name = ["m.ply", "m.spz", "m.splat"][k as usize % 3];
+                let names = fuzz_names(true);
+                let name = names[k as usize % names.len()].as_str();
                 let opts = PlyOptions::default();
                 if let Ok(c) = parse_gaussian_model(Path::new(name), rest, &opts) {
                     assert!(!c.centers.is_empty());
@@ -717,11 +746,14 @@ fn read_any(target: &str, data: &[u8]) {
         }
         _ => {
             let (name, rest) = match (target, data.split_first()) {
-                ("npy", _) => ("l.npy", data),
-                (_, Some((&k, rest))) => (NAMES[k as usize % NAMES.len()], rest),
+                ("npy", _) => ("l.npy".to_string(), data),
+                (_, Some((&k, rest))) => {
+                    let names = fuzz_names(false);
+                    (names[k as usize % names.len()].clone(), rest)
+                }
                 _ => return,
             };
-            if let Ok(f) = parse_lines(Path::new(name), rest.to_vec()) {
+            if let Ok(f) = parse_lines(Path::new(&name), rest.to_vec()) {
                 assert!(!f.lines.segments.is_empty());
                 assert!(f
                     .lines

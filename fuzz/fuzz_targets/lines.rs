@@ -1,9 +1,4 @@
 #![no_main]
-//! Every line reader, picked by content; the first byte picks the file name, whose
-//! extension decides what content alone cannot (a broken binary STL, an OBJ).
-const NAMES: [&str; 6] = ["l.txt", "l.obj", "l.stl", "l.ply", "l.npy", "l"];
-libfuzzer_sys::fuzz_target!(|data: &[u8]| {
-    if let Some((&k, rest)) = data.split_first() {
-        linegs_gpu_fuzz::check_lines(NAMES[k as usize % NAMES.len()], rest);
-    }
-});
+//! Every line reader of the format registry, picked by content; the first byte picks the
+//! file name (`io::file_names`), whose extension decides what content alone cannot.
+libfuzzer_sys::fuzz_target!(|data: &[u8]| linegs_gpu_fuzz::check_picked_lines(data));

@@ -12,6 +12,7 @@ pub mod geom;
 pub mod io;
 
 use std::path::Path;
+use std::sync::OnceLock;
 
 /// What every accepted line file must hold: finite, non-degenerate segments.
 pub fn check_lines(name: &str, data: &[u8]) {
@@ -60,16 +61,37 @@ pub fn check_gaussians(data: &[u8]) {
     }
 }
 
-/// Every Gaussian model format (SuperSplat compressed PLY, SPZ, `.splat`, 3DGS PLY); the
-/// first byte picks the file name, whose extension tells a `.splat`.
+/// The file names the first byte of a `models` or `lines` input picks from: one per
+/// extension of the format registry (`io::file_names`), so a new format is fuzzed under
+/// its own name.
+fn names(gaussians: bool) -> &'static [String] {
+    static MODELS: OnceLock<Vec<String>> = OnceLock::new();
+    static LINES: OnceLock<Vec<String>> = OnceLock::new();
+    match gaussians {
+        true => MODELS.get_or_init(|| io::file_names("m", true)),
+        false => LINES.get_or_init(|| io::file_names("l", false)),
+    }
+}
+
+/// Every Gaussian model format of the registry; the first byte picks the file name, whose
+/// extension tells a format without a signature (`.splat`).
 pub fn check_models(data: &[u8]) {
-    const NAMES: [&str; 3] = ["m.ply", "m.spz", "m.splat"];
     let Some((&k, rest)) = data.split_first() else {
         return;
     };
-    let path = Path::new(NAMES[k as usize % NAMES.len()]);
+    let names = names(true);
+    let path = Path::new(&names[k as usize % names.len()]);
     if let Ok(c) = io::parse_gaussian_model(path, rest, &io::PlyOptions::default()) {
         assert!(!c.centers.is_empty());
         assert!(c.centers.iter().all(|p| p.iter().all(|v| v.is_finite())));
+    }
+}
+
+/// Every line format of the registry, picked by content; the first byte picks the file
+/// name, whose extension decides what content alone cannot (a broken binary STL, an OBJ).
+pub fn check_picked_lines(data: &[u8]) {
+    if let Some((&k, rest)) = data.split_first() {
+        let names = names(false);
+        check_lines(&names[k as usize % names.len()], rest);
     }
 }

@@ -34,6 +34,7 @@ from . import _linegs
 from ._linegs import InputError, LinegsError
 
 __all__ = [
+    "FORMATS",
     "Gaussians",
     "InputError",
     "LinegsError",
@@ -51,6 +52,14 @@ PathLike = Union[str, "os.PathLike[str]"]
 #: Every refinement parameter ``refine`` accepts as a keyword (the command line's
 #: ``--kebab-case`` options with underscores), e.g. ``translate_keep``, ``fix_join_gap``.
 PARAMS: Tuple[str, ...] = tuple(_linegs.param_names())
+
+#: Every file format, from the library's one list of formats: ``(kind, id, name,
+#: extensions)``, kind ``"gaussians"`` (what :func:`read_gaussians` reads), ``"lines"``
+#: (what :func:`read_lines` reads) or ``"output"`` (what :func:`write_lines` writes, chosen
+#: by the extension), e.g. ``("gaussians", "splat", "antimatter15 .splat", ("splat",))``.
+FORMATS: Tuple[Tuple[str, str, str, Tuple[str, ...]], ...] = tuple(
+    (kind, id_, name, tuple(exts)) for kind, id_, name, exts in _linegs.formats()
+)
 
 
 def _warn(warnings: Sequence[str]) -> None:
@@ -134,9 +143,9 @@ class Gaussians:
 
 
 def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, strict: bool = False) -> Gaussians:
-    """A 3DGS model (PLY, SuperSplat, SPZ, .splat) as :class:`Gaussians`: its centers and
-    the attributes the file has, exactly as ``linegs-gpu refine`` reads them (the arrays
-    are the reader's own memory, not a copy).
+    """A 3DGS model in any ``"gaussians"`` format of :data:`FORMATS` as :class:`Gaussians`:
+    its centers and the attributes the file has, exactly as ``linegs-gpu refine`` reads
+    them (the arrays are the reader's own memory, not a copy).
 
     ``min_opacity`` keeps only Gaussians with ``sigmoid(opacity) >= min_opacity``. Centers
     that are NaN or infinite are skipped with a warning (an error with ``strict=True``).
@@ -148,9 +157,8 @@ def read_gaussians(path: PathLike, min_opacity: Optional[float] = None, *, stric
 
 
 def read_lines(path: PathLike, *, groups: bool = False) -> Any:
-    """Line segments of any supported format (Line3D++ ``.txt``/``.obj``/``.stl``, LIMAP
-    ``.npy``, plain text, edge PLY): ``(M, 2, 3)`` float64, endpoints ``[:, 0]`` and
-    ``[:, 1]``. Degenerate segments are dropped with a warning.
+    """Line segments of any ``"lines"`` format of :data:`FORMATS`: ``(M, 2, 3)`` float64,
+    endpoints ``[:, 0]`` and ``[:, 1]``. Degenerate segments are dropped with a warning.
 
     With ``groups=True`` returns ``(segments, groups)``, where ``groups`` is the input
     line of each segment (``(M,)`` uint32; Line3D++ ``.txt``) or ``None``; pass it on to
@@ -164,8 +172,8 @@ def read_lines(path: PathLike, *, groups: bool = False) -> Any:
 
 
 def write_lines(path: PathLike, segments: Any) -> None:
-    """Writes ``(K, 2, 3)`` segments; the format follows the extension (``.obj``, ``.stl``,
-    ``.ply``, ``.txt``, ``.npy``), atomically."""
+    """Writes ``(K, 2, 3)`` segments, atomically; the format follows the extension (the
+    ``"output"`` formats of :data:`FORMATS`)."""
     _linegs.write_lines(os.fspath(path), _segments(segments, "segments"))
 
 

@@ -8,6 +8,7 @@ from ._linegs import InputError as InputError, LinegsError as LinegsError
 
 __version__: str
 PARAMS: Tuple[str, ...]
+FORMATS: Tuple[Tuple[str, str, str, Tuple[str, ...]], ...]
 PathLike = Union[str, os.PathLike[str]]
 
 class Gaussians:

@@ -531,6 +531,24 @@ fn evaluate<'py>(
         .map_err(to_py)
 }
 
+/// Every format of the library's one list of formats (`linegs_gpu::io::GAUSSIAN_FORMATS`,
+/// `LINE_FORMATS`, `LINE_WRITERS`) as `(kind, id, name, extensions)`: kind `gaussians`
+/// (read by `read_gaussians`), `lines` (read by `read_lines`) or `output` (written by
+/// `write_lines`, by extension).
+#[pyfunction]
+fn formats() -> Vec<(&'static str, &'static str, &'static str, Vec<&'static str>)> {
+    let gaussians = io::GAUSSIAN_FORMATS
+        .iter()
+        .map(|f| ("gaussians", f.id, f.name, f.extensions.to_vec()));
+    let lines = io::LINE_FORMATS
+        .iter()
+        .map(|f| ("lines", f.id, f.name, f.extensions.to_vec()));
+    let outputs = io::LINE_WRITERS
+        .iter()
+        .map(|w| ("output", w.format.id, w.format.name, vec![w.ext]));
+    gaussians.chain(lines).chain(outputs).collect()
+}
+
 #[pymodule]
 fn _linegs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("InputError", m.py().get_type::<InputError>())?;
@@ -540,6 +558,7 @@ fn _linegs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     #[cfg(feature = "cli")]
     m.add_function(wrap_pyfunction!(main, m)?)?;
     m.add_function(wrap_pyfunction!(param_names, m)?)?;
+    m.add_function(wrap_pyfunction!(formats, m)?)?;
     m.add_function(wrap_pyfunction!(read_gaussians, m)?)?;
     m.add_function(wrap_pyfunction!(read_lines, m)?)?;
     m.add_function(wrap_pyfunction!(write_lines, m)?)?;

@@ -70,6 +70,22 @@ def test_readers_return_arrays_and_write_lines_round_trips(toy, tmp_path):
     assert np.array_equal(np.load(out), segs)
 
 
+def test_formats_list_every_format_and_each_output_round_trips(toy, tmp_path):
+    kinds = {}
+    for kind, id_, name, exts in linegs.FORMATS:
+        kinds.setdefault(kind, []).append(id_)
+        assert name and all(e == e.lower() and not e.startswith(".") for e in exts)
+    assert {"ply", "ply-compressed", "spz", "splat"} <= set(kinds["gaussians"])
+    assert {"line3dpp", "obj", "stl", "npy", "emap", "plain", "ply"} <= set(kinds["lines"])
+    segs = linegs.read_lines(toy[2])
+    outputs = [(id_, exts[0]) for kind, id_, _, exts in linegs.FORMATS if kind == "output"]
+    assert [ext for _, ext in outputs] == ["obj", "stl", "ply", "txt", "npy"]
+    for id_, ext in outputs:
+        out = tmp_path / f"out.{ext}"
+        linegs.write_lines(out, segs)
+        assert linegs.read_lines(out).shape == segs.shape, id_
+
+
 def test_refine_returns_exactly_the_cli_segments_and_report(toy, tmp_path):
     d, g, l, _ = toy
     out, rep = tmp_path / "r.npy", tmp_path / "r.json"

@@ -9,12 +9,18 @@ use std::path::PathBuf;
 
 #[derive(Args, Debug)]
 pub struct ConvertArgs {
-    /// A Gaussian model (3DGS or SuperSplat compressed `.ply`, `.spz`, `.splat`) or a line
-    /// file or folder in any format `refine --lines` reads.
+    // The formats' words come from the format registry (io::GAUSSIAN_FORMATS).
+    #[arg(help = format!(
+        "A Gaussian model ({}) or a line file or folder in any format `refine --lines` reads",
+        io::gaussian_family_words(true)
+    ))]
     pub input: PathBuf,
-    /// Gaussians: a `.ply` (binary, `float x y z opacity`, opacity as the 3DGS logit).
-    /// Lines: `.obj`, `.stl`, `.ply`, `.txt` or `.npy`, by extension.
-    #[arg(short, long, value_name = "FILE")]
+    // The writers come from the format registry (io::LINE_WRITERS).
+    #[arg(short, long, value_name = "FILE", help = format!(
+        "Gaussians: a `.ply` (binary, `float x y z opacity`, opacity as the 3DGS logit). \
+         Lines: {}, by extension",
+        io::line_output_words(false)
+    ))]
     pub output: PathBuf,
     /// Gaussians: keep only those with opacity >= this (in [0, 1]).
     #[arg(long, value_name = "ALPHA")]

@@ -7,8 +7,11 @@ use std::path::PathBuf;
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
-    /// A Gaussian model (3DGS or SuperSplat compressed PLY, SPZ, .splat) or a line file
-    /// (or LIMAP finaltracks/ folder) in any supported format.
+    // The formats' words come from the format registry (io::GAUSSIAN_FORMATS).
+    #[arg(help = format!(
+        "A Gaussian model ({}) or a line file (or LIMAP finaltracks/ folder) in any supported format",
+        io::gaussian_family_words(false)
+    ))]
     pub file: PathBuf,
     #[command(flatten)]
     pub frame: FrameArgs,

@@ -56,14 +56,17 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
 /// The Gaussians and lines every command reads.
 #[derive(Args, Debug, Clone)]
 pub struct InputArgs {
-    /// The trained model; only the centers are used: 3DGS `point_cloud.ply`, SuperSplat
-    /// compressed `.ply`, Niantic `.spz` (v1-v4) or antimatter15 `.splat`.
-    #[arg(short, long, value_name = "MODEL")]
+    // The formats' words come from the format registry (io::GAUSSIAN_FORMATS).
+    #[arg(short, long, value_name = "MODEL", help = format!(
+        "The trained model; only the centers are used: {}",
+        io::gaussian_format_words()
+    ))]
     pub gaussians: PathBuf,
-    /// The line segments: Line3D++ `.txt`/`.obj`/`.stl`, LIMAP `.npy`, `finaltracks/` or
-    /// `alltracks.txt`, ELSR `.obj`, EMAP/EdgeGaussians `parametric_edges.json`, plain
-    /// text (6 numbers a row) or our `.ply` with edges.
-    #[arg(short, long, value_name = "FILE")]
+    // The formats' words come from the format registry (io::LINE_FORMATS).
+    #[arg(short, long, value_name = "FILE", help = format!(
+        "The line segments: {}",
+        io::line_format_words()
+    ))]
     pub lines: PathBuf,
     #[command(flatten)]
     pub frame: FrameArgs,

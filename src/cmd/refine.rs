@@ -15,9 +15,11 @@ pub struct RefineArgs {
     pub input: InputArgs,
     #[command(flatten)]
     pub engine: BackendArgs,
-    /// Where to write the refined segments; the format follows the extension: `.obj`,
-    /// `.stl`, `.ply` (with an edge element), `.txt` (6 numbers a row), `.npy`.
-    #[arg(short, long, value_name = "FILE")]
+    // The writers come from the format registry (io::LINE_WRITERS).
+    #[arg(short, long, value_name = "FILE", help = format!(
+        "Where to write the refined segments; the format follows the extension: {}",
+        linegs_gpu::io::line_output_words(true)
+    ))]
     pub output: PathBuf,
     /// Write the JSON report (backend, adapter, parameters, inputs, stages, before/after);
     /// a `.json` file.

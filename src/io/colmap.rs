@@ -690,9 +690,9 @@ pub fn write_colmap_binary(dir: &Path, model: &ColmapModel) -> Result<(), Error>
             pt.extend(b.to_le_bytes());
         }
     }
-    super::write_bytes_atomic(&dir.join("cameras.bin"), &c)?;
-    super::write_bytes_atomic(&dir.join("images.bin"), &im)?;
-    super::write_bytes_atomic(&dir.join("points3D.bin"), &pt)
+    super::write::write_bytes_atomic(&dir.join("cameras.bin"), &c)?;
+    super::write::write_bytes_atomic(&dir.join("images.bin"), &im)?;
+    super::write::write_bytes_atomic(&dir.join("points3D.bin"), &pt)
 }
 
 /// Writes `model` into `dir` as COLMAP's three text files (full precision).
@@ -735,9 +735,9 @@ pub fn write_colmap_text(dir: &Path, model: &ColmapModel) -> Result<(), Error> {
         }
         pt.push('\n');
     }
-    super::write_bytes_atomic(&dir.join("cameras.txt"), c.as_bytes())?;
-    super::write_bytes_atomic(&dir.join("images.txt"), im.as_bytes())?;
-    super::write_bytes_atomic(&dir.join("points3D.txt"), pt.as_bytes())
+    super::write::write_bytes_atomic(&dir.join("cameras.txt"), c.as_bytes())?;
+    super::write::write_bytes_atomic(&dir.join("images.txt"), im.as_bytes())?;
+    super::write::write_bytes_atomic(&dir.join("points3D.txt"), pt.as_bytes())
 }
 
 #[cfg(test)]

@@ -9,19 +9,31 @@ use std::path::Path;
 use crate::geom::Segment;
 
 use super::error::{Error, Position};
+use super::format::{self, Curves, Detect, LineFormat, Origin, Parsed};
+
+pub(crate) static FORMAT: LineFormat = LineFormat {
+    id: "emap",
+    name: "EMAP/EdgeGaussians parametric edges (JSON)",
+    extensions: &["json"],
+    summary: "EMAP / EdgeGaussians `parametric_edges.json` (`lines_end_pts`; Bézier \
+              `curves_ctl_pts` counted and skipped, or sampled with `--curves polyline`)",
+    help: Some("EMAP/EdgeGaussians `parametric_edges.json`"),
+    hint: Some("EMAP/EdgeGaussians parametric_edges.json"),
+    rank: 10,
+    detect: Detect::Text(|p| p.text.is_some_and(looks_like_edges)),
+    parse: |path, bytes, opts| {
+        let (segments, groups, warnings) = parse(path, format::text(path, bytes)?, opts.curves)?;
+        let mut p = Parsed::new(Origin::Records("edge"));
+        p.segments = segments;
+        p.groups = groups;
+        p.warnings = warnings;
+        Ok(p)
+    },
+    read_folder: None,
+};
 
 /// Segments a Bézier curve becomes with `--curves polyline`.
 pub const POLYLINE_PIECES: usize = 16;
-
-/// What to do with the Bézier curves of an edge file.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum Curves {
-    /// Count them and leave them out, with a warning.
-    #[default]
-    Skip,
-    /// Sample each into 16 straight segments (one group a curve).
-    Polyline,
-}
 
 /// A JSON object with one of the edge keys.
 pub(crate) fn looks_like_edges(text: &str) -> bool {
@@ -29,15 +41,20 @@ pub(crate) fn looks_like_edges(text: &str) -> bool {
         && (text.contains("\"lines_end_pts\"") || text.contains("\"curves_ctl_pts\""))
 }
 
+/// A JSON value where an edge file needs a number (or an array of numbers), as written.
+#[derive(Debug, thiserror::Error)]
+#[error("`{0}` is not a number")]
+struct NotANumber(serde_json::Value);
+
 /// Every number under `v`, depth first, with the first non-number found.
-fn flatten(v: &serde_json::Value, out: &mut Vec<f64>) -> Result<(), String> {
+fn flatten(v: &serde_json::Value, out: &mut Vec<f64>) -> Result<(), NotANumber> {
     match v {
         serde_json::Value::Array(a) => a.iter().try_for_each(|x| flatten(x, out)),
         serde_json::Value::Number(n) => {
             out.push(n.as_f64().unwrap_or(f64::NAN));
             Ok(())
         }
-        other => Err(format!("`{other}` is not a number")),
+        other => Err(NotANumber(other.clone())),
     }
 }
 

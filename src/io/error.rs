@@ -59,12 +59,10 @@ impl fmt::Display for Position {
     }
 }
 
-/// The formats `read_lines` and `read_gaussians` understand, for the unknown-format hint.
-pub const KNOWN_FORMATS: &str = "PLY (Gaussians: binary or ASCII 3DGS, SuperSplat compressed; \
-lines: vertex + edge), Niantic .spz (v1-v4), antimatter15 .splat, Line3D++ .txt, \
-.obj (v/l records), .stl (ASCII or binary, degenerate line facets), .npy (N x 2 x 3 float), \
-LIMAP finaltracks/ and alltracks.txt, EMAP/EdgeGaussians parametric_edges.json, \
-plain text with 6 numbers per row";
+/// The formats the readers understand, for the unknown-format hint: its `Display` is made
+/// from the format registry (`registry.rs`).
+#[derive(Clone, Copy, Debug)]
+pub struct KnownFormats;
 
 /// Errors of the `io` module. Display is `<path>: <position>: <what is wrong>`, followed
 /// where it helps by what to do.
@@ -85,7 +83,7 @@ pub enum Error {
     Empty { path: PathBuf },
 
     /// Neither content nor extension matches a format we read.
-    #[error("{}: unknown format: {why}; expected one of: {}", .path.display(), KNOWN_FORMATS)]
+    #[error("{}: unknown format: {why}; expected one of: {}", .path.display(), KnownFormats)]
     UnknownFormat { path: PathBuf, why: String },
 
     /// Malformed content: a bad header line, a token that is not a number, wrong counts.

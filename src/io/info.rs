@@ -8,9 +8,10 @@ use std::path::{Path, PathBuf};
 use crate::geom::{p64, Aabb};
 
 use super::error::Error;
-use super::gaussians::{detect_gaussians, read_gaussians, GaussianFormat};
+use super::format::LineOptions;
+use super::gaussians::{detect_gaussians, read_gaussians};
 use super::input::{open_input, Input};
-use super::lines::{parse_lines_with, read_lines_with, LineFile, LineOptions};
+use super::lines::{parse_lines_with, read_lines_with, LineFile};
 use super::ply::{parse_gaussians, parse_header, PlyOptions, BOM};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -44,8 +45,8 @@ pub struct FileInfo {
     pub warnings: Vec<String>,
 }
 
-/// Reads `path` as a Gaussian model (a PLY without `edge` element, SPZ, `.splat`) or as a
-/// line file (a LIMAP `finaltracks/` folder included).
+/// Reads `path` as a Gaussian model (a PLY without `edge` element, or any other format of
+/// `registry.rs`) or as a line file (a LIMAP `finaltracks/` folder included).
 pub fn info(path: &Path) -> Result<FileInfo, Error> {
     info_with(path, &LineOptions::default())
 }
@@ -75,11 +76,8 @@ pub fn info_with(path: &Path, line_opts: &LineOptions) -> Result<FileInfo, Error
         head.drain(..BOM.len());
     }
     let is_ply = head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n");
-    let not_ply_gaussians = !is_ply
-        && matches!(
-            detect_gaussians(path, &head, bytes),
-            Ok(GaussianFormat::Spz | GaussianFormat::Splat)
-        );
+    let not_ply_gaussians =
+        !is_ply && matches!(detect_gaussians(path, &head, bytes), Ok(f) if !f.is_ply);
     if not_ply_gaussians {
         let cloud = read_gaussians(path, &PlyOptions::default())?;
         let mut bbox = Aabb::empty();

@@ -36,10 +36,8 @@ use tempfile::TempPath;
 use super::error::Error;
 use super::litter::{
     is_temp_name, made_elsewhere, old, ours, parse_temp_name, temp_prefix, try_lock, Maker,
+    JOURNAL_EXT,
 };
-
-/// Extension of a journal.
-pub(crate) const JOURNAL_EXT: &str = "commit";
 
 const HEADER: &str = "linegs-gpu output set 1";
 

@@ -20,6 +20,52 @@ use std::path::{Path, PathBuf};
 use crate::geom::Segment;
 
 use super::error::{Error, Position};
+use super::format::{self, Detect, LineFormat, Origin, Parsed, Probe};
+
+pub(crate) static TRACKS: LineFormat = LineFormat {
+    id: "limap-tracks",
+    name: "LIMAP line tracks (track_<id>.txt)",
+    extensions: &["txt"],
+    summary: "LIMAP `finaltracks/` folders (`track_<id>.txt`), or one such file; one \
+              segment a track, track ids kept as groups",
+    help: Some("LIMAP `.npy`, `finaltracks/` or `alltracks.txt`"),
+    hint: Some("LIMAP finaltracks/ and alltracks.txt"),
+    rank: 11,
+    detect: Detect::Text(|p| p.text.is_some_and(looks_like_track)),
+    parse: |path, bytes, _| {
+        let (line, seg) = parse_track(path, format::text(path, bytes)?)?;
+        let mut p = Parsed::new(Origin::Lines(vec![line]));
+        p.segments = vec![seg];
+        Ok(p)
+    },
+    read_folder: Some(|dir| {
+        let (segments, ids, warnings) = read_folder(dir)?;
+        let mut p = Parsed::new(Origin::Records("track"));
+        p.segments = segments;
+        p.groups = Some(ids);
+        p.warnings = warnings;
+        Ok(p)
+    }),
+};
+
+pub(crate) static ALLTRACKS: LineFormat = LineFormat {
+    id: "limap-alltracks",
+    name: "LIMAP alltracks.txt",
+    extensions: &["txt"],
+    summary: "LIMAP `alltracks.txt` (every track in one file; no 2D segments)",
+    help: None,
+    hint: None,
+    rank: 12,
+    detect: Detect::Text(|p: &Probe| p.text.is_some_and(looks_like_alltracks)),
+    parse: |path, bytes, _| {
+        let (segments, ids, lines) = parse_alltracks(path, format::text(path, bytes)?)?;
+        let mut p = Parsed::new(Origin::Lines(lines));
+        p.segments = segments;
+        p.groups = Some(ids);
+        Ok(p)
+    },
+    read_folder: None,
+};
 
 /// Whitespace tokens with their 1-based line and 1-based place on the line.
 struct Tokens<'a> {

@@ -26,6 +26,10 @@ pub const STALE_AGE: Duration = Duration::from_secs(60);
 /// Prefix of every temporary file of the writers.
 pub(crate) const TEMP_PREFIX: &str = ".linegs-";
 
+/// Extension of an output set's journal (`journal.rs`): a temporary file like the others,
+/// that the set's commit renames its outputs by.
+pub(crate) const JOURNAL_EXT: &str = "commit";
+
 /// Prefix of `main`'s private runtime folders.
 pub const RUNTIME_PREFIX: &str = "linegs-gpu-runtime-";
 
@@ -193,7 +197,7 @@ pub fn clean_stale_temps(dir: &Path) -> usize {
         .collect();
     if names
         .iter()
-        .any(|(n, _)| is_temp_name(n, Some(super::journal::JOURNAL_EXT)))
+        .any(|(n, _)| is_temp_name(n, Some(JOURNAL_EXT)))
     {
         return 0;
     }

@@ -2,25 +2,35 @@
 //! line-reconstruction tools write, detected by content; writers that never leave a partial
 //! file; and `info` for a quick look at either.
 
+mod attributes;
 mod chunked;
 mod colmap;
 mod edges_json;
 mod error;
+mod format;
 mod gaussians;
 mod info;
 mod input;
 mod journal;
 mod limap;
+mod line3dpp;
 mod lines;
 mod litter;
 mod normals;
 mod npy;
 pub mod obj;
 mod output;
+mod plain;
 mod ply;
+mod ply_3dgs;
 mod ply_compressed;
+mod ply_lines;
+mod registry;
+mod sink;
 mod splat;
 mod spz;
+mod stl;
+mod text;
 mod transform;
 mod write;
 
@@ -28,11 +38,12 @@ pub use colmap::{
     read_colmap, write_colmap_binary, write_colmap_text, Camera, ColmapModel, Image, Point3D,
     CAMERA_MODELS,
 };
-pub use edges_json::{edges_json_text, Curves, POLYLINE_PIECES};
-pub use error::{Error, Position, KNOWN_FORMATS};
+pub use edges_json::{edges_json_text, POLYLINE_PIECES};
+pub use error::{Error, KnownFormats, Position};
+pub use format::{Curves, GaussianFormat, LineFormat, LineOptions, LineWriter};
 pub use gaussians::{
     detect_gaussians, is_gaussian_model, parse_gaussian_model, parse_gaussians_and_attributes,
-    read_gaussians, read_gaussians_and_attributes, read_gaussians_with_opacity, GaussianFormat,
+    read_gaussians, read_gaussians_and_attributes, read_gaussians_with_opacity,
 };
 pub use info::{info, info_with, FileInfo, FileKind};
 pub use input::STREAM_LIMIT;
@@ -45,20 +56,25 @@ pub use litter::{
     try_lock, RUNTIME_PREFIX, STALE_AGE,
 };
 
+pub use attributes::GaussianAttributes;
 pub(crate) use input::{read_input, read_small};
+pub use line3dpp::read_line3dpp_supports;
 pub use lines::{
-    parse_lines, parse_lines_with, read_line3dpp_supports, read_lines, read_lines_with, LineFile,
-    LineFormat, LineOptions,
+    check_line_output, parse_lines, parse_lines_with, read_lines, read_lines_with, write_lines,
+    LineFile, LINE_OUTPUTS,
 };
-pub use normals::{
-    parse_gaussian_attributes, read_gaussian_attributes, read_gaussian_normals, GaussianAttributes,
-};
+pub use normals::{parse_gaussian_attributes, read_gaussian_attributes, read_gaussian_normals};
 pub use output::{same_file, OutputSet, PathIndex};
 pub use ply::{parse_gaussians, GaussianCloud, PlyOptions};
+pub use registry::{
+    file_names, format_table, gaussian_family_words, gaussian_format, gaussian_format_words,
+    known_formats, line_format, line_format_words, line_output_words, GAUSSIAN_FORMATS,
+    LINE_FORMATS, LINE_WRITERS,
+};
 pub use spz::encode_spz;
 pub use transform::{read_transform, GaussianTransform};
 pub use write::{
-    check_line_output, check_output_extension, gaussian_3dgs_properties, write_bytes_atomic,
-    write_gaussians_3dgs, write_gaussians_ply, write_lines, write_lines_line3dpp,
-    write_lines_ply_layers, DEFAULT_LINE_COLOR, DEFAULT_OPACITY_LOGIT, LINE_OUTPUTS,
+    check_output_extension, gaussian_3dgs_properties, write_bytes_atomic, write_gaussians_3dgs,
+    write_gaussians_ply, write_lines_line3dpp, write_lines_ply_layers, DEFAULT_LINE_COLOR,
+    DEFAULT_OPACITY_LOGIT,
 };

@@ -6,8 +6,41 @@ use std::path::Path;
 use crate::geom::Segment;
 
 use super::error::{Error, Position};
+use super::format::{Detect, LineFormat, LineWriter, Origin, Parsed};
+use super::limap::refuse_pickled_npy;
+use super::write::write_atomic;
 
 pub(crate) const MAGIC: &[u8] = b"\x93NUMPY";
+
+pub(crate) static FORMAT: LineFormat = LineFormat {
+    id: "npy",
+    name: "NumPy .npy",
+    extensions: &["npy"],
+    summary: "LIMAP `.npy`: a float array N×2×3 (f32 or f64, either byte order); LIMAP's \
+              pickled `.npy` (dicts of tracks) is refused with the line of Python that saves \
+              a float array instead",
+    help: None,
+    hint: Some(".npy (N x 2 x 3 float)"),
+    rank: 1,
+    detect: Detect::Bytes(|p| p.bytes.starts_with(MAGIC)),
+    parse: |path, bytes, _| {
+        refuse_pickled_npy(path, bytes)?;
+        let mut p = Parsed::new(Origin::Records("row"));
+        p.segments = parse(path, bytes)?;
+        Ok(p)
+    },
+    read_folder: None,
+};
+
+pub(crate) static WRITER: LineWriter = LineWriter {
+    format: &FORMAT,
+    ext: "npy",
+    help: "`.npy`",
+    write: |path, lines| {
+        let bytes = encode(lines);
+        write_atomic(path, |w| std::io::Write::write_all(w, &bytes))
+    },
+};
 
 /// Parses a whole `.npy` file into segments (validity is checked by the caller).
 pub(crate) fn parse(path: &Path, bytes: &[u8]) -> Result<Vec<Segment>, Error> {

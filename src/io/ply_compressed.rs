@@ -12,8 +12,29 @@
 use std::path::Path;
 
 use super::error::{Error, Position};
-use super::gaussians::Sink;
+use super::format::{GaussianFormat, GaussianRead};
 use super::ply::{self, Element, Encoding, GaussianCloud, Header, PropKind, Scalar};
+use super::sink::Sink;
+
+pub(crate) static FORMAT: GaussianFormat = GaussianFormat {
+    id: "ply-compressed",
+    name: "SuperSplat / PlayCanvas compressed PLY",
+    extensions: &["ply"],
+    summary: "`chunk` + `packed_position`: the centers bit for bit as splat-transform decodes \
+              them",
+    help: "SuperSplat compressed `.ply`",
+    variant: Some("SuperSplat compressed"),
+    family: "PLY",
+    hint: None,
+    sniff_hint: None,
+    sniff: |path, head, len| {
+        Ok(head.starts_with(b"ply")
+            && is_compressed(&ply::parse_header(path, head, head.len() as u64 == len)?))
+    },
+    by_extension: false,
+    is_ply: true,
+    read: GaussianRead::Bytes(read),
+};
 
 /// Splats per chunk.
 const CHUNK_SIZE: usize = 256;

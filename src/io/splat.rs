@@ -5,8 +5,25 @@
 use std::path::Path;
 
 use super::error::{Error, Position};
-use super::gaussians::Sink;
+use super::format::{GaussianFormat, GaussianRead};
 use super::ply::GaussianCloud;
+use super::sink::Sink;
+
+pub(crate) static FORMAT: GaussianFormat = GaussianFormat {
+    id: "splat",
+    name: "antimatter15 .splat",
+    extensions: &["splat"],
+    summary: "by extension (no signature), 32 bytes a splat",
+    help: "antimatter15 `.splat`",
+    variant: None,
+    family: ".splat",
+    hint: Some("antimatter15 .splat"),
+    sniff_hint: Some("antimatter15 .splat (by extension)"),
+    sniff: |_, _, _| Ok(false),
+    by_extension: true,
+    is_ply: false,
+    read: GaussianRead::Bytes(read),
+};
 
 pub(crate) const RECORD: usize = 32;
 

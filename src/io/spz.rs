@@ -19,8 +19,27 @@ use std::io::Read;
 use std::path::Path;
 
 use super::error::{Error, Position};
-use super::gaussians::Sink;
+use super::format::{GaussianFormat, GaussianRead};
 use super::ply::GaussianCloud;
+use super::sink::Sink;
+
+pub(crate) static FORMAT: GaussianFormat = GaussianFormat {
+    id: "spz",
+    name: "Niantic SPZ",
+    extensions: &["spz"],
+    summary: "versions 1–4 (gzip; version 4's ZSTD streams); SPZ stores RUB axes, turned into \
+              the PLY convention (y and z negated)",
+    help: "Niantic `.spz` (v1-v4)",
+    variant: None,
+    family: "SPZ",
+    hint: Some("Niantic .spz (v1-v4)"),
+    sniff_hint: Some("Niantic .spz (starts with `NGSP` or a gzip header)"),
+    sniff: |_, head, _| Ok(sniff(head)),
+    // Named .spz but neither magic: the SPZ reader says what is wrong.
+    by_extension: true,
+    is_ply: false,
+    read: GaussianRead::Bytes(read),
+};
 
 pub(crate) const MAGIC: &[u8; 4] = b"NGSP";
 const GZIP: [u8; 2] = [0x1f, 0x8b];

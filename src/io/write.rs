@@ -9,7 +9,6 @@ use std::path::Path;
 use crate::geom::{LineSet, Segment};
 
 use super::error::{Error, Position};
-use super::npy;
 
 /// Colour of `write_lines`' single PLY layer: visible on both light and dark backgrounds.
 pub const DEFAULT_LINE_COLOR: [u8; 3] = [220, 40, 40];
@@ -56,28 +55,6 @@ pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     write_atomic(path, |w| w.write_all(bytes))
 }
 
-/// The segment formats `write_lines` writes, by extension.
-pub const LINE_OUTPUTS: [&str; 5] = ["obj", "stl", "ply", "txt", "npy"];
-
-/// Checks that `write_lines` can write `path` (by its extension), so a command can refuse
-/// a bad output name before doing any work.
-pub fn check_line_output(path: &Path) -> Result<String, Error> {
-    let ext = path
-        .extension()
-        .map(|e| e.to_string_lossy().to_ascii_lowercase())
-        .unwrap_or_default();
-    if LINE_OUTPUTS.contains(&ext.as_str()) {
-        Ok(ext)
-    } else {
-        Err(Error::Unsupported {
-            path: path.to_path_buf(),
-            msg: format!(
-                "cannot tell the line format from the extension `{ext}`; use .obj, .stl, .ply, .txt or .npy"
-            ),
-        })
-    }
-}
-
 /// Checks that `path` ends in one of `allowed` (lower case, without the dot), so that a
 /// command refuses a misnamed output before doing any work instead of writing, say, a PNG
 /// into `r.jpg`. `what` names the output in the message ("the picture").
@@ -116,7 +93,7 @@ pub(crate) fn num(x: f64) -> String {
 }
 
 /// Writers cannot produce what the readers reject.
-fn check_finite(path: &Path, lines: &[Segment], first: usize) -> Result<(), Error> {
+pub(crate) fn check_finite(path: &Path, lines: &[Segment], first: usize) -> Result<(), Error> {
     for (i, s) in lines.iter().enumerate() {
         if !(s.p1.is_finite() && s.p2.is_finite()) {
             let bad =
@@ -135,63 +112,6 @@ fn check_finite(path: &Path, lines: &[Segment], first: usize) -> Result<(), Erro
         }
     }
     Ok(())
-}
-
-/// Writes segments in the format named by the extension: `.obj`, `.stl` (Line3D++ style),
-/// `.ply` (vertex + edge), `.txt` (x1 y1 z1 x2 y2 z2 per row) or `.npy` (N x 2 x 3 f64).
-pub fn write_lines(path: &Path, lines: &[Segment]) -> Result<(), Error> {
-    let ext = check_line_output(path)?;
-    check_finite(path, lines, 0)?;
-    match ext.as_str() {
-        "obj" => write_atomic(path, |w| {
-            writeln!(w, "# {} line segments, written by linegs-gpu", lines.len())?;
-            for (i, s) in lines.iter().enumerate() {
-                writeln!(w, "v {} {} {}", num(s.p1.x), num(s.p1.y), num(s.p1.z))?;
-                writeln!(w, "v {} {} {}", num(s.p2.x), num(s.p2.y), num(s.p2.z))?;
-                writeln!(w, "l {} {}", 2 * i + 1, 2 * i + 2)?;
-            }
-            Ok(())
-        }),
-        "stl" => write_atomic(path, |w| {
-            // Line3D++'s saveSTL layout: one degenerate facet P1 P2 P1 per segment.
-            writeln!(w, "solid lineModel")?;
-            for s in lines {
-                writeln!(w, " facet normal 1.0e+000 0.0e+000 0.0e+000")?;
-                writeln!(w, "  outer loop")?;
-                for p in [s.p1, s.p2, s.p1] {
-                    writeln!(w, "   vertex {:e} {:e} {:e}", p.x, p.y, p.z)?;
-                }
-                writeln!(w, "  endloop")?;
-                writeln!(w, " endfacet")?;
-            }
-            writeln!(w, "endsolid lineModel")
-        }),
-        "ply" => write_lines_ply_layers(path, &[(lines, DEFAULT_LINE_COLOR)]),
-        "txt" => write_atomic(path, |w| {
-            writeln!(
-                w,
-                "# x1 y1 z1 x2 y2 z2 ({} segments, linegs-gpu)",
-                lines.len()
-            )?;
-            for s in lines {
-                writeln!(
-                    w,
-                    "{} {} {} {} {} {}",
-                    num(s.p1.x),
-                    num(s.p1.y),
-                    num(s.p1.z),
-                    num(s.p2.x),
-                    num(s.p2.y),
-                    num(s.p2.z)
-                )?;
-            }
-            Ok(())
-        }),
-        _ => {
-            let bytes = npy::encode(lines);
-            write_atomic(path, |w| w.write_all(&bytes))
-        }
-    }
 }
 
 /// Writes a Line3D++ `saveTXT` file: one row per input line, `n` then its `n` segments
@@ -442,7 +362,7 @@ mod tests {
             "{text}"
         );
         let back = super::super::read_lines(&p).unwrap();
-        assert_eq!(back.format, super::super::LineFormat::Line3dppTxt);
+        assert_eq!(back.format.id, "line3dpp");
         assert_eq!(back.lines.segments, set.segments);
         assert_eq!(back.lines.groups, set.groups);
         let err = write_lines_line3dpp(&dir.path().join("l.obj"), &set).unwrap_err();

@@ -203,7 +203,7 @@ impl Outputs {
             .prefix(".linegs-tracks-")
             .tempdir_in(parent)
             .map_err(|e| io::Error::io(d, "create a temporary folder beside", e))?;
-        let line3dpp = Some(io::LineFormat::Line3dppTxt.name());
+        let line3dpp = io::line_format("line3dpp").map(|f| f.name);
         let supports = match &out.report.input.lines {
             Some(l) if out.report.input.lines_format.as_deref() == line3dpp => {
                 Some(io::read_line3dpp_supports(Path::new(l))?)

@@ -11,10 +11,10 @@ pub(crate) use records::*;
 use std::io::Read;
 use std::path::Path;
 
+use super::attributes::{opacity_of, Attribute, GaussianAttributes};
 use super::chunked::{Chunked, CHUNK};
 use super::error::{Error, Position};
 use super::input::{open_input, Input};
-use super::normals::{opacity_of, Attribute, GaussianAttributes};
 use rayon::prelude::*;
 
 /// Options for [`crate::io::read_gaussians`].
