@@ -12,8 +12,8 @@ use clap::{value_parser, Arg, ArgAction, ArgMatches, Args, Command, FromArgMatch
 use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::gt::Protocol;
 use linegs_gpu::io::Curves;
-use linegs_gpu::refine::params::{Check, Group, Param, ParamError, Value};
-use linegs_gpu::refine::{EvalParams, Params, Profile, RadiusArg};
+use linegs_gpu::refine::params::{Check, Choice, Group, Param, ParamError, Value};
+use linegs_gpu::refine::{EvalParams, Params, RadiusArg};
 use std::collections::HashMap;
 use std::sync::{Mutex, OnceLock};
 
@@ -43,14 +43,6 @@ macro_rules! mirror {
             }
         }
     };
-}
-
-mirror! {
-    /// [`Profile`].
-    ProfileArg => Profile {
-        Default,
-        Reference,
-    }
 }
 
 mirror! {
@@ -151,6 +143,27 @@ fn text_of<T: Value>(s: &str, check: Check) -> Result<String, ParamError> {
     T::parse(s, check).map(|_| s.to_string())
 }
 
+/// The parser of a value taken by name from `choices` (the name as text), each with its
+/// doc comment as help: for the parameters, and for the options of the commands that
+/// take one such value beside them (`eval --profile`).
+pub fn choices(choices: &'static [Choice]) -> PossibleValuesParser {
+    PossibleValuesParser::new(choices.iter().map(|c| {
+        let help = help_of(c.doc);
+        let v = PossibleValue::new(c.name);
+        if help.is_empty() {
+            v
+        } else {
+            v.help(help)
+        }
+    }))
+}
+
+/// A name [`choices`] accepted, as its enumeration.
+pub fn chosen<T: std::str::FromStr>(name: &str) -> T {
+    name.parse()
+        .unwrap_or_else(|_| unreachable!("`{name}` is one of the names the parser accepts"))
+}
+
 /// The option of one parameter, as clap's derive made it from a field.
 fn arg_of(p: &'static Param) -> Arg {
     let (long, value_name, default) = texts(p);
@@ -177,17 +190,7 @@ fn arg_of(p: &'static Param) -> Arg {
         }
         Check::Bool => arg.value_parser(bool_text()),
         Check::Switch => arg.value_name("BOOL").value_parser(bool_text()),
-        Check::Choice(choices) => {
-            arg.value_parser(PossibleValuesParser::new(choices.iter().map(|c| {
-                let help = help_of(c.doc);
-                let v = PossibleValue::new(c.name);
-                if help.is_empty() {
-                    v
-                } else {
-                    v.help(help)
-                }
-            })))
-        }
+        Check::Choice(c) => arg.value_parser(choices(c)),
         Check::Radius => arg.value_parser(move |s: &str| text_of::<RadiusArg>(s, p.check)),
         Check::OutlierRatio => arg
             .allow_hyphen_values(true)
@@ -270,64 +273,34 @@ mod tests {
 
     #[test]
     fn each_option_converts_to_what_params_set_makes() {
-        // One value per parameter, none of them its default.
-        let values = [
-            ("profile", "reference"),
-            ("radius", "auto"),
-            ("translate_keep", "0.25"),
-            ("fit", "none"),
-            ("fit_iterations", "3"),
-            ("fit_max_turn_deg", "4.5"),
-            ("fit_max_move", "1.5"),
-            ("fit_bandwidth", "0.5"),
-            ("fit_min_points", "2"),
-            ("fit_opacity_weight", "true"),
-            ("fit_gate", "false"),
-            ("max_scale", "2"),
-            ("max_sagitta", "0.5"),
-            ("split_gaps", "0.05"),
-            ("split_interior", "true"),
-            ("outlier_ratio", "-1"),
-            ("collinear_merge", "false"),
-            ("cluster_min_weight", "0.3"),
-            ("cluster_c", "2.5"),
-            ("cluster_min_cos", "0.7"),
-            ("merge_angle_deg", "20"),
-            ("merge_dist_frac", "0.3"),
-            ("merge_density_ratio", "0.7"),
-            ("join_angle_deg", "5"),
-            ("join_gap_frac", "0.9"),
-            ("join_chord_shrink", "0.05"),
-            ("join_gap_density", "0.4"),
-            ("join_density_ratio", "0.5"),
-            ("join_rmse_ratio", "1.2"),
-            ("crop_end_frac", "0.05"),
-            ("crop_mid_frac", "0.5"),
-            ("crop_ratio", "0.4"),
-            ("crop_probe_half", "0.07"),
-            ("crop_extend", "1.5"),
-            ("crop_max_probes", "20"),
-            ("crop_min_interval", "0.001"),
-            ("fix_cluster_distance", "false"),
-            ("fix_merge_extent", "false"),
-            ("fix_merge_overlap", "false"),
-            ("fix_join_order", "false"),
-            ("fix_join_gap", "false"),
-            ("fix_crop_density", "false"),
-            ("fix_crop_min_cut", "false"),
-            ("fix_crop_chance", "false"),
-            ("fix_merge_fidelity", "false"),
-            ("order_endpoints", "true"),
-            ("eval_radius", "0.2"),
-            ("unit_scale", "0.01"),
-            ("score_lambda", "1"),
-            ("r_l", "authors"),
-        ];
+        // One value per parameter, none of them its default: the first of a few its
+        // check accepts that changes the parameters.
+        let values: Vec<(&str, String)> = <Params as Group>::PARAMS
+            .iter()
+            .map(|p| {
+                let candidates: Vec<String> = match p.check {
+                    Check::Whole { lo, .. } => vec![(lo + 1).to_string(), (lo + 2).to_string()],
+                    Check::Bool | Check::Switch => vec!["true".into(), "false".into()],
+                    Check::Radius => vec!["auto".into()],
+                    Check::Choice(c) => c.iter().map(|c| c.name.to_string()).collect(),
+                    Check::OutlierRatio => vec!["-1".into()],
+                    _ => vec!["0.25".into(), "0.5".into()],
+                };
+                let value = candidates
+                    .into_iter()
+                    .find(|v| {
+                        let mut q = Params::default();
+                        q.set(p.name, v).is_ok() && q != Params::default()
+                    })
+                    .unwrap_or_else(|| panic!("no value changes {}", p.name));
+                (p.name, value)
+            })
+            .collect();
         let names: Vec<&str> = values.iter().map(|(n, _)| *n).collect();
         assert_eq!(names, Params::NAMES);
         let mut args = Vec::new();
         let mut set = Params::default();
-        for (name, value) in values {
+        for (name, value) in &values {
             args.push(format!("--{}={value}", name.replace('_', "-")));
             let before = set.clone();
             set.set(name, value).unwrap();
