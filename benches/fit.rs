@@ -36,7 +36,7 @@ fn bench_fit(c: &mut Criterion) {
     let segs = &scene.lines.segments;
     let refiner = Refiner::new(&scene.gaussians, segs, &params, Backend::Cpu).unwrap();
     let r = refiner.settings().radius();
-    let spec = FitSpec::from(&params);
+    let spec = FitSpec::from(&params.fit);
     let job = FitJob {
         segments: segs,
         r,

@@ -1,11 +1,12 @@
 //! The JSON report of docs/formats.md#the-report: one type for refine, eval and demo (and
 //! each scene of a batch), built by [`crate::pipeline`] and read back by the batch summary.
+//! It names nothing of the pipeline: the pipeline fills it in.
 
 use crate::eval::gt::GtMetrics;
 use crate::eval::Metrics;
-use crate::pipeline::{Refiner, Scene, Stage};
 use crate::refine::{Fixes, Params, Profile};
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
 
 /// What was read, what was dropped, and `N_box`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -93,56 +94,51 @@ pub struct Report {
 }
 
 impl Report {
-    /// The parts every report shares: tool, engine, settings, input, the stages so far
-    /// (load, index, engine) and the input's metrics.
-    pub(crate) fn new(command: &str, scene: &Scene, r: &Refiner, before: Metrics) -> Report {
-        let s = r.settings();
-        let mut stages = Vec::new();
-        if scene.input.gaussians.is_some() {
-            stages.push(Stage {
-                name: "load".into(),
-                segments: scene.lines.len(),
-                seconds: scene.load_seconds,
-                host_seconds: None,
-                device_seconds: None,
-                device_items: None,
-                point_bytes: None,
-                host_lists: None,
-            });
-        }
-        stages.extend(r.stages().iter().cloned());
-        Report {
-            tool: "linegs-gpu".into(),
-            version: env!("CARGO_PKG_VERSION").into(),
-            command: command.into(),
-            backend: r.engine().backend().into(),
-            adapter: r.engine().adapter(),
-            profile: s.params().profile,
-            params: s.params().clone(),
-            fixes: *s.fixes(),
-            radius: s.radius(),
-            input: InputReport {
-                n_box: r.n_box(),
-                ..scene.input.clone()
-            },
-            output: None,
-            stages,
-            total_seconds: 0.0,
-            before,
-            after: None,
-            sweep: None,
-            ground_truth: None,
-            refine: None,
-            scene: scene.description.clone(),
-            notes: r.notes().to_vec(),
-            engine_counters: None,
-            warnings: scene.warnings.clone(),
-            sources: None,
-        }
-    }
-
     /// Pretty JSON (no NaN can occur: undefined metrics are null).
     pub fn to_json(&self) -> String {
         serde_json::to_string_pretty(self).expect("a report always serializes")
+    }
+}
+
+/// One timed stage of a run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Stage {
+    pub name: String,
+    /// Segments after the stage.
+    pub segments: usize,
+    pub seconds: f64,
+    /// GPU engine: host time of its batches in this stage (preparing queries, deciding
+    /// flagged points), excluding waits for the device.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_seconds: Option<f64>,
+    /// GPU engine: time waiting for the device in this stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device_seconds: Option<f64>,
+    /// GPU engine: work items the device evaluated in this stage (each up to `CHUNK`
+    /// points of one query's walk).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device_items: Option<u64>,
+    /// GPU engine: bytes the device read from the point store in this stage (16 a point
+    /// and evaluation pass).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub point_bytes: Option<u64>,
+    /// GPU engine: queries of this stage whose member lists the host walked or read
+    /// back (`Counters::host_lists`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_lists: Option<u64>,
+}
+
+impl Stage {
+    pub(crate) fn since(name: &str, segments: usize, t: Instant) -> Stage {
+        Stage {
+            name: name.to_string(),
+            segments,
+            seconds: t.elapsed().as_secs_f64(),
+            host_seconds: None,
+            device_seconds: None,
+            device_items: None,
+            point_bytes: None,
+            host_lists: None,
+        }
     }
 }

@@ -22,7 +22,7 @@ fn assert_sane(out: &Refined, input: usize) {
     // The steps up to crop never add segments; `--split-gaps` may split one into pieces.
     let crop = out.stages.iter().find(|s| s.name == "crop").unwrap();
     assert!(!out.lines.is_empty() && crop.segments <= input);
-    let split = out.steps.gaps_split.unwrap_or(0);
+    let split = out.steps.gaps.gaps_split.unwrap_or(0);
     assert!(split > 0 || out.lines.len() <= crop.segments);
     for s in &out.lines.segments {
         assert!(

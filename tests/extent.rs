@@ -29,9 +29,10 @@ fn a_short_segment_on_a_long_edge_is_extended_to_its_corners_and_not_past() {
     let pts = u_shape(&mut rng);
     let short = seg([0.4, 0.0, 0.0], [0.6, 0.0, 0.0]);
     let e = cpu_engine(&pts, &[short, seg([0.0, 1.0, 0.0], [1.0, 1.0, 0.0])], R);
-    let p = Params {
-        crop_extend: 4.0,
-        ..Params::default()
+    let p = {
+        let mut q = Params::default();
+        q.crop.crop_extend = 4.0;
+        q
     };
     let out = crop::crop(&e, &[short], &p.with_radius(R)).unwrap()[0];
     let (a, b) = (out.p1.x.min(out.p2.x), out.p1.x.max(out.p2.x));
@@ -52,9 +53,10 @@ fn an_extension_is_bounded_by_its_limit() {
     let pts = u_shape(&mut rng);
     let short = seg([0.4, 0.0, 0.0], [0.6, 0.0, 0.0]);
     let e = cpu_engine(&pts, &[short, seg([0.0, 1.0, 0.0], [1.0, 1.0, 0.0])], R);
-    let p = Params {
-        crop_extend: 0.5,
-        ..Params::default()
+    let p = {
+        let mut q = Params::default();
+        q.crop.crop_extend = 0.5;
+        q
     };
     let out = crop::crop(&e, &[short], &p.with_radius(R)).unwrap()[0];
     assert!((out.length() - 0.4).abs() < 1e-9, "{out:?}");
@@ -92,9 +94,10 @@ fn a_turned_segment_on_a_true_edge_is_kept_whole() {
     let out = refine::run_steps(&e, &lines, &p.with_radius(R), |_, _, _| {}).unwrap();
     let c = covered(&edge, &out.segments, 0.2 * R);
     assert!(c > 0.85, "edge fit keeps {c:.3} of the edge");
-    let paper = Params {
-        fit: Some(Fit::Paper),
-        ..Params::default()
+    let paper = {
+        let mut q = Params::default();
+        q.fit.fit = Some(Fit::Paper);
+        q
     };
     let out = refine::run_steps(&e, &lines, &paper.with_radius(R), |_, _, _| {}).unwrap();
     let c_paper = covered(&edge, &out.segments, 0.2 * R);

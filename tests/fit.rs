@@ -6,8 +6,8 @@ mod common;
 use common::*;
 use glam::DVec3;
 use linegs_gpu::geom::Segment;
-use linegs_gpu::refine::fit::{decide, fit_edges, Attributes, How};
-use linegs_gpu::refine::{translate, Params};
+use linegs_gpu::refine::fit::{decide, fit_edges, Attributes, FitParams, How};
+use linegs_gpu::refine::translate;
 
 const R: f64 = 0.03;
 
@@ -17,8 +17,8 @@ fn off_axis(s: &Segment) -> f64 {
     d(s.p1).max(d(s.p2))
 }
 
-fn edge_params() -> Params {
-    Params::default()
+fn edge_params() -> FitParams {
+    FitParams::default()
 }
 
 /// Flat Gaussians on the faces z = 0 (y in [0, 1.5 r]) and y = 0 (z in [0, 1.5 r]) meeting

@@ -74,7 +74,7 @@ fn moved(input: &[Segment], f: &FitResult, r: f64) -> (usize, usize) {
 }
 
 fn spec() -> FitSpec {
-    FitSpec::from(&Params::default())
+    FitSpec::from(&Params::default().fit)
 }
 
 #[test]

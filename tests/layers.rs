@@ -2,9 +2,11 @@
 //! (`src/engine`, `src/index`, `src/io`, `src/geom`) name nothing of the refinement, the
 //! pipeline or the command line, and the library knows neither the command line (`clap`)
 //! nor the process environment (`std::env::var`): only `src/cmd` and `src/main.rs` do.
+//! And no two files (or folders) of one folder name each other, directly or around a
+//! circle: between siblings the names go one way.
 //! Read from the source text: every path through `crate::`, `self::` or `super::` in code
 //! (comments and the `#[cfg(test)]` module at a file's end aside), resolved to the
-//! top-level module it names.
+//! top-level module it names (the layers) or to the sibling it names (the circles).
 
 use std::path::{Path, PathBuf};
 
@@ -17,6 +19,22 @@ const UPPER: &[&str] = &["refine", "pipeline", "cmd"];
 /// a path allowed to be named from that layer, itself and anything under it. Delete an
 /// entry when the edge is gone (the test then keeps it gone).
 const ALLOWED_UP: &[(&str, &str)] = &[];
+
+/// Import circles between siblings that exist today in other parts of the tree and are
+/// being removed, each as its members (module paths, sorted). The list only shrinks: a
+/// circle not in it, or larger than its entry, fails the test; delete an entry when its
+/// circle is gone (the test then says so).
+const KNOWN_CIRCLES: &[&[&str]] = &[
+    &["engine::gpu::batch", "engine::gpu::stages"],
+    &[
+        "io::gaussians",
+        "io::ply_compressed",
+        "io::splat",
+        "io::spz",
+    ],
+    &["io::lines", "io::obj"],
+    &["io::normals", "io::ply"],
+];
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -210,6 +228,120 @@ fn violations(allowed: &[(&str, &str)]) -> Vec<String> {
         }
     }
     bad
+}
+
+/// The module of every file under `src/` (`engine::gpu` for `src/engine/gpu/mod.rs`).
+fn modules() -> Vec<(PathBuf, Vec<String>)> {
+    let mut files = Vec::new();
+    rust_files(&root().join("src"), &mut files);
+    files.sort();
+    files
+        .into_iter()
+        .map(|f| {
+            let rel = f.strip_prefix(root()).unwrap().to_path_buf();
+            let m = module_of(&rel);
+            (f, m)
+        })
+        .collect()
+}
+
+/// The edges between siblings: `a -> b` when a file in `a` (a file, or a folder and all
+/// under it) names something in `b`, `a` and `b` children of one module. A path into a
+/// file's own module, or to an item of an enclosing module, is no edge: a folder's
+/// `mod.rs` is the interface its files share.
+fn sibling_edges() -> Vec<(String, String)> {
+    let all = modules();
+    let known: std::collections::HashSet<Vec<String>> =
+        all.iter().map(|(_, m)| m.clone()).collect();
+    let mut edges = std::collections::BTreeSet::new();
+    for (f, module) in &all {
+        let text = std::fs::read_to_string(f).unwrap();
+        for (_, code) in code_lines(&text) {
+            for p in paths(&code, module) {
+                let p: Vec<String> = p.split("::").map(String::from).collect();
+                let k = module.iter().zip(&p).take_while(|(a, b)| a == b).count();
+                if k == module.len() || k == p.len() || !known.contains(&p[..=k]) {
+                    continue;
+                }
+                edges.insert((module[..=k].join("::"), p[..=k].join("::")));
+            }
+        }
+    }
+    edges.into_iter().collect()
+}
+
+/// The circles of `edges`: each strongly connected set of two or more, sorted.
+fn circles(edges: &[(String, String)]) -> Vec<Vec<String>> {
+    let mut nodes: Vec<&String> = edges.iter().flat_map(|(a, b)| [a, b]).collect();
+    nodes.sort();
+    nodes.dedup();
+    let reach = |from: &String| {
+        let mut seen = vec![from.clone()];
+        let mut k = 0;
+        while k < seen.len() {
+            for (a, b) in edges {
+                if *a == seen[k] && !seen.contains(b) {
+                    seen.push(b.clone());
+                }
+            }
+            k += 1;
+        }
+        seen
+    };
+    let mut out: Vec<Vec<String>> = Vec::new();
+    for n in &nodes {
+        let mut c: Vec<String> = reach(n)
+            .into_iter()
+            .filter(|m| reach(m).contains(n))
+            .collect();
+        c.sort();
+        if c.len() > 1 && !out.contains(&c) {
+            out.push(c);
+        }
+    }
+    out
+}
+
+#[test]
+fn no_two_siblings_name_each_other() {
+    let found = circles(&sibling_edges());
+    let within_known = |c: &Vec<String>| {
+        KNOWN_CIRCLES
+            .iter()
+            .any(|k| c.iter().all(|m| k.contains(&m.as_str())))
+    };
+    let new: Vec<String> = found
+        .iter()
+        .filter(|c| !within_known(c))
+        .map(|c| c.join(" <-> "))
+        .collect();
+    assert!(new.is_empty(), "import circles:\n{}", new.join("\n"));
+    for k in KNOWN_CIRCLES {
+        assert!(
+            found
+                .iter()
+                .any(|c| k.iter().all(|m| c.iter().any(|x| x == m))),
+            "{k:?} is no longer a circle: delete it from KNOWN_CIRCLES"
+        );
+    }
+}
+
+#[test]
+fn the_circle_finder_sees_direct_and_round_circles_only() {
+    let e = |v: &[(&str, &str)]| -> Vec<(String, String)> {
+        v.iter()
+            .map(|(a, b)| (a.to_string(), b.to_string()))
+            .collect()
+    };
+    assert_eq!(
+        circles(&e(&[("a", "b"), ("b", "c")])),
+        Vec::<Vec<String>>::new()
+    );
+    assert_eq!(circles(&e(&[("a", "b"), ("b", "a")])), [["a", "b"]]);
+    assert_eq!(
+        circles(&e(&[("a", "b"), ("b", "c"), ("c", "a"), ("c", "d")])),
+        [["a", "b", "c"]]
+    );
 }
 
 #[test]

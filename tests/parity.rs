@@ -351,7 +351,7 @@ fn a_query_with_more_than_65535_members_in_one_cell() {
     let fq = [Query::new(part, 0.02), Query::new(seg, 0.02)];
     let n = cpu.members(&fq[..1]).unwrap()[0].len();
     assert!((15_000..16_384).contains(&n), "{n}");
-    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default());
+    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default().fit);
     let ask = FitAsk::new(&spec, Default::default());
     let before = gpu.counters();
     let want = cpu.fit_lines(&fq, &ask).unwrap();
@@ -612,7 +612,7 @@ fn the_edge_fit_runs_where_the_option_says() {
     use linegs_gpu::engine::FitAsk;
     let r = 0.03;
     let (pts, qs) = ridge_scene(r);
-    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default());
+    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default().fit);
     let ask = FitAsk::new(&spec, Default::default());
     for on in [FitOn::Device, FitOn::Host, FitOn::Auto] {
         let opts = GpuOptions {
@@ -713,7 +713,7 @@ fn the_device_fit_answers_like_the_host() {
     use linegs_gpu::refine::Params;
     let r = 0.03;
     let (pts, qs) = ridge_scene(r);
-    let spec = FitSpec::from(&Params::default());
+    let spec = FitSpec::from(&Params::default().fit);
     let ask = FitAsk::new(&spec, Default::default());
     // Whole, and with the point store split in two (13 bytes a point per binding: the
     // option splits the 16-byte cell-relative points in two parts, while the 12-byte
@@ -965,7 +965,7 @@ fn a_large_device_fit_batch_matches_the_cpu() {
     let Some((_, cpu, gpu)) = engines(&pts, 0.03, opts) else {
         return;
     };
-    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default());
+    let spec = linegs_gpu::refine::fit::FitSpec::from(&linegs_gpu::refine::Params::default().fit);
     let ask = FitAsk::new(&spec, Default::default());
     let want = cpu.fit_lines(&qs, &ask).unwrap();
     let got = gpu.fit_lines(&qs, &ask).unwrap();

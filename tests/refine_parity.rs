@@ -164,7 +164,7 @@ fn no_stage_walks_member_lists_on_the_host_in_the_hardware_configuration() {
     let Ok(g) = gpu else {
         return;
     };
-    assert!(p.split_gaps() > 0.0 && !p.split_interior);
+    assert!(p.gaps.split_gaps_for(p.profile) > 0.0 && !p.gaps.split_interior);
     let out = run(&g, &scene.lines);
     let stage = |name: &str| {
         out.stages

@@ -108,3 +108,64 @@ fn a_segment_dense_to_its_ends_is_not_cropped() {
     let out = crop::crop(&e, &[input], &p.with_radius(R)).unwrap();
     assert_eq!(out[0], input);
 }
+
+/// The command line's names in its order, as they were before the steps declared them:
+/// `--help`, the report's `params` and scripts that pass options by name rely on them.
+const NAMES_BEFORE: [&str; 50] = [
+    "profile",
+    "radius",
+    "translate_keep",
+    "fit",
+    "fit_iterations",
+    "fit_max_turn_deg",
+    "fit_max_move",
+    "fit_bandwidth",
+    "fit_min_points",
+    "fit_opacity_weight",
+    "fit_gate",
+    "max_scale",
+    "max_sagitta",
+    "split_gaps",
+    "split_interior",
+    "outlier_ratio",
+    "collinear_merge",
+    "cluster_min_weight",
+    "cluster_c",
+    "cluster_min_cos",
+    "merge_angle_deg",
+    "merge_dist_frac",
+    "merge_density_ratio",
+    "join_angle_deg",
+    "join_gap_frac",
+    "join_chord_shrink",
+    "join_gap_density",
+    "join_density_ratio",
+    "join_rmse_ratio",
+    "crop_end_frac",
+    "crop_mid_frac",
+    "crop_ratio",
+    "crop_probe_half",
+    "crop_extend",
+    "crop_max_probes",
+    "crop_min_interval",
+    "fix_cluster_distance",
+    "fix_merge_extent",
+    "fix_merge_overlap",
+    "fix_join_order",
+    "fix_join_gap",
+    "fix_crop_density",
+    "fix_crop_min_cut",
+    "fix_crop_chance",
+    "fix_merge_fidelity",
+    "order_endpoints",
+    "eval_radius",
+    "unit_scale",
+    "score_lambda",
+    "r_l",
+];
+
+#[test]
+fn the_steps_declare_the_names_of_the_command_line_in_its_order() {
+    // A new parameter goes into this list where its step's group sits in `Params`.
+    assert_eq!(Params::NAMES, NAMES_BEFORE);
+}

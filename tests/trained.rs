@@ -86,7 +86,7 @@ fn check_pair(pair: &str, gt_file: &str, f_floor: f64) {
     assert!(after.score.unwrap() > before.score.unwrap(), "{pair}");
     let notes = out.report.refine.as_ref().unwrap();
     assert!(
-        notes.fit_kept > 0,
+        notes.fit.fit_kept > 0,
         "{pair}: the gate decided nothing: {notes:?}"
     );
 }
@@ -106,9 +106,10 @@ fn abc_nut_pair_stays_on_its_edges_and_curves() {
 
 #[test]
 fn without_the_gate_the_fit_moves_the_lines_off_the_edges() {
-    let p = Params {
-        fit_gate: false,
-        ..params()
+    let p = {
+        let mut q = params();
+        q.fit.fit_gate = false;
+        q
     };
     let (_, out) = refine("proc", p, Backend::Cpu);
     let truth = gt_of("proc", "gt_lines.txt");
@@ -133,8 +134,18 @@ fn the_gate_decides_alike_on_both_engines() {
         gpu.report.refine.as_ref().unwrap(),
     );
     assert_eq!(
-        (c.fit_corner, c.fit_ridge, c.fit_unclear, c.fit_kept),
-        (g.fit_corner, g.fit_ridge, g.fit_unclear, g.fit_kept)
+        (
+            c.fit.fit_corner,
+            c.fit.fit_ridge,
+            c.fit.fit_unclear,
+            c.fit.fit_kept
+        ),
+        (
+            g.fit.fit_corner,
+            g.fit.fit_ridge,
+            g.fit.fit_unclear,
+            g.fit.fit_kept
+        )
     );
 }
 
@@ -179,7 +190,7 @@ fn splats_on_faces_keep_exact_lines_and_bring_biased_ones_back() {
         "clean: accuracy {acc} vs input {acc_in}"
     );
     let notes = out.report.refine.as_ref().unwrap();
-    let d = notes.diagnosis.as_ref().unwrap();
+    let d = notes.fit.diagnosis.as_ref().unwrap();
     assert_eq!(d.kind, "faces", "{d:?}");
     assert_eq!(d.moved, 0, "{d:?}");
 
@@ -194,14 +205,16 @@ fn splats_on_faces_keep_exact_lines_and_bring_biased_ones_back() {
         .refine
         .as_ref()
         .unwrap()
+        .fit
         .diagnosis
         .clone()
         .unwrap();
     assert!(d.moved >= 10, "{d:?}");
     // Without the edge fit they stay off.
-    let none = Params {
-        fit: Some(linegs_gpu::refine::Fit::None),
-        ..params()
+    let none = {
+        let mut q = params();
+        q.fit.fit = Some(linegs_gpu::refine::Fit::None);
+        q
     };
     let out = refine_lines(&scene, off, none);
     let (acc, _, _) = scores(&out.lines.segments, &truth);
@@ -219,6 +232,7 @@ fn a_coarse_model_is_named_sunk_and_moves_nothing() {
         .refine
         .as_ref()
         .unwrap()
+        .fit
         .diagnosis
         .clone()
         .unwrap();
@@ -250,6 +264,7 @@ fn edge_samples_are_named_and_biased_lines_come_back() {
         .refine
         .as_ref()
         .unwrap()
+        .fit
         .diagnosis
         .clone()
         .unwrap();

@@ -11,7 +11,7 @@ use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::pipeline::{Job, Scene};
 use linegs_gpu::refine::fit::{cut_to_working_set, fit_edges, Attributes};
 use linegs_gpu::refine::straight::straightness;
-use linegs_gpu::refine::{run_steps_noted, Params};
+use linegs_gpu::refine::{run_steps_noted, Params, Profile};
 
 const R: f64 = 0.03;
 
@@ -38,18 +38,19 @@ fn opacity_weighting_keeps_the_line_on_the_opaque_edge_not_on_faint_floaters() {
         opacity: cut_to_working_set(&pts, &opacity, &[input]),
         thickness: None,
     };
-    let weighted = Params {
-        fit_opacity_weight: true,
-        ..Params::default()
+    let weighted = {
+        let mut q = Params::default();
+        q.fit.fit_opacity_weight = true;
+        q
     };
-    let f = fit_edges(&e, &[input], &attrs, R, &weighted).unwrap();
+    let f = fit_edges(&e, &[input], &attrs, R, &weighted.fit).unwrap();
     assert!(
         mid_off_axis(&f.segments[0]) < 0.05 * R,
         "{:?}",
         f.segments[0]
     );
     // Unweighted (the default), the floaters' count wins.
-    let f = fit_edges(&e, &[input], &attrs, R, &Params::default()).unwrap();
+    let f = fit_edges(&e, &[input], &attrs, R, &Params::default().fit).unwrap();
     assert!(
         mid_off_axis(&f.segments[0]) > 0.35 * R,
         "{:?}",
@@ -78,7 +79,11 @@ fn wide_band_scene() -> (Scene, usize) {
 fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
     let (scene, wide) = wide_band_scene();
     let params = Params::default().with_radius(R).params().clone();
-    assert_eq!(params.max_scale(), 1.0, "on in the default profile");
+    assert_eq!(
+        params.fit.max_scale_for(params.profile),
+        1.0,
+        "on in the default profile"
+    );
     let out = Job::new(params.clone(), Backend::Cpu)
         .refine(&scene, |_| {})
         .unwrap();
@@ -98,9 +103,10 @@ fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
     assert_eq!(out.report.input.n_box, scene.gaussians.len());
     // Without the cut the wide band makes the ridge unsure (its mode moves with the
     // kernel's width) and the line does not reach the edge.
-    let keep_all = Params {
-        max_scale: Some(0.0),
-        ..params.clone()
+    let keep_all = {
+        let mut q = params.clone();
+        q.fit.max_scale = Some(0.0);
+        q
     };
     let out = Job::new(keep_all, Backend::Cpu)
         .refine(&scene, |_| {})
@@ -112,7 +118,10 @@ fn the_scale_cut_leaves_out_wide_gaussians_and_the_line_stays_on_the_edge() {
         out.lines.segments[0]
     );
     // The reference profile keeps every Gaussian, as the authors' code does.
-    assert_eq!(Params::reference().max_scale(), 0.0);
+    assert_eq!(
+        Params::reference().fit.max_scale_for(Profile::Reference),
+        0.0
+    );
 }
 
 /// A sharp edge drawn by small Gaussians on the x axis, and a second true edge 10 r away
@@ -161,9 +170,10 @@ fn wide_gaussians_witness_a_line_that_they_do_not_place() {
 fn the_report_counts_the_placing_engines_batches_too() {
     let scene = witnessed_by_wide_scene();
     let run = |fit| {
-        let params = Params {
-            fit: Some(fit),
-            ..Params::default().with_radius(R).params().clone()
+        let params = {
+            let mut q = Params::default().with_radius(R).params().clone();
+            q.fit.fit = Some(fit);
+            q
         };
         let out = Job::new(params, Backend::Cpu)
             .refine(&scene, |_| {})
@@ -183,9 +193,10 @@ fn the_report_counts_the_placing_engines_batches_too() {
 #[test]
 fn the_scale_cut_is_a_warning_when_the_model_has_no_scales_or_all_are_wide() {
     let (mut scene, _) = wide_band_scene();
-    let asked = Params {
-        max_scale: Some(1.0),
-        ..Params::default().with_radius(R).params().clone()
+    let asked = {
+        let mut q = Params::default().with_radius(R).params().clone();
+        q.fit.max_scale = Some(1.0);
+        q
     };
     // every Gaussian wider than the limit: none left out, and said so
     scene.max_scale = Some(vec![1.0; scene.gaussians.len()]);
@@ -251,17 +262,18 @@ fn a_segment_on_a_curve_is_measured_bent_and_dropped_and_a_straight_edge_kept() 
     let lines = [on_arc, straight];
     let e = cpu_engine(&pts, &lines, R);
     let p = Params::default();
-    let st = straightness(&e, &lines, &Attributes::default(), R, &p).unwrap();
+    let st = straightness(&e, &lines, &Attributes::default(), R, &p.fit).unwrap();
     let (a, s) = (st[0].unwrap(), st[1].unwrap());
     assert!((0.5..1.1).contains(&a), "arc: sagitta {a} r, built 0.8 r");
     assert!(s < 0.2, "straight edge: sagitta {s} r");
 
     // Through the steps: --max-sagitta 0.5 drops the arc's segment only; off keeps both.
     let input = LineSet::new(lines.to_vec());
-    let drop = Params {
-        max_sagitta: 0.5,
-        fit: Some(linegs_gpu::refine::Fit::None),
-        ..Params::default()
+    let drop = {
+        let mut q = Params::default();
+        q.straight.max_sagitta = 0.5;
+        q.fit.fit = Some(linegs_gpu::refine::Fit::None);
+        q
     }
     .with_radius(R);
     let (out, notes) = run_steps_noted(
@@ -272,21 +284,22 @@ fn a_segment_on_a_curve_is_measured_bent_and_dropped_and_a_straight_edge_kept() 
         |_, _, _| {},
     )
     .unwrap();
-    assert_eq!(notes.curved_dropped, Some(1));
+    assert_eq!(notes.straight.curved_dropped, Some(1));
     assert_eq!(out.len(), 1);
     assert!(
         (out.segments[0].p1.z - 10.0 * R).abs() < 0.1 * R,
         "{:?}",
         out.segments[0]
     );
-    let off = Params {
-        fit: Some(linegs_gpu::refine::Fit::None),
-        ..Params::default()
+    let off = {
+        let mut q = Params::default();
+        q.fit.fit = Some(linegs_gpu::refine::Fit::None);
+        q
     }
     .with_radius(R);
     let (out, notes) =
         run_steps_noted(&e, (&e, &Attributes::default()), &input, &off, |_, _, _| {}).unwrap();
-    assert_eq!(notes.curved_dropped, None);
+    assert_eq!(notes.straight.curved_dropped, None);
     assert_eq!(out.len(), 2);
 }
 

@@ -322,7 +322,8 @@ fn param_names() -> Vec<String> {
 fn params(args: Vec<(String, String)>) -> PyResult<Params> {
     let mut p = Params::default();
     for (name, value) in &args {
-        p.set(name, value).map_err(InputError::new_err)?;
+        p.set(name, value)
+            .map_err(|e| InputError::new_err(e.to_string()))?;
     }
     Ok(p)
 }

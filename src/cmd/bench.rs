@@ -1,10 +1,10 @@
 use super::input_error;
-use super::params::{BackendArg, ProfileArg};
+use super::params::{choices, chosen, BackendArg};
 use anyhow::Result;
 use clap::Args;
 use linegs_gpu::mem;
 use linegs_gpu::pipeline::{Scene, Stage};
-use linegs_gpu::refine::Params;
+use linegs_gpu::refine::{Params, Profile};
 use linegs_gpu::synth;
 use serde::Serialize;
 use std::time::Instant;
@@ -34,8 +34,8 @@ pub struct BenchArgs {
     #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu,gpu")]
     pub backend: Vec<BackendArg>,
     /// Refinement profile.
-    #[arg(long, value_enum, default_value_t = ProfileArg::Default)]
-    pub profile: ProfileArg,
+    #[arg(long, default_value_t = Profile::default().name().to_string(), value_parser = choices(Profile::CHOICES))]
+    pub profile: String,
     /// Repetitions per case; the fastest total is kept.
     #[arg(long, default_value_t = 1)]
     pub repeat: usize,
@@ -143,7 +143,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
         ));
     }
     let params = Params {
-        profile: a.profile.into(),
+        profile: chosen(&a.profile),
         ..Params::default()
     };
     let mut cases = Vec::new();
@@ -217,7 +217,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
                 "tool": "linegs-gpu",
                 "command": "bench",
                 "threads": rayon::current_num_threads(),
-                "profile": linegs_gpu::refine::Profile::from(a.profile),
+                "profile": params.profile,
                 "cases": cases,
             }))?
         );

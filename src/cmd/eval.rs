@@ -1,4 +1,4 @@
-use super::params::{EvalParamsArgs, ProfileArg, ProtocolArg};
+use super::params::{choices, chosen, EvalParamsArgs, ProtocolArg};
 use super::{load_framed, metrics_table, print_engine, BackendArgs, InputArgs};
 use anyhow::Result;
 use clap::Args;
@@ -7,7 +7,7 @@ use linegs_gpu::eval::gt::{GtMetrics, Protocol, Reference};
 use linegs_gpu::eval::Metrics;
 use linegs_gpu::io;
 use linegs_gpu::pipeline::Job;
-use linegs_gpu::refine::Params;
+use linegs_gpu::refine::{Params, Profile};
 use linegs_gpu::render;
 use std::path::PathBuf;
 
@@ -29,8 +29,8 @@ pub struct EvalArgs {
     pub eval: EvalParamsArgs,
     /// Profile whose R_L convention applies when --r-l is not given (default: paper's
     /// equation; reference: the authors' ln N_box).
-    #[arg(long, value_enum, default_value_t = ProfileArg::Default)]
-    pub profile: ProfileArg,
+    #[arg(long, default_value_t = Profile::default().name().to_string(), value_parser = choices(Profile::CHOICES))]
+    pub profile: String,
     /// A second segment set measured beside the first (e.g. the refined lines), on the
     /// same working set (the box of the first set).
     #[arg(long, value_name = "FILE")]
@@ -91,7 +91,7 @@ pub fn run(a: EvalArgs, verbose: bool) -> Result<()> {
     }
     outs.check()?;
     let params = Params {
-        profile: a.profile.into(),
+        profile: chosen(&a.profile),
         eval: a.eval.clone().into(),
         ..Params::default()
     };

@@ -141,17 +141,17 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         eprintln!("warning: {w}");
     }
     if let Some(steps) = &r.refine {
-        if let Some(sh) = &steps.shifts {
+        if let Some(sh) = &steps.fit.shifts {
             println!(
                 "step 4 (--fit {}) moved {} of {} segments: median {:.3} r, 90th percentile {:.3} r",
-                steps.fit.name(),
+                steps.fit.fit.name(),
                 sh.moved,
                 scene.lines.len(),
                 sh.median_r,
                 sh.p90_r
             );
         }
-        if let Some(d) = &steps.diagnosis {
+        if let Some(d) = &steps.fit.diagnosis {
             println!(
                 "the model near the lines: {}; the edge fit moved {}, kept {} where the model \
                  knows the edge less well than the line, {} for lack of members",
@@ -159,7 +159,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             );
         }
         if let Some(n) = a.explain {
-            match steps.fit_decisions.iter().find(|d| d.segment == n) {
+            match steps.fit.fit_decisions.iter().find(|d| d.segment == n) {
                 Some(d) => println!("segment {n}: {}", d.explain(r.radius)),
                 None => println!(
                     "segment {n}: no decision (the edge fit did not move it, or it is not \

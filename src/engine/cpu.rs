@@ -3,22 +3,20 @@
 //! order, so results do not depend on the thread count or the order of work.
 
 use super::order::SpatialOrder;
+use super::walk::{for_each_member, members_into};
 use super::{
     Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, FitJob, Member, Nearest,
     NearestSum, Query,
 };
 use crate::geom::fit::FitResult;
-use crate::geom::{p64, Cylinder};
+use crate::geom::p64;
 use crate::index::Grid;
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-thread_local! {
-    /// Each thread's scratch rows for [`Grid::visit_ranges`].
-    static ROWS: std::cell::RefCell<Vec<(u32, u32)>> = const { std::cell::RefCell::new(Vec::new()) };
-}
+pub use super::walk::member_list;
 
 pub struct CpuEngine {
     grid: Arc<Grid>,
@@ -127,26 +125,6 @@ pub(crate) fn add_nearest<I: Ord + Copy>(
     }
 }
 
-/// Calls `f(sorted index, t1, offset)` for each member of `X(q)` in `grid`, in grid order:
-/// the walk of every CPU-engine answer.
-#[inline]
-fn for_each_member(grid: &Grid, q: &Query, mut f: impl FnMut(usize, f64, DVec3)) {
-    if !q.seg.is_valid() {
-        return;
-    }
-    let cyl = Cylinder::new(&q.seg, q.r);
-    ROWS.with_borrow_mut(|rows| {
-        grid.visit_ranges(&q.seg, q.r, rows, |range| {
-            let start = range.start;
-            for (j, p) in grid.points[range].iter().enumerate() {
-                if let Some((t1, v)) = cyl.test(p64(*p)) {
-                    f(start + j, t1, v);
-                }
-            }
-        })
-    });
-}
-
 /// [`Engine::members`] over `grid` on the host, f64.
 pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
     let order = SpatialOrder::new(grid, queries);
@@ -180,29 +158,6 @@ pub fn extent_of(grid: &Grid, q: &Query) -> super::Extent {
     let (mut e, l) = (super::Extent::default(), q.seg.length());
     for_each_member(grid, q, |_, t1, _| e.add(t1.clamp(0.0, l)));
     e
-}
-
-/// The members of one query on the host, in working-set order.
-pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
-    let mut out = Vec::new();
-    members_into(grid, q, &mut out);
-    out
-}
-
-/// [`member_list`] into `out` (cleared first).
-fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
-    out.clear();
-    for_each_member(grid, q, |j, t, offset| {
-        out.push(Member {
-            id: grid.ids[j],
-            t,
-            offset,
-        })
-    });
-    // Working-set order, not grid order: the grid's layout follows the working
-    // box, so a far segment would otherwise reorder the members (and the fit's
-    // sums) of every other segment in the last bits.
-    out.sort_unstable_by_key(|m| m.id);
 }
 
 impl Engine for CpuEngine {

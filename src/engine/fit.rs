@@ -13,8 +13,8 @@
 //! - [`by_batches`] (the default [`Engine::fit_edges`], the GPU engine's device fit): one
 //!   [`Engine::fit_lines`] batch per iteration for all segments still moving.
 
-use super::cpu::member_list;
 use super::order::SpatialOrder;
+use super::walk::member_list;
 use super::{Engine, EngineError, FitAnswer, FitAsk, FitJob, Query};
 use crate::geom::fit::{
     basis, near_threshold, step, step_section, FitResult, LineFit, Member, Section, Track,

@@ -9,6 +9,7 @@ pub mod fit;
 pub mod gpu;
 pub mod order;
 pub mod select;
+pub mod walk;
 
 use crate::geom::Segment;
 use glam::DVec3;

@@ -10,7 +10,7 @@ use crate::eval::{self, gt, Metrics};
 use crate::geom::{LineSet, Segment};
 use crate::index::{Grid, WorkingSet};
 use crate::refine::{self, Params, RadiusArg, Settings};
-use crate::report::{GroundTruth, Report, Sweep};
+use crate::report::{GroundTruth, InputReport, Report, Sweep};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -73,7 +73,8 @@ impl Refiner {
     ) -> Result<Refiner, RunError> {
         let t = Instant::now();
         let ws = WorkingSet::new(gaussians, segments);
-        let settings = Settings::resolve(params.clone(), &ws.points).map_err(RunError::Input)?;
+        let settings = Settings::resolve(params.clone(), &ws.points)
+            .map_err(|e| RunError::Input(e.to_string()))?;
         let grid = Arc::new(Grid::build(&ws.points, ws.bounds, grid_cell(&settings)));
         drop(ws);
         let mut stages = vec![Stage::since("index", segments.len(), t)];
@@ -334,6 +335,54 @@ enum ScaleCutWarning {
     AllWider { k: f64, limit: f64 },
 }
 
+/// The parts every report shares: tool, engine, settings, input, the stages so far
+/// (load, index, engine) and the input's metrics.
+fn new_report(command: &str, scene: &Scene, r: &Refiner, before: Metrics) -> Report {
+    let s = r.settings();
+    let mut stages = Vec::new();
+    if scene.input.gaussians.is_some() {
+        stages.push(Stage {
+            name: "load".into(),
+            segments: scene.lines.len(),
+            seconds: scene.load_seconds,
+            host_seconds: None,
+            device_seconds: None,
+            device_items: None,
+            point_bytes: None,
+            host_lists: None,
+        });
+    }
+    stages.extend(r.stages().iter().cloned());
+    Report {
+        tool: "linegs-gpu".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        command: command.into(),
+        backend: r.engine().backend().into(),
+        adapter: r.engine().adapter(),
+        profile: s.params().profile,
+        params: s.params().clone(),
+        fixes: *s.fixes(),
+        radius: s.radius(),
+        input: InputReport {
+            n_box: r.n_box(),
+            ..scene.input.clone()
+        },
+        output: None,
+        stages,
+        total_seconds: 0.0,
+        before,
+        after: None,
+        sweep: None,
+        ground_truth: None,
+        refine: None,
+        scene: scene.description.clone(),
+        notes: r.notes().to_vec(),
+        engine_counters: None,
+        warnings: scene.warnings.clone(),
+        sources: None,
+    }
+}
+
 impl Job {
     /// The job with `params` on `backend`, nothing extra.
     pub fn new(params: Params, backend: Backend) -> Job {
@@ -359,13 +408,13 @@ impl Job {
     /// exceeds `max_scale x r`, with how many were left out, or a warning when the model
     /// has no scales; `None` when the option is off.
     fn scale_cut(&self, scene: &Scene) -> Result<Option<ScaleCut>, RunError> {
-        let k = self.params.max_scale();
+        let k = self.params.fit.max_scale_for(self.params.profile);
         if k <= 0.0 {
             return Ok(None);
         }
         let Some(sc) = &scene.max_scale else {
             // Not a warning when the user did not ask: most models carry no scales.
-            if self.params.max_scale.is_none() {
+            if self.params.fit.max_scale.is_none() {
                 return Ok(None);
             }
             return Ok(Some((None, Err(ScaleCutWarning::NoScales { k }))));
@@ -375,7 +424,7 @@ impl Job {
             RadiusArg::Auto => {
                 let ws = crate::index::WorkingSet::new(&scene.gaussians, &scene.lines.segments);
                 Settings::resolve(self.params.clone(), &ws.points)
-                    .map_err(RunError::Input)?
+                    .map_err(|e| RunError::Input(e.to_string()))?
                     .radius()
             }
         };
@@ -450,7 +499,7 @@ impl Job {
             before: g.measure(&scene.lines.segments),
             after: Some(g.measure(&out.lines.segments)),
         });
-        let mut report = Report::new("refine", scene, &refiner, out.before);
+        let mut report = new_report("refine", scene, &refiner, out.before);
         report.warnings.extend(frame_warning);
         report.input.n_box = n_box;
         report.stages.extend(out.stages);
@@ -516,7 +565,7 @@ impl Job {
             before: g.measure(&scene.lines.segments),
             after: compare.map(|c| g.measure(&c.segments)),
         });
-        let mut report = Report::new("eval", scene, &refiner, before);
+        let mut report = new_report("eval", scene, &refiner, before);
         report.warnings.extend(mismatch.map(|(_, msg)| msg));
         report.stages.push(Stage::since(
             "evaluate",
@@ -588,9 +637,10 @@ mod tests {
     use crate::refine::Fit;
 
     fn job() -> Job {
-        let params = Params {
-            fit: Some(Fit::Paper),
-            ..Params::default()
+        let params = {
+            let mut q = Params::default();
+            q.fit.fit = Some(Fit::Paper);
+            q
         };
         Job::new(params, Backend::Cpu)
     }

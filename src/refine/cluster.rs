@@ -10,9 +10,41 @@
 //! offset of segments that do not overlap, so it has no spatial bound and uses all pairs.
 
 use crate::geom::{LineSet, Segment};
-use crate::refine::Settings;
+use crate::refine::params::{group, Check};
+use crate::refine::{Pass, Settings, Step};
 use glam::DVec3;
 use rayon::prelude::*;
+
+group! {
+    /// Step 7's parameters.
+    pub struct ClusterParams {
+        /// Cluster: minimum similarity w of an edge.
+        cluster_min_weight: f64 = 0.4, Check::Fraction;
+        /// Cluster: initial per-root threshold c (thr = w + c / size after a join).
+        cluster_c: f64 = 1.5, Check::Positive;
+        /// Cluster: |cos| between directions above which the length weight is non-zero.
+        cluster_min_cos: f64 = 0.5, Check::Fraction;
+    }
+}
+
+/// Step 7, the stage `cluster`: the clusters for the merge and join (the segments stay
+/// as they are, so the report's lengths do not list it).
+pub struct Cluster;
+
+impl Step for Cluster {
+    fn name(&self) -> &'static str {
+        "cluster"
+    }
+
+    fn measured(&self) -> bool {
+        false
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), crate::engine::EngineError> {
+        pass.clusters = cluster(&pass.lines, pass.settings);
+        Ok(())
+    }
+}
 
 /// A similarity edge between segments `i < j` of different input lines, with its weight
 /// `w >= 0`, packed in 16 bytes whose order is the order step 7 takes edges in: `w`
@@ -128,7 +160,7 @@ pub const MAX_NEIGHBOURS: usize = 128;
 /// all-pairs loop gives). With the fixed distance, a segment keeps at most
 /// [`MAX_NEIGHBOURS`] edges to the segments it is the longer of.
 pub fn edges(lines: &LineSet, s: &Settings) -> Vec<Edge> {
-    let (r_c, p, fixes) = (s.radius(), s.params(), s.fixes());
+    let (r_c, p, fixes) = (s.radius(), &s.params().cluster, s.fixes());
     let bound = distance_bound(r_c, p.cluster_min_weight);
     let mut e = match bound {
         Some(b) if fixes.cluster_distance && lines.len() > 1 => edges_hashed(
@@ -630,7 +662,7 @@ pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
 /// merge results are ordered (`order_endpoints`), it is ordered already, so the merge of
 /// two copies gives back the first one bit for bit (`G' = G`, tie keeps `G`).
 fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
-    let (r_c, p, fixes) = (st.radius(), st.params(), st.fixes());
+    let (r_c, p, fixes) = (st.radius(), &st.params().cluster, st.fixes());
     let bits = |s: &Segment| {
         let (a, b) = (s.p1.to_array(), s.p2.to_array());
         [a[0], a[1], a[2], b[0], b[1], b[2]].map(f64::to_bits)
@@ -677,7 +709,7 @@ fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
 /// [`cluster`] without setting copies aside: the definition.
 pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
     let n = lines.len();
-    let p = s.params();
+    let p = &s.params().cluster;
     let edges = edges(lines, s);
     let root = union_find(n, &edges, p.cluster_c);
     let mut id_of_root = vec![usize::MAX; n];

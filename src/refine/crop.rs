@@ -4,7 +4,8 @@
 
 use crate::engine::{Engine, EngineError, Query, Want};
 use crate::geom::Segment;
-use crate::refine::Settings;
+use crate::refine::params::{group, Check};
+use crate::refine::{Fixes, Pass, Settings, Step};
 
 /// Binary-search state of one end, in axial coordinates of the pre-crop segment.
 #[derive(Clone, Copy, Debug)]
@@ -60,7 +61,7 @@ pub fn crop(
     segments: &[Segment],
     s: &Settings,
 ) -> Result<Vec<Segment>, EngineError> {
-    let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
+    let (r, p, fixes) = (s.radius(), &s.params().crop, s.fixes());
     // Windows: [0, e L], [(1-e) L, L] and the middle m L around the midpoint.
     let mut queries = Vec::with_capacity(segments.len() * 3);
     for s in segments {
@@ -120,7 +121,7 @@ pub fn crop(
             .map(|&j| {
                 let s = &searches[j];
                 let seg = &segments[s.seg];
-                let h = p.crop_probe_half() * seg.length();
+                let h = p.probe_half(fixes) * seg.length();
                 let m = 0.5 * (s.a + s.b);
                 Query::with_plane(seg.sub(m - h, m + h), r, seg.point_at(m))
             })
@@ -138,7 +139,7 @@ pub fn crop(
             let m = 0.5 * (s.a + s.b);
             // +1 moves the end outward (away from the midpoint), -1 inward, 0 stays.
             let step: i32 = if fixes.crop_density {
-                let dens = super::density(st.count, 2.0 * p.crop_probe_half() * seg.length());
+                let dens = super::density(st.count, 2.0 * p.probe_half(fixes) * seg.length());
                 if dens >= p.crop_ratio * mid_density[s.seg] {
                     1
                 } else {
@@ -174,7 +175,7 @@ pub fn crop(
             .flat_map(|i| [(i, true), (i, false)])
             .filter(|&(i, first)| !sparse[i][usize::from(!first)])
             .collect();
-        for (i, first, u) in extend(engine, segments, &dense, &mid_density, r, p)? {
+        for (i, first, u) in extend(engine, segments, &dense, &mid_density, r, p, fixes)? {
             if first {
                 ends[i].0 = -u;
             } else {
@@ -247,7 +248,8 @@ fn extend(
     dense: &[(usize, bool)],
     mid_density: &[f64],
     r: f64,
-    p: &crate::refine::Params,
+    p: &CropParams,
+    fixes: &Fixes,
 ) -> Result<Vec<(usize, bool, f64)>, EngineError> {
     let mut m: Vec<March> = dense
         .iter()
@@ -281,7 +283,7 @@ fn extend(
             .iter()
             .map(|&j| {
                 let k = &m[j];
-                let h = p.crop_probe_half() * segments[k.seg].length();
+                let h = p.probe_half(fixes) * segments[k.seg].length();
                 match k.bisect {
                     None => Query::new(window(k, k.u, k.u + 2.0 * h), r),
                     Some((a, b)) => {
@@ -295,7 +297,7 @@ fn extend(
         for (&j, st) in active.iter().zip(&res) {
             let k = &mut m[j];
             let l = segments[k.seg].length();
-            let h = p.crop_probe_half() * l;
+            let h = p.probe_half(fixes) * l;
             let limit = p.crop_extend * l;
             let is_dense = super::density(st.count, 2.0 * h) >= p.crop_ratio * mid_density[k.seg];
             match k.bisect {
@@ -322,6 +324,58 @@ fn extend(
         .filter(|k| k.u > 0.0)
         .map(|k| (k.seg, k.first, k.u))
         .collect())
+}
+
+group! {
+    /// Step 9's parameters.
+    pub struct CropParams {
+        /// Crop: length of each end window as a fraction of L.
+        crop_end_frac: f64 = 0.02, Check::Fraction;
+        /// Crop: length of the middle window as a fraction of L.
+        crop_mid_frac: f64 = 0.6, Check::Fraction;
+        /// Crop: an end (or probe) is sparse below this x the middle density.
+        crop_ratio: f64 = 0.5, Check::Fraction;
+        /// Crop: half length of a binary-search probe window, as a fraction of L. Default:
+        /// 0.1 with the authors' side-balance test (their `m ± 0.1 L`), 0.03 with the density
+        /// test, whose window centred on the true end holds half the middle density whatever
+        /// its size; a short window keeps the Gaussians of edges meeting at a corner from
+        /// holding the end out past the corner.
+        crop_probe_half: Option<f64> = None, Check::Positive;
+        /// Crop: also extend an end whose window is dense, along the line, while windows past
+        /// it stay dense, by at most this x L (0: never extend, the paper's crop). Windows of
+        /// 2 x the probe half length march outward, one batch per step, and the last is
+        /// bisected; a corner stops the march, since past it the cylinder holds only the
+        /// other edge's cross-section. 0 to 10; at most 256 windows an end.
+        crop_extend: f64 = 0.0, Check::ExtendFactor;
+        /// Crop: most probes of the binary search, 1 to 64 (after 53 halvings an f64
+        /// interval cannot shrink further, so more would only spin).
+        crop_max_probes: u32 = 10, Check::Whole { lo: 1, hi: 64 };
+        /// Crop: the binary search stops when its interval is shorter than this (a positive
+        /// number; the probe limit bounds the search whatever its value).
+        crop_min_interval: f64 = 1e-4, Check::Positive;
+    }
+}
+
+impl CropParams {
+    /// The probe half window in effect (see `crop_probe_half`).
+    pub fn probe_half(&self, fixes: &Fixes) -> f64 {
+        self.crop_probe_half
+            .unwrap_or(if fixes.crop_density { 0.03 } else { 0.1 })
+    }
+}
+
+/// Step 9, the stage `crop`.
+pub struct Crop;
+
+impl Step for Crop {
+    fn name(&self) -> &'static str {
+        "crop"
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError> {
+        pass.lines.segments = crop(pass.engine, &pass.lines.segments, pass.settings)?;
+        Ok(())
+    }
 }
 
 #[cfg(test)]

@@ -11,7 +11,8 @@ pub use crate::geom::fit::{basis, FitResult, FitSpec, How, LineFit, MIN_ELONGATI
 use crate::geom::fit::{families, median, FitPoints};
 use crate::geom::kernel::Columns;
 use crate::geom::Segment;
-use crate::refine::Params;
+use crate::refine::params::{group, Check};
+use crate::refine::{Fit, Pass, Profile, Shifts, Step};
 use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
@@ -73,8 +74,8 @@ impl Attributes {
     }
 }
 
-impl From<&Params> for FitSpec {
-    fn from(p: &Params) -> FitSpec {
+impl From<&FitParams> for FitSpec {
+    fn from(p: &FitParams) -> FitSpec {
         FitSpec {
             iterations: p.fit_iterations,
             max_turn_deg: p.fit_max_turn_deg,
@@ -102,7 +103,7 @@ pub(crate) fn ridge(
     pts: &[(f64, DVec2)],
     pw: &[f64],
     r: f64,
-    p: &Params,
+    p: &FitParams,
 ) -> Option<(LineFit, f64)> {
     crate::geom::fit::ridge(pts, pw, r, p.fit_bandwidth, false)
 }
@@ -113,7 +114,7 @@ fn cross_section(
     members: &[Member],
     frame: (DVec3, DVec3),
     attrs: &Attributes,
-    p: &Params,
+    p: &FitParams,
 ) -> (Vec<(f64, DVec2)>, Vec<f64>) {
     crate::geom::fit::cross_section(members, frame, &attrs.fit_points(), p.fit_opacity_weight)
 }
@@ -125,7 +126,7 @@ pub fn fit_edges(
     segments: &[Segment],
     attrs: &Attributes,
     r: f64,
-    p: &Params,
+    p: &FitParams,
 ) -> Result<FitResult, EngineError> {
     engine.fit_edges(&FitJob {
         segments,
@@ -559,7 +560,7 @@ pub fn decide(
     fitted: &mut FitResult,
     attrs: &Attributes,
     r: f64,
-    p: &Params,
+    p: &FitParams,
 ) -> Result<Vec<Decision>, EngineError> {
     let moved: Vec<usize> = (0..input.len())
         .filter(|&i| {
@@ -913,5 +914,150 @@ impl Estimate {
             Estimate::Corner => "corner of two faces",
             Estimate::Ridge => "ridge of the centres",
         }
+    }
+}
+
+group! {
+    /// Step 4's parameters: where each line goes (`--fit`), the edge fit's, and which
+    /// Gaussians may place a line (`--max-scale`).
+    pub struct FitParams {
+        /// Translate: fraction of the points nearest to the line whose mean offset moves it.
+        translate_keep: f64 = 0.4, Check::Fraction;
+        /// Step 4: `paper` (mean offset of the nearest translate-keep, the published step: to
+        /// reproduce the paper, or to put the lines where the Gaussians are), `edge` (fit the
+        /// edge: two faces' corner where the model has normals, else the dense ridge, iterated;
+        /// to put the lines on the true edges) or `none`. Default: the profile's (`edge` for
+        /// default, `paper` for reference).
+        fit: Option<Fit> = None, Check::Choice(Fit::CHOICES);
+        /// Edge fit: most iterations (one engine batch each).
+        fit_iterations: u32 = 12, Check::Whole { lo: 0, hi: u32::MAX };
+        /// Edge fit: largest turn of a line per iteration (degrees).
+        fit_max_turn_deg: f64 = 3.0, Check::Positive;
+        /// Edge fit: largest total move of an endpoint, in units of r.
+        fit_max_move: f64 = 2.0, Check::Positive;
+        /// Edge fit: final width of the ridge kernel, in units of r.
+        fit_bandwidth: f64 = 0.25, Check::Positive;
+        /// Edge fit: fewest points under the kernel (or per face family) for a move; 1 or
+        /// more.
+        fit_min_points: u32 = 8, Check::Whole { lo: 1, hi: u32::MAX };
+        /// Edge fit: weight each Gaussian by its opacity (PLY `opacity`, after the sigmoid),
+        /// so that faint floaters pull less; the fewest-points test still counts points. No
+        /// effect where the model has no opacities or all are equal.
+        fit_opacity_weight: bool = false, Check::Switch;
+        /// Edge fit: keep a segment where it is unless its Gaussians explain the move (the
+        /// move gate): a corner only when both faces are thin slabs of splats and the input
+        /// line lies outside one of them; a ridge only when less than a third of it is face
+        /// splats. Measured in one batch of members of the fitted lines. `false`: every
+        /// fitted move stands.
+        fit_gate: bool = true, Check::Switch;
+        /// Leave out of the steps that place lines (the edge fit, its gate, the straightness
+        /// test) every Gaussian whose largest standard deviation (`exp(max scale_i)`) exceeds
+        /// this x r: a Gaussian wider than the cylinder cannot place a line within r. The
+        /// steps that ask whether Gaussians are there (outliers, merges, crop, gaps) and the
+        /// metrics see the whole model. Needs a 3DGS PLY with scales; 0: keep all.
+        /// Default: the profile's (1 for default, 0 for reference).
+        max_scale: Option<f64> = None, Check::NonNegative;
+    }
+}
+
+impl FitParams {
+    /// `--max-scale` in effect: the user's, else the profile's (1 for default, 0 for
+    /// reference, which keeps every Gaussian as the authors' code does).
+    pub fn max_scale_for(&self, profile: Profile) -> f64 {
+        self.max_scale.unwrap_or(match profile {
+            Profile::Default => 1.0,
+            Profile::Reference => 0.0,
+        })
+    }
+}
+
+/// What step 4 did (the report's `refine` section).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitNotes {
+    pub fit: Fit,
+    pub shifts: Option<Shifts>,
+    /// Engine batches of the edge fit (0 for the other fits).
+    pub fit_iterations: u32,
+    /// Edge fit: segments placed on two faces' corner, on a ridge, and left (unclear).
+    pub fit_corner: usize,
+    pub fit_ridge: usize,
+    pub fit_unclear: usize,
+    /// Edge fit: segments the move gate kept at their input (`--fit-gate`): an estimate
+    /// existed, but the Gaussians did not explain the move.
+    #[serde(default)]
+    pub fit_kept: usize,
+    /// Edge fit: each weighed segment's decision with its numbers (`--fit-gate`).
+    #[serde(default)]
+    pub fit_decisions: Vec<Decision>,
+    /// Edge fit: what the model is near the lines, from the decisions (`--fit-gate`).
+    #[serde(default)]
+    pub diagnosis: Option<Diagnosis>,
+}
+
+impl Default for FitNotes {
+    fn default() -> Self {
+        FitNotes {
+            fit: Fit::None,
+            shifts: None,
+            fit_iterations: 0,
+            fit_corner: 0,
+            fit_ridge: 0,
+            fit_unclear: 0,
+            fit_kept: 0,
+            fit_decisions: Vec::new(),
+            diagnosis: None,
+        }
+    }
+}
+
+/// Step 4, the stage `translate`: each line moved as `--fit` says (the published
+/// translation, the edge fit with its gate, or no move), and how far they moved.
+pub struct Place;
+
+impl Step for Place {
+    fn name(&self) -> &'static str {
+        "translate"
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError> {
+        let s = pass.settings;
+        let (r, p, how) = (s.radius(), &s.params().fit, s.fixes().fit);
+        let (place, attrs, segments) = (pass.place, pass.attrs, &pass.lines.segments);
+        let notes = &mut pass.notes.fit;
+        notes.fit = how;
+        let moved = match how {
+            Fit::Paper => super::translate::translate(place, segments, r, p.translate_keep)?,
+            Fit::None => segments.clone(),
+            Fit::Edge => {
+                let mut f = fit_edges(place, segments, attrs, r, p)?;
+                if p.fit_gate {
+                    notes.fit_decisions = decide(place, segments, &mut f, attrs, r, p)?;
+                    notes.diagnosis = diagnose(&notes.fit_decisions, r);
+                }
+                notes.fit_iterations = f.iterations;
+                let count = |h| f.how.iter().filter(|&&x| x == h).count();
+                notes.fit_corner = count(How::Corner);
+                notes.fit_ridge = count(How::Ridge);
+                notes.fit_unclear = count(How::Unclear);
+                notes.fit_kept = count(How::Kept);
+                f.segments
+            }
+        };
+        notes.shifts = Shifts::between(segments, &moved, r);
+        if let Some(s) = &notes.shifts {
+            // The edge fit moves lines onto edges on purpose; the published step follows
+            // the Gaussians wherever they sit.
+            if s.systematic && how == Fit::Paper {
+                pass.notes.warnings.push(format!(
+                    "--fit paper: the median segment moved {:.2} r (90th percentile {:.2} r): \
+                     the Gaussians' ridge sits off the lines, so this step trades the lines' \
+                     own position for closeness to the Gaussians (and the paper's score); \
+                     compare --fit none and --fit edge",
+                    s.median_r, s.p90_r
+                ));
+            }
+        }
+        pass.lines.segments = moved;
+        Ok(())
     }
 }

@@ -18,6 +18,9 @@
 
 use crate::engine::{Engine, EngineError, Extent, Query};
 use crate::geom::{LineSet, Segment};
+use crate::refine::params::{group, Check};
+use crate::refine::{Pass, Profile, Step};
+use serde::{Deserialize, Serialize};
 
 /// What [`split_gaps`] did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -179,6 +182,79 @@ pub fn split_gaps_traced(
         }
     }
     Ok((LineSet { segments, groups }, total, from))
+}
+
+group! {
+    /// The gap split's parameters.
+    pub struct GapsParams {
+        /// After crop, split a segment where a stretch of its cylinder holds no Gaussian
+        /// (and cut an empty stretch off an end): a stretch at least r long is empty beyond
+        /// chance when, at the segment's own density, the chance of so long an empty stretch
+        /// among the segment's gaps (2 at the ends, N + 1 inside) is at most this. Pieces
+        /// with fewer than fit-min-points points are dropped. 0: off. Default: the profile's
+        /// (0.01 for default, 0 for reference).
+        split_gaps: Option<f64> = None, Check::Fraction;
+        /// `--split-gaps` also splits a segment at an empty interior stretch (not only cuts an
+        /// empty end). Off by default: trained models leave stretches of a true edge without
+        /// Gaussians (textureless faces, thinning near edges), and the chance rule, which
+        /// assumes evenly spread Gaussians, split true edges there.
+        split_interior: bool = false, Check::Switch;
+    }
+}
+
+impl GapsParams {
+    /// `--split-gaps` in effect: the user's, else the profile's (0.01 for default, 0 for
+    /// reference).
+    pub fn split_gaps_for(&self, profile: Profile) -> f64 {
+        self.split_gaps.unwrap_or(match profile {
+            Profile::Default => 0.01,
+            Profile::Reference => 0.0,
+        })
+    }
+}
+
+/// What the gap split did (the report's `refine` section; null when off).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GapsNotes {
+    /// `--split-gaps`: ends cut at an empty end stretch, segments split at an empty
+    /// interior stretch, and pieces dropped as too few points (null when off).
+    pub gaps_ends_cut: Option<usize>,
+    pub gaps_split: Option<usize>,
+    pub gaps_pieces_dropped: Option<usize>,
+}
+
+/// The stage `split_gaps` (`--split-gaps` above 0).
+pub struct SplitGaps;
+
+impl Step for SplitGaps {
+    fn name(&self) -> &'static str {
+        "split_gaps"
+    }
+
+    fn on(&self, pass: &Pass) -> bool {
+        let p = pass.settings.params();
+        p.gaps.split_gaps_for(p.profile) > 0.0
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError> {
+        let (r, p) = (pass.settings.radius(), pass.settings.params());
+        let alpha = p.gaps.split_gaps_for(p.profile);
+        let (split, g, from) = split_gaps_traced(
+            pass.engine,
+            &pass.lines,
+            r,
+            alpha,
+            p.fit.fit_min_points,
+            p.gaps.split_interior,
+        )?;
+        pass.pieces(split, &from);
+        pass.notes.gaps = GapsNotes {
+            gaps_ends_cut: Some(g.ends_cut),
+            gaps_split: Some(g.split),
+            gaps_pieces_dropped: Some(g.pieces_dropped),
+        };
+        Ok(())
+    }
 }
 
 #[cfg(test)]

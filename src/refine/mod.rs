@@ -1,10 +1,14 @@
-//! The refinement pipeline of docs/method.md#the-refinement-steps, one file per step. Steps
+//! The refinement pipeline of docs/method.md#the-refinement-steps: a list of steps
+//! ([`STEPS`]), one file (or folder) each, driven by one loop that times and records them.
+//! A step owns its parameters (a [`params::group!`] struct, flattened into [`Params`]),
+//! its notes for the report (flattened into [`StepNotes`]) and its [`Step::run`]. Steps
 //! talk to the Gaussians only through [`crate::engine::Engine`] batches.
 
 pub mod params;
 
 pub use params::{
-    auto_radius, EvalParams, Fit, Fixes, Params, Profile, RadiusArg, RlMode, Settings,
+    auto_radius, Check, EvalParams, Fit, FixParams, Fixes, Group, ParamError, Profile, RadiusArg,
+    RlMode, Settings,
 };
 
 pub mod cluster;
@@ -18,8 +22,117 @@ pub mod translate;
 
 use crate::engine::{Engine, EngineError};
 use crate::geom::{LineSet, Segment};
+use params::group;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
+
+/// The refinement steps, in the order they run. Adding a step: its file (its parameters,
+/// notes and [`Step`]), a `pub mod` line above and its line here; its parameters and notes
+/// each get a line in [`Params`] and [`StepNotes`] (docs/contributing.md#adding-a-step).
+pub const STEPS: &[&dyn Step] = &[
+    &fit::Place,
+    &outliers::Outliers,
+    &mergejoin::CollinearMerge,
+    &cluster::Cluster,
+    &mergejoin::MergeJoin,
+    &crop::Crop,
+    &gaps::SplitGaps,
+    &straight::Straightness,
+];
+
+group! {
+    /// The refinement thresholds of docs/method.md#the-refinement-steps (defaults from the
+    /// paper / the authors' code): the profile and the radius, then each step's own
+    /// parameters, the profile's fixes and the evaluation options, in the command line's
+    /// order (the JSON report's `params` lists them flat, in this order too).
+    pub struct Params {
+        /// `default` (the paper's intent, all fixes on) or `reference` (the authors' code,
+        /// quirks included).
+        profile: Profile = Profile::Default, Check::Choice(Profile::CHOICES);
+        /// Cylinder radius r for refinement (scene units; the paper uses 0.03 for ABC-NEF and
+        /// 0.05 for real scenes), or `auto`: 0.02 x the 95th-percentile distance of the working
+        /// set's Gaussian centers from their centroid. Also the clustering distance scale r_c.
+        radius: RadiusArg = RadiusArg::Fixed(0.03), Check::Radius;
+        ..fit: fit::FitParams,
+        ..straight: straight::StraightParams,
+        ..gaps: gaps::GapsParams,
+        ..outliers: outliers::OutliersParams,
+        ..collinear: mergejoin::CollinearParams,
+        ..cluster: cluster::ClusterParams,
+        ..merge_join: mergejoin::MergeJoinParams,
+        ..crop: crop::CropParams,
+        ..switches: FixParams,
+        ..eval: EvalParams,
+    }
+}
+
+/// One refinement step: a stage of the report and the timings.
+pub trait Step: Sync {
+    /// The stage's name (the report's `stages` and `refine.lengths`).
+    fn name(&self) -> &'static str;
+    /// Whether the step runs on `pass` (one that is off is neither timed nor recorded).
+    fn on(&self, _pass: &Pass) -> bool {
+        true
+    }
+    /// Whether the report's `refine.lengths` records the stage (a step that only prepares
+    /// the next, as the clustering does, leaves the segments as they were).
+    fn measured(&self) -> bool {
+        true
+    }
+    /// Runs the step: reads and replaces `pass.lines` (and their sources), writes its notes.
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError>;
+}
+
+/// What the steps work on, handed from one to the next.
+pub struct Pass<'a> {
+    /// Answers the steps that ask whether Gaussians are there (outliers, merge and join,
+    /// crop, gaps).
+    pub engine: &'a dyn Engine,
+    /// Answers the steps that move a line onto the Gaussians (the edge fit, its gate, the
+    /// straightness test), with the attributes of its Gaussians (see [`run_steps_noted`]).
+    pub place: &'a dyn Engine,
+    pub attrs: &'a fit::Attributes,
+    pub settings: &'a Settings,
+    pub lines: LineSet,
+    /// Each segment's sources: the indices into the input of the segments it came from.
+    pub sources: Vec<Vec<u32>>,
+    pub notes: StepNotes,
+    /// The clusters of `lines` (the cluster step's, for the merge and join).
+    pub clusters: Vec<Vec<usize>>,
+}
+
+impl Pass<'_> {
+    /// Keeps the segments `kept` (indices into `lines`, increasing) and their sources.
+    pub fn keep(&mut self, kept: &[usize]) {
+        self.lines = self.lines.select(kept);
+        self.sources = kept.iter().map(|&k| self.sources[k].clone()).collect();
+    }
+
+    /// Replaces the lines with `lines`, whose segment `i` comes from `from[i]` (an index
+    /// into the lines before: a piece of it).
+    pub fn pieces(&mut self, lines: LineSet, from: &[usize]) {
+        self.lines = lines;
+        self.sources = from.iter().map(|&k| self.sources[k].clone()).collect();
+    }
+
+    /// Replaces the lines with `lines`, whose segment `i` is made of the segments
+    /// `members[i]` (indices into the lines before: a merge or join holds both).
+    pub fn regroup(&mut self, lines: LineSet, members: &[Vec<usize>]) {
+        self.lines = lines;
+        self.sources = members
+            .iter()
+            .map(|m| {
+                let mut v: Vec<u32> = m
+                    .iter()
+                    .flat_map(|&k| self.sources[k].iter().copied())
+                    .collect();
+                v.sort_unstable();
+                v.dedup();
+                v
+            })
+            .collect();
+    }
+}
 
 /// `rho = N / L` (0 when `L = 0`).
 pub fn density(count: u64, length: f64) -> f64 {
@@ -77,37 +190,19 @@ pub struct StageLength {
     pub removed: f64,
 }
 
-/// What the steps did beyond the segment counts (the report's `refine` section).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// What the steps did beyond the segment counts (the report's `refine` section): each
+/// step's own notes, flattened, and what the loop and the pipeline record.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepNotes {
-    pub fit: Fit,
-    pub shifts: Option<Shifts>,
-    /// Engine batches of the edge fit (0 for the other fits).
-    pub fit_iterations: u32,
-    /// Edge fit: segments placed on two faces' corner, on a ridge, and left (unclear).
-    pub fit_corner: usize,
-    pub fit_ridge: usize,
-    pub fit_unclear: usize,
-    /// Edge fit: segments the move gate kept at their input (`--fit-gate`): an estimate
-    /// existed, but the Gaussians did not explain the move.
-    #[serde(default)]
-    pub fit_kept: usize,
-    /// Edge fit: each weighed segment's decision with its numbers (`--fit-gate`).
-    #[serde(default)]
-    pub fit_decisions: Vec<fit::Decision>,
-    /// Edge fit: what the model is near the lines, from the decisions (`--fit-gate`).
-    #[serde(default)]
-    pub diagnosis: Option<fit::Diagnosis>,
+    #[serde(flatten)]
+    pub fit: fit::FitNotes,
     pub lengths: Vec<StageLength>,
     /// `--max-scale`: Gaussians left out as wider than `max_scale x r` (null when off).
     pub scale_cut: Option<usize>,
-    /// `--max-sagitta`: segments dropped as curves (null when off).
-    pub curved_dropped: Option<usize>,
-    /// `--split-gaps`: ends cut at an empty end stretch, segments split at an empty
-    /// interior stretch, and pieces dropped as too few points (null when off).
-    pub gaps_ends_cut: Option<usize>,
-    pub gaps_split: Option<usize>,
-    pub gaps_pieces_dropped: Option<usize>,
+    #[serde(flatten)]
+    pub straight: straight::StraightNotes,
+    #[serde(flatten)]
+    pub gaps: gaps::GapsNotes,
     pub warnings: Vec<String>,
 }
 
@@ -154,156 +249,98 @@ pub fn run_steps_traced(
     s: &Settings,
     mut stage: impl FnMut(&str, usize, Instant),
 ) -> Result<(LineSet, StepNotes, Vec<Vec<u32>>), EngineError> {
-    let mut sources: Vec<Vec<u32>> = (0..input.len() as u32).map(|i| vec![i]).collect();
-    // The sources of the step's output, from each output's members in the step's input.
-    fn regroup(sources: &[Vec<u32>], members: &[Vec<usize>]) -> Vec<Vec<u32>> {
-        members
-            .iter()
-            .map(|m| {
-                let mut v: Vec<u32> = m.iter().flat_map(|&k| sources[k].iter().copied()).collect();
-                v.sort_unstable();
-                v.dedup();
-                v
-            })
-            .collect()
-    }
-    let pick = |sources: &[Vec<u32>], kept: &[usize]| -> Vec<Vec<u32>> {
-        kept.iter().map(|&k| sources[k].clone()).collect()
-    };
     let (place, attrs) = place;
-    let (r, p, fixes) = (s.radius(), s.params(), s.fixes());
     let mut lines = input.clone();
-    if fixes.order_endpoints {
+    if s.fixes().order_endpoints {
         for s in &mut lines.segments {
             if s.p1.length() > s.p2.length() {
                 *s = s.reversed();
             }
         }
     }
-    let mut notes = StepNotes {
-        fit: fixes.fit,
-        shifts: None,
-        fit_iterations: 0,
-        fit_corner: 0,
-        fit_ridge: 0,
-        fit_unclear: 0,
-        fit_kept: 0,
-        fit_decisions: Vec::new(),
-        diagnosis: None,
-        lengths: Vec::new(),
-        scale_cut: None,
-        curved_dropped: None,
-        gaps_ends_cut: None,
-        gaps_split: None,
-        gaps_pieces_dropped: None,
-        warnings: Vec::new(),
+    let mut pass = Pass {
+        engine,
+        place,
+        attrs,
+        settings: s,
+        sources: (0..input.len() as u32).map(|i| vec![i]).collect(),
+        lines,
+        notes: StepNotes::default(),
+        clusters: Vec::new(),
     };
-    let mut last_len = total_length(&lines.segments);
-    let mut note_len = |name: &str, segs: &[Segment], notes: &mut StepNotes| {
-        let l = total_length(segs);
-        notes.lengths.push(StageLength {
-            name: name.to_string(),
-            length: l,
-            removed: last_len - l,
-        });
-        last_len = l;
-    };
-
-    let t = Instant::now();
-    let moved = match fixes.fit {
-        Fit::Paper => translate::translate(place, &lines.segments, r, p.translate_keep)?,
-        Fit::None => lines.segments.clone(),
-        Fit::Edge => {
-            let mut f = fit::fit_edges(place, &lines.segments, attrs, r, p)?;
-            if p.fit_gate {
-                notes.fit_decisions = fit::decide(place, &lines.segments, &mut f, attrs, r, p)?;
-                notes.diagnosis = fit::diagnose(&notes.fit_decisions, r);
-            }
-            notes.fit_iterations = f.iterations;
-            let count = |h| f.how.iter().filter(|&&x| x == h).count();
-            notes.fit_corner = count(fit::How::Corner);
-            notes.fit_ridge = count(fit::How::Ridge);
-            notes.fit_unclear = count(fit::How::Unclear);
-            notes.fit_kept = count(fit::How::Kept);
-            f.segments
+    let mut last_len = total_length(&pass.lines.segments);
+    for step in STEPS {
+        if !step.on(&pass) {
+            continue;
         }
-    };
-    notes.shifts = Shifts::between(&lines.segments, &moved, r);
-    if let Some(s) = &notes.shifts {
-        // The edge fit moves lines onto edges on purpose; the published step follows the
-        // Gaussians wherever they sit.
-        if s.systematic && fixes.fit == Fit::Paper {
-            notes.warnings.push(format!(
-                "--fit paper: the median segment moved {:.2} r (90th percentile {:.2} r): the \
-                 Gaussians' ridge sits off the lines, so this step trades the lines' own \
-                 position for closeness to the Gaussians (and the paper's score); compare \
-                 --fit none and --fit edge",
-                s.median_r, s.p90_r
-            ));
+        let t = Instant::now();
+        step.run(&mut pass)?;
+        if step.measured() {
+            let l = total_length(&pass.lines.segments);
+            pass.notes.lengths.push(StageLength {
+                name: step.name().to_string(),
+                length: l,
+                removed: last_len - l,
+            });
+            last_len = l;
         }
+        stage(step.name(), pass.lines.len(), t);
     }
-    lines.segments = moved;
-    note_len("translate", &lines.segments, &mut notes);
-    stage("translate", lines.len(), t);
+    debug_assert_eq!(pass.sources.len(), pass.lines.len());
+    Ok((pass.lines, pass.notes, pass.sources))
+}
 
-    let t = Instant::now();
-    let o = outliers::outliers(engine, &lines.segments, r, p.outlier_ratio())?;
-    lines = lines.select(&o.kept);
-    sources = pick(&sources, &o.kept);
-    note_len("outliers", &lines.segments, &mut notes);
-    stage("outliers", lines.len(), t);
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::select::Backend;
+    use crate::pipeline::Refiner;
 
-    if p.collinear_merge && lines.groups.is_some() {
-        let t = Instant::now();
-        let (merged, members) = mergejoin::collinear_merge_traced(engine, &lines, s)?;
-        lines = merged;
-        sources = regroup(&sources, &members);
-        note_len("collinear_merge", &lines.segments, &mut notes);
-        stage("collinear_merge", lines.len(), t);
-    }
-
-    let t = Instant::now();
-    let clusters = cluster::cluster(&lines, s);
-    stage("cluster", lines.len(), t);
-
-    let t = Instant::now();
-    let (joined, members) = mergejoin::merge_join_traced(engine, &lines, &clusters, s)?;
-    lines = joined;
-    sources = regroup(&sources, &members);
-    note_len("merge_join", &lines.segments, &mut notes);
-    stage("merge_join", lines.len(), t);
-
-    let t = Instant::now();
-    lines.segments = crop::crop(engine, &lines.segments, s)?;
-    note_len("crop", &lines.segments, &mut notes);
-    stage("crop", lines.len(), t);
-
-    let alpha = p.split_gaps();
-    if alpha > 0.0 {
-        let t = Instant::now();
-        let (split, g, from) =
-            gaps::split_gaps_traced(engine, &lines, r, alpha, p.fit_min_points, p.split_interior)?;
-        lines = split;
-        sources = pick(&sources, &from);
-        notes.gaps_ends_cut = Some(g.ends_cut);
-        notes.gaps_split = Some(g.split);
-        notes.gaps_pieces_dropped = Some(g.pieces_dropped);
-        note_len("split_gaps", &lines.segments, &mut notes);
-        stage("split_gaps", lines.len(), t);
+    /// The stages run on the toy scene (its lines are grouped: the collinear merge runs),
+    /// and the lengths the report lists.
+    fn stages(p: &Params) -> (Vec<String>, Vec<String>) {
+        let scene = crate::synth::toy_scene(&crate::synth::ToyParams::default());
+        let r = Refiner::new(&scene.gaussians, &scene.lines.segments, p, Backend::Cpu).unwrap();
+        let mut seen = Vec::new();
+        let (out, notes) = run_steps_noted(
+            r.engine(),
+            (r.engine(), &fit::Attributes::default()),
+            &scene.lines,
+            r.settings(),
+            |name, n, _| seen.push(format!("{name} {n}")),
+        )
+        .unwrap();
+        assert!(seen.last().unwrap().ends_with(&format!(" {}", out.len())));
+        let names = seen
+            .iter()
+            .map(|s| s.split(' ').next().unwrap().to_string());
+        let lengths = notes.lengths.iter().map(|l| l.name.clone()).collect();
+        (names.collect(), lengths)
     }
 
-    if p.max_sagitta > 0.0 {
-        let t = Instant::now();
-        let st = straight::straightness(place, &lines.segments, attrs, r, p)?;
-        let kept: Vec<usize> = (0..lines.len())
-            .filter(|&i| st[i].is_none_or(|sag| sag <= p.max_sagitta))
-            .collect();
-        notes.curved_dropped = Some(lines.len() - kept.len());
-        lines = lines.select(&kept);
-        sources = pick(&sources, &kept);
-        note_len("straightness", &lines.segments, &mut notes);
-        stage("straightness", lines.len(), t);
+    #[test]
+    fn the_loop_runs_the_steps_that_are_on_in_order_and_measures_all_but_the_clustering() {
+        let names: Vec<&str> = STEPS.iter().map(|s| s.name()).collect();
+        assert_eq!(
+            names,
+            [
+                "translate",
+                "outliers",
+                "collinear_merge",
+                "cluster",
+                "merge_join",
+                "crop",
+                "split_gaps",
+                "straightness"
+            ]
+        );
+        let (ran, lengths) = stages(&Params::default());
+        assert_eq!(ran, names[..7]);
+        assert_eq!(lengths, [&names[..3], &names[4..7]].concat());
+        let mut p = Params::reference();
+        p.straight.max_sagitta = 0.5;
+        p.collinear.collinear_merge = false;
+        let (ran, _) = stages(&p);
+        assert_eq!(ran, [&names[..2], &names[3..6], &names[7..]].concat());
     }
-    debug_assert_eq!(sources.len(), lines.len());
-    Ok((lines, notes, sources))
 }

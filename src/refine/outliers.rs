@@ -3,6 +3,8 @@
 
 use crate::engine::{Engine, EngineError, Query, Want};
 use crate::geom::Segment;
+use crate::refine::params::{group, Check};
+use crate::refine::{Pass, Profile, Step};
 
 pub struct OutlierResult {
     /// Indices of the kept segments, in order.
@@ -48,4 +50,42 @@ pub fn outliers(
         theta,
         density,
     })
+}
+
+group! {
+    /// Step 5's parameter.
+    pub struct OutliersParams {
+        /// Outliers: drop segments with density <= ratio x mean density, a ratio in [0, 1];
+        /// -1 uses max(mean - 2 std, 0). `default` profile: 0.1 (a trained model's density
+        /// varies tenfold between its faces and its thin features); `reference`: 0.2.
+        outlier_ratio: Option<f64> = None, Check::OutlierRatio;
+    }
+}
+
+impl OutliersParams {
+    /// `--outlier-ratio` in effect: the user's, else the profile's (0.1 for default, 0.2,
+    /// the paper's, for reference).
+    pub fn outlier_ratio_for(&self, profile: Profile) -> f64 {
+        self.outlier_ratio.unwrap_or(match profile {
+            Profile::Default => 0.1,
+            Profile::Reference => 0.2,
+        })
+    }
+}
+
+/// Step 5, the stage `outliers`.
+pub struct Outliers;
+
+impl Step for Outliers {
+    fn name(&self) -> &'static str {
+        "outliers"
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError> {
+        let (r, p) = (pass.settings.radius(), pass.settings.params());
+        let ratio = p.outliers.outlier_ratio_for(p.profile);
+        let o = outliers(pass.engine, &pass.lines.segments, r, ratio)?;
+        pass.keep(&o.kept);
+        Ok(())
+    }
 }

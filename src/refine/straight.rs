@@ -8,9 +8,11 @@
 
 use crate::engine::{Engine, EngineError, Query};
 use crate::geom::Segment;
-use crate::refine::fit::{basis, ridge, Attributes};
-use crate::refine::Params;
+use crate::refine::fit::{basis, ridge, Attributes, FitParams};
+use crate::refine::params::{group, Check};
+use crate::refine::{Pass, Step};
 use glam::DVec2;
+use serde::{Deserialize, Serialize};
 
 type Third = (Vec<(f64, DVec2)>, Vec<f64>);
 
@@ -21,7 +23,7 @@ pub fn straightness(
     segments: &[Segment],
     attrs: &Attributes,
     r: f64,
-    p: &Params,
+    p: &FitParams,
 ) -> Result<Vec<Option<f64>>, EngineError> {
     let queries: Vec<Query> = segments.iter().map(|s| Query::new(*s, r)).collect();
     let members = engine.members(&queries)?;
@@ -60,4 +62,50 @@ pub fn straightness(
             Some(2.25 * (c[1].1 - chord).length() / r)
         })
         .collect())
+}
+
+group! {
+    /// The straightness test's parameter.
+    pub struct StraightParams {
+        /// Drop a segment whose Gaussians' ridge bends across it by more than this x r: it
+        /// follows a curve, not a line. The ridge is found (the edge fit's mean shift) in each
+        /// third of the cylinder; the bend is the sagitta of the arc through the three, 9/4 of
+        /// the middle one's offset from the chord through the others. A third with too few
+        /// points is not judged. Runs after crop; 0: off.
+        max_sagitta: f64 = 0.0, Check::NonNegative;
+    }
+}
+
+/// What the straightness test did (the report's `refine` section).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StraightNotes {
+    /// `--max-sagitta`: segments dropped as curves (null when off).
+    pub curved_dropped: Option<usize>,
+}
+
+/// The stage `straightness` (`--max-sagitta` above 0): segments whose Gaussians bend
+/// across them by more than `max_sagitta x r` are dropped.
+pub struct Straightness;
+
+impl Step for Straightness {
+    fn name(&self) -> &'static str {
+        "straightness"
+    }
+
+    fn on(&self, pass: &Pass) -> bool {
+        pass.settings.params().straight.max_sagitta > 0.0
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError> {
+        let (r, p) = (pass.settings.radius(), pass.settings.params());
+        let lines = &pass.lines;
+        let st = straightness(pass.place, &lines.segments, pass.attrs, r, &p.fit)?;
+        let max = p.straight.max_sagitta;
+        let kept: Vec<usize> = (0..lines.len())
+            .filter(|&i| st[i].is_none_or(|sag| sag <= max))
+            .collect();
+        pass.notes.straight.curved_dropped = Some(lines.len() - kept.len());
+        pass.keep(&kept);
+        Ok(())
+    }
 }

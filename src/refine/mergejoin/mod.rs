@@ -25,7 +25,8 @@ pub mod sequential;
 
 use crate::engine::{CylStats, Engine, EngineError};
 use crate::geom::{LineSet, Segment};
-use crate::refine::{Fixes, Params, Settings};
+use crate::refine::params::{group, Check};
+use crate::refine::{Fixes, Pass, Settings, Step};
 use std::collections::HashMap;
 
 /// Pairs one group may list in its first round. A group whose list runs out without a
@@ -54,7 +55,7 @@ enum Mode {
 struct Ctx<'a> {
     mode: Mode,
     r: f64,
-    p: &'a Params,
+    p: &'a MergeJoinParams,
     fixes: &'a Fixes,
 }
 
@@ -69,7 +70,7 @@ impl<'a> Ctx<'a> {
         Ctx {
             mode,
             r: s.radius(),
-            p: s.params(),
+            p: &s.params().merge_join,
             fixes: s.fixes(),
         }
     }
@@ -215,7 +216,7 @@ fn collinear_merge_from(
     let Some(groups) = &lines.groups else {
         return Ok(unchanged());
     };
-    if !s.params().collinear_merge {
+    if !s.params().collinear.collinear_merge {
         return Ok(unchanged());
     }
     let members = input_lines(groups);
@@ -233,6 +234,74 @@ fn collinear_merge_from(
         .map(|m| m.into_items_with_members())
         .collect();
     Ok(in_input_order(lines, &members, results))
+}
+
+group! {
+    /// Step 6's parameter.
+    pub struct CollinearParams {
+        /// Run the collinear merge inside input lines (Line3D++ `.txt` groups).
+        collinear_merge: bool = true, Check::Bool;
+    }
+}
+
+group! {
+    /// Step 8's parameters: the merge and the join.
+    pub struct MergeJoinParams {
+        /// Merge: largest angle between the two directions (degrees).
+        merge_angle_deg: f64 = 30.0, Check::Positive;
+        /// Merge: reject when both endpoints of the shorter are farther than this x L_long
+        /// from the longer's line.
+        merge_dist_frac: f64 = 0.2, Check::Positive;
+        /// Merge: reject when rho(G') < ratio x rho(G).
+        merge_density_ratio: f64 = 0.6, Check::Positive;
+        /// Join: largest angle between the joined segment and each input (degrees).
+        join_angle_deg: f64 = 10.0, Check::Positive;
+        /// Join: reject gaps longer than this x either length.
+        join_gap_frac: f64 = 0.8, Check::Positive;
+        /// Join: the gap chord is shrunk by this fraction at each end before counting.
+        join_chord_shrink: f64 = 0.02, Check::Fraction;
+        /// Join (fix): the gap must hold at least this x mean density x chord length points.
+        join_gap_density: f64 = 0.6, Check::Positive;
+        /// Join: reject J when rho(J) < ratio x rho of either input.
+        join_density_ratio: f64 = 0.6, Check::Positive;
+        /// Join: reject J when E(J) > ratio x E of either input.
+        join_rmse_ratio: f64 = 1.1, Check::Positive;
+    }
+}
+
+/// Step 6, the stage `collinear_merge` (on grouped input, `--collinear-merge true`).
+pub struct CollinearMerge;
+
+impl Step for CollinearMerge {
+    fn name(&self) -> &'static str {
+        "collinear_merge"
+    }
+
+    fn on(&self, pass: &Pass) -> bool {
+        pass.settings.params().collinear.collinear_merge && pass.lines.groups.is_some()
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError> {
+        let (merged, members) = collinear_merge_traced(pass.engine, &pass.lines, pass.settings)?;
+        pass.regroup(merged, &members);
+        Ok(())
+    }
+}
+
+/// Step 8, the stage `merge_join`: each cluster of the cluster step merged and joined.
+pub struct MergeJoin;
+
+impl Step for MergeJoin {
+    fn name(&self) -> &'static str {
+        "merge_join"
+    }
+
+    fn run(&self, pass: &mut Pass) -> Result<(), EngineError> {
+        let (joined, members) =
+            merge_join_traced(pass.engine, &pass.lines, &pass.clusters, pass.settings)?;
+        pass.regroup(joined, &members);
+        Ok(())
+    }
 }
 
 #[cfg(test)]

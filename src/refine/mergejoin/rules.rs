@@ -7,9 +7,10 @@
 //! the answers ([`merge`], [`join`]). A pair goes to the merge or to the join by
 //! [`overlaps`].
 
+use super::MergeJoinParams;
 use crate::engine::CylStats;
 use crate::geom::{Segment, MIN_LENGTH};
-use crate::refine::{density, Fixes, Params};
+use crate::refine::{density, Fixes};
 
 /// A segment a rule made, with the stats of its own cylinder when they are already known.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -56,7 +57,7 @@ pub struct MergeCandidate {
 pub fn merge_candidate(
     a: &Segment,
     b: &Segment,
-    p: &Params,
+    p: &MergeJoinParams,
     fidelity: Option<f64>,
 ) -> Option<MergeCandidate> {
     let g_is_a = longer_first(a, b);
@@ -87,7 +88,7 @@ pub fn merge(
     (b, st_b): (&Segment, CylStats),
     c: &MergeCandidate,
     st_prime: CylStats,
-    p: &Params,
+    p: &MergeJoinParams,
     fixes: &Fixes,
 ) -> Option<Made> {
     let ((g, st_g), s) = if c.g_is_a {
@@ -154,7 +155,7 @@ pub struct JoinCandidate {
 pub fn join_candidate(
     a: &Segment,
     b: &Segment,
-    p: &Params,
+    p: &MergeJoinParams,
     fixes: &Fixes,
     fidelity: Option<f64>,
 ) -> Option<JoinCandidate> {
@@ -202,7 +203,7 @@ pub fn join(
     c: &JoinCandidate,
     n_chord: u64,
     st_j: CylStats,
-    p: &Params,
+    p: &MergeJoinParams,
     fixes: &Fixes,
 ) -> Option<Made> {
     let (rho1, rho2) = (

@@ -102,7 +102,7 @@ pub fn collinear_merge_sequential(
     lines: &LineSet,
     s: &Settings,
 ) -> Result<LineSet, EngineError> {
-    let (Some(groups), true) = (&lines.groups, s.params().collinear_merge) else {
+    let (Some(groups), true) = (&lines.groups, s.params().collinear.collinear_merge) else {
         return Ok(lines.clone());
     };
     let cx = Ctx::new(Mode::Collinear, s);

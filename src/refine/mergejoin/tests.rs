@@ -1,5 +1,6 @@
 use super::*;
 use crate::engine::cpu::CpuEngine;
+use crate::refine::Params;
 use glam::DVec3;
 
 const R: f64 = 0.03;
@@ -95,9 +96,10 @@ fn a_merge_farther_than_half_r_from_an_input_is_refused_by_default() {
     let g = seg(0.0, 0.0, 2.0, 0.0);
     let s = seg(0.5, 0.02, 1.5, 0.02);
     assert_eq!(run(&e, vec![s, g], &Params::reference()).len(), 1);
-    let fixed_off = Params {
-        fix_merge_fidelity: Some(false),
-        ..Params::default()
+    let fixed_off = {
+        let mut q = Params::default();
+        q.switches.fix_merge_fidelity = Some(false);
+        q
     };
     assert_eq!(run(&e, vec![s, g], &fixed_off).len(), 1);
     assert_eq!(run(&e, vec![s, g], &Params::default()), vec![s, g]);
@@ -122,9 +124,10 @@ fn two_chords_of_a_curve_are_not_joined_across_it_by_default() {
         .collect();
     let e = engine(&pts);
     let (a, b) = (seg(0.0, 0.0, 1.0, 0.0), seg(1.0, 0.0, 2.0, 0.036));
-    let fixed_off = Params {
-        fix_merge_fidelity: Some(false),
-        ..Params::default()
+    let fixed_off = {
+        let mut q = Params::default();
+        q.switches.fix_merge_fidelity = Some(false);
+        q
     };
     assert_eq!(
         run(&e, vec![a, b], &fixed_off).len(),
@@ -200,9 +203,10 @@ fn gap_rule_reference_floor_versus_fix_fraction() {
     );
     assert_eq!(run(&e, segs.clone(), &Params::default()), segs);
     // Each fix alone switches its own rule.
-    let only_gap = Params {
-        fix_join_gap: Some(true),
-        ..Params::reference()
+    let only_gap = {
+        let mut q = Params::reference();
+        q.switches.fix_join_gap = Some(true);
+        q
     };
     assert_eq!(run(&e, segs.clone(), &only_gap), segs);
 }
@@ -217,9 +221,10 @@ fn join_order_reference_sorts_by_distance_from_the_first_p1() {
     assert_eq!(run(&e, segs.clone(), &Params::reference()), segs);
     let fixed = run(&e, segs.clone(), &Params::default());
     assert_eq!(fixed, vec![seg(2.0, 0.0, 0.0, 0.0)]);
-    let only_order = Params {
-        fix_join_order: Some(true),
-        ..Params::reference()
+    let only_order = {
+        let mut q = Params::reference();
+        q.switches.fix_join_order = Some(true);
+        q
     };
     // The authors' constructor (still on) orders the joined segment: |P1| <= |P2|.
     assert_eq!(run(&e, segs, &only_order), vec![fixed[0].reversed()]);
@@ -362,9 +367,10 @@ fn collinear_merge_joins_inside_input_lines_only() {
     let q = e.counters().queries;
     let flat = LineSet::new(lines.segments.clone());
     assert_eq!(collinear_merge(&e, &flat, &p.with_radius(R)).unwrap(), flat);
-    let off = Params {
-        collinear_merge: false,
-        ..Params::default()
+    let off = {
+        let mut q = Params::default();
+        q.collinear.collinear_merge = false;
+        q
     };
     assert_eq!(
         collinear_merge(&e, &lines, &off.with_radius(R)).unwrap(),
@@ -492,13 +498,14 @@ fn switches(k: usize) -> Params {
     } else {
         Params::reference()
     };
-    Params {
-        fix_merge_extent: bit(0),
-        fix_merge_overlap: bit(1),
-        fix_join_order: bit(2),
-        fix_join_gap: bit(3),
-        order_endpoints: bit(4),
-        ..base
+    {
+        let mut q = base;
+        q.switches.fix_merge_extent = bit(0);
+        q.switches.fix_merge_overlap = bit(1);
+        q.switches.fix_join_order = bit(2);
+        q.switches.fix_join_gap = bit(3);
+        q.switches.order_endpoints = bit(4);
+        q
     }
 }
 
@@ -568,7 +575,9 @@ fn reference_orders_every_merged_segment_so_a_later_join_sees_its_p1_first() {
     let s0 = DVec3::new(-0.9, 0.9, 0.0);
     let s = Segment::new(s0, s0 + DVec3::new(phi.cos(), phi.sin(), 0.0) * 0.5);
     let p = Params::reference();
-    let g_prime = rules::merge_candidate(&g, &s, &p, None).unwrap().g_prime;
+    let g_prime = rules::merge_candidate(&g, &s, &p.merge_join, None)
+        .unwrap()
+        .g_prime;
     assert!(g_prime.p1.length() > g_prime.p2.length(), "{g_prime:?}");
     let d = g_prime.dir();
     let t = Segment::new(g_prime.p1 - d * 0.6, g_prime.p1 - d * 0.05);
@@ -584,9 +593,10 @@ fn reference_orders_every_merged_segment_so_a_later_join_sees_its_p1_first() {
     assert!(out[0].p1.length() <= out[0].p2.length());
     // Unordered, G' keeps P1 on the left, next to T: sorted by distance from it, the
     // "gap" is T itself, too long, and the join is refused.
-    let unordered = Params {
-        order_endpoints: Some(false),
-        ..Params::reference()
+    let unordered = {
+        let mut q = Params::reference();
+        q.switches.order_endpoints = Some(false);
+        q
     };
     let out = run(&e, vec![g, s, t], &unordered);
     assert_eq!(out, vec![g_prime, t]);
@@ -609,9 +619,10 @@ fn reference_tests_overlap_from_the_shorter_segment_only() {
     let e = engine(&ridge_along(&seg(0.0, 0.0, 2.5, 0.0), 0.0));
     let reference = run(&e, vec![g, s], &Params::reference());
     assert_eq!(reference, vec![Segment::new(g.p1, s.p2)]);
-    let only_overlap = Params {
-        fix_merge_overlap: Some(true),
-        ..Params::reference()
+    let only_overlap = {
+        let mut q = Params::reference();
+        q.switches.fix_merge_overlap = Some(true);
+        q
     };
     assert_eq!(run(&e, vec![g, s], &only_overlap), vec![g]);
 }
@@ -702,10 +713,10 @@ fn every_pair_a_rule_can_pass_lies_within_the_sweeps_widening() {
     let (mut passed, mut close_to_bound, mut worst) = (0, 0, 0f64);
     for case in 0..200_000usize {
         let mut p = switches(case % 64);
-        p.merge_angle_deg = rng.range(1.0, 89.0);
-        p.merge_dist_frac = rng.range(0.05, 2.0);
-        p.join_gap_frac = rng.range(0.05, 1.5);
-        p.join_angle_deg = rng.range(1.0, 89.0);
+        p.merge_join.merge_angle_deg = rng.range(1.0, 89.0);
+        p.merge_join.merge_dist_frac = rng.range(0.05, 2.0);
+        p.merge_join.join_gap_frac = rng.range(0.05, 1.5);
+        p.merge_join.join_angle_deg = rng.range(1.0, 89.0);
         let st = p.with_radius(rng.range(0.001, 0.5));
         let a = Segment::new(rng.normal3(1.0), rng.normal3(1.0) * rng.range(0.0, 1.0));
         let la = a.length();

@@ -1,0 +1,56 @@
+//! The walk of one query over the grid on the host: every member of `X(q)`, in grid order
+//! ([`for_each_member`]) or as a list in working-set order ([`member_list`]). The CPU
+//! engine answers with it, and the edge fit's host path gathers with it.
+
+use super::{Member, Query};
+use crate::geom::{p64, Cylinder};
+use crate::index::Grid;
+use glam::DVec3;
+
+thread_local! {
+    /// Each thread's scratch rows for [`Grid::visit_ranges`].
+    static ROWS: std::cell::RefCell<Vec<(u32, u32)>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Calls `f(sorted index, t1, offset)` for each member of `X(q)` in `grid`, in grid order:
+/// the walk of every CPU-engine answer.
+#[inline]
+pub(crate) fn for_each_member(grid: &Grid, q: &Query, mut f: impl FnMut(usize, f64, DVec3)) {
+    if !q.seg.is_valid() {
+        return;
+    }
+    let cyl = Cylinder::new(&q.seg, q.r);
+    ROWS.with_borrow_mut(|rows| {
+        grid.visit_ranges(&q.seg, q.r, rows, |range| {
+            let start = range.start;
+            for (j, p) in grid.points[range].iter().enumerate() {
+                if let Some((t1, v)) = cyl.test(p64(*p)) {
+                    f(start + j, t1, v);
+                }
+            }
+        })
+    });
+}
+
+/// The members of one query on the host, in working-set order.
+pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
+    let mut out = Vec::new();
+    members_into(grid, q, &mut out);
+    out
+}
+
+/// [`member_list`] into `out` (cleared first).
+pub(crate) fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
+    out.clear();
+    for_each_member(grid, q, |j, t, offset| {
+        out.push(Member {
+            id: grid.ids[j],
+            t,
+            offset,
+        })
+    });
+    // Working-set order, not grid order: the grid's layout follows the working
+    // box, so a far segment would otherwise reorder the members (and the fit's
+    // sums) of every other segment in the last bits.
+    out.sort_unstable_by_key(|m| m.id);
+}
