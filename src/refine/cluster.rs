@@ -11,10 +11,12 @@
 //! axis: its candidates come from a tree of the endpoints that is cut by position along
 //! the axis, by direction and by length (see [`EndQuery`]).
 
+use crate::engine::EngineError;
 use crate::geom::{LineSet, Segment};
 use crate::refine::Settings;
 use glam::DVec3;
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
 
 /// A similarity edge between segments `i < j` of different input lines, with its weight
 /// `w >= 0`, packed in 16 bytes whose order is the order step 7 takes edges in: `w`
@@ -129,48 +131,112 @@ pub const MAX_NEIGHBOURS: usize = 128;
 /// sorted ascending by `w` (ties in `(i, j)` order, which is what a stable sort of the
 /// all-pairs loop gives). With the fixed distance, a segment keeps at most
 /// [`MAX_NEIGHBOURS`] edges to the segments it is the longer of.
-pub fn edges(lines: &LineSet, s: &Settings) -> Vec<Edge> {
+pub fn edges(lines: &LineSet, s: &Settings) -> Result<Vec<Edge>, EngineError> {
     let (r_c, p, fixes) = (s.radius(), s.params(), s.fixes());
     let bound = distance_bound(r_c, p.cluster_min_weight);
-    let mut e = match bound {
-        Some(b) if fixes.cluster_distance && lines.len() > 1 => edges_hashed(
+    let limit = edge_limit(lines.len());
+    let e = match bound {
+        // At most MAX_NEIGHBOURS <= MAX_EDGES_PER_SEGMENT a segment.
+        Some(b) if fixes.cluster_distance && lines.len() > 1 => Some(edges_hashed(
             lines,
             r_c,
             b,
             p.cluster_min_weight,
             p.cluster_min_cos,
             MAX_NEIGHBOURS,
+        )),
+        Some(b) if lines.len() > 1 => edges_reference_within(
+            lines,
+            r_c,
+            b,
+            p.cluster_min_weight,
+            p.cluster_min_cos,
+            limit,
         ),
-        Some(b) if lines.len() > 1 => {
-            edges_reference(lines, r_c, b, p.cluster_min_weight, p.cluster_min_cos)
-        }
-        _ => edges_all_pairs(
+        _ => edges_all_pairs_within(
             lines,
             r_c,
             fixes.cluster_distance,
             p.cluster_min_weight,
             p.cluster_min_cos,
+            limit,
         ),
     };
+    let Some(mut e) = e else {
+        return Err(EngineError::Limit(format!(
+            "step 7 (cluster) needs more than {limit} similarity edges for {} segments, and \
+             it holds at most {MAX_EDGES_PER_SEGMENT} a segment ({} bytes each, so at most \
+             {:.1} MB here): the segments are too dense for the radius {r_c} under the \
+             {}; try a smaller --radius, a higher --cluster-min-weight, or --profile \
+             default (it keeps the {MAX_NEIGHBOURS} most similar neighbours a segment)",
+            lines.len(),
+            std::mem::size_of::<Edge>(),
+            (limit * std::mem::size_of::<Edge>()) as f64 / 1e6,
+            if fixes.cluster_distance {
+                "3D distance"
+            } else {
+                "authors' distance, which links near-parallel segments that end near each \
+                 other however far apart they are across their axis"
+            },
+        )));
+    };
     e.par_sort_unstable();
-    e
+    Ok(e)
+}
+
+/// Most similarity edges step 7 holds, on average a segment: the edges take 16 bytes
+/// each, so the step's edge list never passes 16 KiB a segment (16 MiB for inputs of
+/// up to 1,024 segments, see [`edge_limit`]). Real line sets have a few to about a
+/// hundred a segment; the `default` profile keeps at most [`MAX_NEIGHBOURS`]. A run
+/// that needs more ends with [`EngineError::Limit`] (exit code 1) while the edges are
+/// being found, before they are sorted or clustered.
+pub const MAX_EDGES_PER_SEGMENT: usize = 1024;
+
+/// Most edges step 7 holds for `n` segments: [`MAX_EDGES_PER_SEGMENT`] a segment, and
+/// no fewer than 2^20.
+pub fn edge_limit(n: usize) -> usize {
+    n.saturating_mul(MAX_EDGES_PER_SEGMENT).max(1 << 20)
 }
 
 /// Every pair `i < j`, in parallel over `i` (the result is in `(i, j)` order).
 fn edges_all_pairs(lines: &LineSet, r_c: f64, fix: bool, min_w: f64, min_cos: f64) -> Vec<Edge> {
+    edges_all_pairs_within(lines, r_c, fix, min_w, min_cos, usize::MAX).expect("no limit to pass")
+}
+
+/// [`edges_all_pairs`], or `None` as soon as there are more than `limit` edges.
+fn edges_all_pairs_within(
+    lines: &LineSet,
+    r_c: f64,
+    fix: bool,
+    min_w: f64,
+    min_cos: f64,
+    limit: usize,
+) -> Option<Vec<Edge>> {
     let segs = &lines.segments;
-    (0..segs.len())
+    let count = AtomicUsize::new(0);
+    let rows: Vec<Vec<Edge>> = (0..segs.len())
         .into_par_iter()
-        .flat_map_iter(|i| {
-            (i + 1..segs.len()).filter_map(move |j| {
-                if lines.group(i) == lines.group(j) {
-                    return None;
-                }
-                let w = similarity(&segs[i], &segs[j], r_c, fix, min_cos);
-                (w >= min_w).then(|| Edge::new(i, j, w))
-            })
+        .map(|i| {
+            if count.load(Relaxed) > limit {
+                return Vec::new();
+            }
+            let row: Vec<Edge> = (i + 1..segs.len())
+                .filter_map(|j| {
+                    if lines.group(i) == lines.group(j) {
+                        return None;
+                    }
+                    let w = similarity(&segs[i], &segs[j], r_c, fix, min_cos);
+                    (w >= min_w).then(|| Edge::new(i, j, w))
+                })
+                .collect();
+            count.fetch_add(row.len(), Relaxed);
+            row
         })
-        .collect()
+        .collect();
+    if count.into_inner() > limit {
+        return None;
+    }
+    Some(rows.concat())
 }
 
 /// Most cells of the segment grid (a `u32` start per cell): 16 MiB of table.
@@ -691,7 +757,20 @@ fn point_segment_distance(p: DVec3, (a, b): (DVec3, DVec3)) -> f64 {
 /// are the authors'). The cost follows the candidates: pairs within `B` of each other,
 /// and near-parallel pairs that end within `B` of each other along the longer's axis
 /// wherever they are across it, which the authors' distance makes edges.
+#[cfg(test)]
 fn edges_reference(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64) -> Vec<Edge> {
+    edges_reference_within(lines, r_c, bound, min_w, min_cos, usize::MAX).expect("no limit to pass")
+}
+
+/// [`edges_reference`], or `None` as soon as there are more than `limit` edges.
+fn edges_reference_within(
+    lines: &LineSet,
+    r_c: f64,
+    bound: f64,
+    min_w: f64,
+    min_cos: f64,
+    limit: usize,
+) -> Option<Vec<Edge>> {
     let segs = &lines.segments;
     let n = segs.len();
     let mut scale = 0.0f64;
@@ -702,7 +781,7 @@ fn edges_reference(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f
     }
     if !scale.is_finite() {
         // Invalid segments are dropped at load; should one get here, no tree is needed.
-        return edges_all_pairs(lines, r_c, false, min_w, min_cos);
+        return edges_all_pairs_within(lines, r_c, false, min_w, min_cos, limit);
     }
     let dir: Vec<DVec3> = segs.par_iter().map(Segment::dir).collect();
     let len: Vec<f64> = segs.par_iter().map(Segment::length).collect();
@@ -737,6 +816,7 @@ fn edges_reference(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f
         -1.0
     };
     let chunk = (n / (8 * rayon::current_num_threads())).clamp(256, 1 << 14);
+    let count = AtomicUsize::new(0);
     let parts: Vec<Vec<Edge>> = order
         .par_chunks(chunk)
         .map(|ks| {
@@ -745,6 +825,10 @@ fn edges_reference(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f
             let mut cands: Vec<u32> = Vec::new();
             let mut out = Vec::new();
             for &g in ks {
+                if count.load(Relaxed) > limit {
+                    break;
+                }
+                let before = out.len();
                 let (gs, d, l) = (&segs[g as usize], dir[g as usize], len[g as usize]);
                 let q = EndQuery {
                     p1: gs.p1,
@@ -798,16 +882,20 @@ fn edges_reference(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f
                         out.push(Edge::new(i, j, w));
                     }
                 }
+                count.fetch_add(out.len() - before, Relaxed);
             }
             out
         })
         .collect();
     drop((tree, order, rank));
+    if count.into_inner() > limit {
+        return None;
+    }
     let mut all = Vec::with_capacity(parts.iter().map(Vec::len).sum());
     for p in parts {
         all.extend_from_slice(&p);
     }
-    all
+    Some(all)
 }
 
 /// Union-find by size with a threshold per root: edges (ascending) join two roots when
@@ -884,8 +972,8 @@ fn greedy_orders(members: &[Vec<usize>], cluster_of: &[u32], edges: &[Edge]) -> 
 /// such a group is set aside before the edges are built (its `m^2 / 2` edges would cost
 /// quadratic time and memory) and comes back as one cluster, its first member in front as
 /// the greedy order puts it, the others in index order (which step 8 cannot tell apart).
-pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
-    let copies = isolated_copies(lines, s);
+pub fn cluster(lines: &LineSet, s: &Settings) -> Result<Vec<Vec<usize>>, EngineError> {
+    let copies = isolated_copies(lines, s)?;
     if copies.is_empty() {
         return cluster_all(lines, s);
     }
@@ -896,7 +984,7 @@ pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
         }
     }
     let keep: Vec<usize> = (0..lines.len()).filter(|&k| !rest[k]).collect();
-    let mut out: Vec<Vec<usize>> = cluster_all(&lines.select(&keep), s)
+    let mut out: Vec<Vec<usize>> = cluster_all(&lines.select(&keep), s)?
         .into_iter()
         .map(|c| c.into_iter().map(|k| keep[k]).collect())
         .collect();
@@ -910,7 +998,7 @@ pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
         debug_assert_eq!(out[ci], vec![c[0]]);
         out[ci] = c;
     }
-    out
+    Ok(out)
 }
 
 /// Groups (ascending indices, two or more) of bit-identical segments that step 7 puts in
@@ -920,7 +1008,7 @@ pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
 /// union-find joins them all: every threshold stays above their common `w < 1`), and, when
 /// merge results are ordered (`order_endpoints`), it is ordered already, so the merge of
 /// two copies gives back the first one bit for bit (`G' = G`, tie keeps `G`).
-fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
+fn isolated_copies(lines: &LineSet, st: &Settings) -> Result<Vec<Vec<usize>>, EngineError> {
     let (r_c, p, fixes) = (st.radius(), st.params(), st.fixes());
     let bits = |s: &Segment| {
         let (a, b) = (s.p1.to_array(), s.p2.to_array());
@@ -936,21 +1024,22 @@ fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
         same[id].push(k);
     }
     if same.len() == lines.len() {
-        return Vec::new();
+        return Ok(Vec::new());
     }
     let reps = LineSet::new(same.iter().map(|c| lines.segments[c[0]]).collect());
     let mut linked = vec![false; reps.len()];
-    for e in edges(&reps, st) {
+    for e in edges(&reps, st)? {
         linked[e.i()] = true;
         linked[e.j()] = true;
     }
     let n = reps.len();
     let reversed = LineSet::new(reps.segments.iter().rev().copied().collect());
-    for e in edges(&reversed, st) {
+    for e in edges(&reversed, st)? {
         linked[n - 1 - e.i()] = true;
         linked[n - 1 - e.j()] = true;
     }
-    same.into_iter()
+    Ok(same
+        .into_iter()
         .zip(linked)
         .filter(|(c, linked)| {
             let s = &lines.segments[c[0]];
@@ -962,14 +1051,14 @@ fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
                 && (!fixes.order_endpoints || s.p1.length() <= s.p2.length())
         })
         .map(|(c, _)| c)
-        .collect()
+        .collect())
 }
 
 /// [`cluster`] without setting copies aside: the definition.
-pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
+pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Result<Vec<Vec<usize>>, EngineError> {
     let n = lines.len();
     let p = s.params();
-    let edges = edges(lines, s);
+    let edges = edges(lines, s)?;
     let root = union_find(n, &edges, p.cluster_c);
     let mut id_of_root = vec![usize::MAX; n];
     let mut members: Vec<Vec<usize>> = Vec::new();
@@ -984,7 +1073,7 @@ pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
         members[id_of_root[r]].push(i);
     }
     drop((root, id_of_root));
-    greedy_orders(&members, &cluster_of, &edges)
+    Ok(greedy_orders(&members, &cluster_of, &edges))
 }
 
 /// Members of one cluster in greedy-matching order, the definition of [`greedy_orders`]: pairs by descending weight (ties in `(i, j)` order),
@@ -1182,7 +1271,7 @@ mod tests {
         for scene in 0..6 {
             let lines = random_lines(700, scene + 1, scene % 2 == 0);
             let st = Params::default().with_radius([0.03, 0.05, 0.1][scene as usize % 3]);
-            let mut edges = edges(&lines, &st);
+            let mut edges = edges(&lines, &st).unwrap();
             if scene >= 3 {
                 // Weights on a coarse lattice: many ties.
                 edges = edges
@@ -1267,14 +1356,14 @@ mod tests {
             groups: Some(vec![0, 1, 2, 0, 1]),
         };
         let p = Params::default();
-        let c = cluster(&lines, &p.with_radius(0.03));
+        let c = cluster(&lines, &p.with_radius(0.03)).unwrap();
         // 3 joins 0 and 2 through its edge with 2; 4 never meets 1. Inside, (2, 3) is the
         // strongest pair (the larger length ratio), so it leads the greedy order.
         assert_eq!(c, vec![vec![2, 3, 0], vec![1], vec![4]]);
         // reference: 1 lies 5 away beside 0, with equal lengths and no endpoint strictly
         // inside, so only the (zero) axial gap counts and 1 joins the cluster.
         let p = Params::reference();
-        let c = cluster(&lines, &p.with_radius(0.03));
+        let c = cluster(&lines, &p.with_radius(0.03)).unwrap();
         assert_eq!(c, vec![vec![2, 3, 0, 1], vec![4]]);
     }
 
@@ -1290,9 +1379,9 @@ mod tests {
         };
         for p in [Params::default(), Params::reference()] {
             let st = p.with_radius(0.03);
-            assert_eq!(isolated_copies(&lines, &st), vec![vec![0, 2, 4]]);
-            let c = cluster(&lines, &st);
-            let all = cluster_all(&lines, &st);
+            assert_eq!(isolated_copies(&lines, &st).unwrap(), vec![vec![0, 2, 4]]);
+            let c = cluster(&lines, &st).unwrap();
+            let all = cluster_all(&lines, &st).unwrap();
             assert_eq!(c, vec![vec![0, 2, 4], vec![1, 5, 3]]);
             // The definition: the same clusters, the first member the same.
             assert_eq!(all.len(), c.len());
@@ -1564,6 +1653,41 @@ mod tests {
         }
     }
 
+    /// 4,000 pieces within 0.02 of each other on one line, each its own input line: every
+    /// pair is an edge under the authors' distance, 8 x 10^6 of them, past the bound of
+    /// 1,024 a segment; step 7 says so instead of taking the memory. The default profile
+    /// keeps 128 a segment and clusters them.
+    #[test]
+    fn step_7_stops_at_its_edge_bound_with_a_message() {
+        let mut r = Lcg(3);
+        let lines = LineSet::new(
+            (0..4000)
+                .map(|_| {
+                    let t = r.f() * 0.019;
+                    let j = (r.v() - 0.5) * 2e-4;
+                    Segment::new(
+                        DVec3::new(t, 0.0, 0.0) + j,
+                        DVec3::new(t + 1e-3, 0.0, 0.0) - j,
+                    )
+                })
+                .collect(),
+        );
+        assert_eq!(edge_limit(lines.len()), 4000 * MAX_EDGES_PER_SEGMENT);
+        let reference = Params::reference().with_radius(0.03);
+        let Err(EngineError::Limit(why)) = cluster(&lines, &reference) else {
+            panic!("no limit reached");
+        };
+        assert!(
+            why.contains("step 7") && why.contains("4096000 similarity edges for 4000 segments"),
+            "{why}"
+        );
+        let c = cluster(&lines, &Params::default().with_radius(0.03)).unwrap();
+        assert!(c.len() < 100, "{} clusters", c.len());
+        // Under the bound the same scene clusters: a tenth of it.
+        let few = lines.select(&(0..400).collect::<Vec<_>>());
+        assert!(cluster(&few, &reference).unwrap().len() < 100);
+    }
+
     #[test]
     fn clusters_do_not_depend_on_the_thread_count() {
         let lines = random_lines(1500, 7, true);
@@ -1572,7 +1696,7 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| cluster(&lines, &p.with_radius(0.03)))
+                .install(|| cluster(&lines, &p.with_radius(0.03)).unwrap())
         };
         for p in [Params::default(), Params::reference()] {
             let one = run(1, &p);

@@ -263,7 +263,7 @@ pub fn run_steps_traced(
     }
 
     let t = Instant::now();
-    let clusters = cluster::cluster(&lines, s);
+    let clusters = cluster::cluster(&lines, s)?;
     stage("cluster", lines.len(), t);
 
     let t = Instant::now();
