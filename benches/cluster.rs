@@ -71,7 +71,7 @@ fn dense() {
         linegs_gpu::mem::reset_peak_rss();
         let base = linegs_gpu::mem::current_rss_bytes().unwrap_or(0);
         let t = Instant::now();
-        let clusters = cluster(&lines, &s);
+        let clusters = cluster(&lines, &s).unwrap();
         let secs = t.elapsed().as_secs_f64();
         let peak = linegs_gpu::mem::peak_rss_bytes().unwrap_or(0);
         // FNV-1a over every member in order: equal digests, equal clusters.
@@ -101,7 +101,7 @@ fn main() {
     for edges in [2_000usize, 20_000] {
         let lines = scene(edges);
         g.bench_function(format!("default/{}", lines.len()), |b| {
-            b.iter(|| cluster(&lines, &s))
+            b.iter(|| cluster(&lines, &s).unwrap())
         });
     }
     g.finish();

@@ -108,10 +108,22 @@ fn dense() {
             let mut stages = Vec::new();
             let out = run_steps(r.engine(), &lines, r.settings(), |name, _, t| {
                 stages.push(format!("{name} {:.2}", t.elapsed().as_secs_f64()))
-            })
-            .unwrap();
+            });
             let secs = t.elapsed().as_secs_f64();
             let peak = linegs_gpu::mem::peak_rss_bytes().unwrap_or(0);
+            // A stated bound reached (step 7's edges) is a result of this case too.
+            let out = match out {
+                Ok(out) => out,
+                Err(e) => {
+                    println!(
+                        "mergejoin/dense/{n}/{:?}: stopped after {secs:.2} s, peak RSS {:.0} MB ({}): {e}",
+                        p.profile,
+                        peak as f64 / 1e6,
+                        stages.join(", ")
+                    );
+                    continue;
+                }
+            };
             println!(
                 "mergejoin/dense/{n}/{:?}: {secs:.2} s, peak RSS {:.0} MB, {} segments out ({})",
                 p.profile,

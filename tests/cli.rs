@@ -1064,3 +1064,87 @@ fn a_bad_linegs_gpu_value_is_refused_naming_the_variable() {
         .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
 }
+
+/// Step 7 holds at most 1,024 similarity edges a segment (16 KiB): 4,000 pieces within
+/// 0.02 of each other on one edge, each its own line, make 8 x 10^6 under the authors'
+/// distance, and `refine` says so and exits 1 before it takes the memory, writing
+/// nothing; the default profile (128 a segment) refines them.
+#[test]
+fn refine_stops_at_step_7s_edge_bound_with_exit_1_and_no_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let (lines, edge, g) = (
+        dir.path().join("lines.txt"),
+        dir.path().join("edge.txt"),
+        dir.path().join("g.ply"),
+    );
+    // A fixed LCG, so the test needs no RNG crate.
+    let mut state = 3u64;
+    let mut f = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 11) as f64) / ((1u64 << 53) as f64)
+    };
+    let mut text = String::new();
+    for _ in 0..4000 {
+        let t = f() * 0.019;
+        let mut j = || (f() - 0.5) * 2e-4;
+        let (a, b, c, d) = (j(), j(), j(), j());
+        text += &format!("{t:.7} {a:.7} {b:.7} {:.7} {c:.7} {d:.7}\n", t + 1e-3);
+    }
+    std::fs::write(&lines, text).unwrap();
+    std::fs::write(&edge, "0 0 0 0.02 0 0\n").unwrap();
+    let (l, e, gp) = (
+        lines.to_str().unwrap(),
+        edge.to_str().unwrap(),
+        g.to_str().unwrap(),
+    );
+    let o = run(&[
+        "synth",
+        "around",
+        "-l",
+        e,
+        "-o",
+        gp,
+        "-n",
+        "5000",
+        "--sigma",
+        "0.001",
+        "--background",
+        "0",
+        "--seed",
+        "5",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = dir.path().join("out.obj");
+    let refine = |profile: &str| {
+        run(&[
+            "refine",
+            "--backend",
+            "cpu",
+            "-g",
+            gp,
+            "-l",
+            l,
+            "-o",
+            out.to_str().unwrap(),
+            "--radius",
+            "0.03",
+            "--profile",
+            profile,
+        ])
+    };
+    let o = refine("reference");
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let msg = stderr(&o);
+    assert!(
+        msg.contains("step 7 (cluster) needs more than 4096000 similarity edges")
+            && msg.contains("at most 1024 a segment")
+            && !msg.contains("panicked"),
+        "{msg}"
+    );
+    assert!(!out.exists(), "partial output written");
+    let o = refine("default");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(out.exists());
+}

@@ -368,6 +368,10 @@ pub enum EngineError {
     OutOfMemory { phase: String, why: String },
     #[error("invalid query {index}: {why}")]
     BadQuery { index: usize, why: String },
+    /// A step would hold more than its stated bound (the message says which and what to
+    /// try); exit code 1, before the memory is taken.
+    #[error("{0}")]
+    Limit(String),
 }
 
 impl EngineError {

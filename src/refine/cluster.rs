@@ -7,13 +7,17 @@
 //! `dist_w >= w_min`, that is `dist <= B = r_c sqrt((1/w_min - 1) / 2)` (`r_c sqrt(0.75)`
 //! for the default 0.4). With the fixed distance the candidate pairs come from a spatial
 //! hash built on that bound (see [`edges`]); the `reference` distance ignores the lateral
-//! offset of segments that do not overlap, so it has no spatial bound and uses all pairs.
+//! offset of segments that do not overlap, so it has no spatial bound across a segment's
+//! axis: its candidates come from a tree of the endpoints that is cut by position along
+//! the axis, by direction and by length (see [`EndQuery`]).
 
+use crate::engine::EngineError;
 use crate::geom::{LineSet, Segment};
 use crate::refine::params::{group, Check};
 use crate::refine::{Pass, Settings, Step};
 use glam::DVec3;
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
 
 group! {
     /// Step 7's parameters.
@@ -41,7 +45,7 @@ impl Step for Cluster {
     }
 
     fn run(&self, pass: &mut Pass) -> Result<(), crate::engine::EngineError> {
-        pass.clusters = cluster(&pass.lines, pass.settings);
+        pass.clusters = cluster(&pass.lines, pass.settings)?;
         Ok(())
     }
 }
@@ -159,45 +163,112 @@ pub const MAX_NEIGHBOURS: usize = 128;
 /// sorted ascending by `w` (ties in `(i, j)` order, which is what a stable sort of the
 /// all-pairs loop gives). With the fixed distance, a segment keeps at most
 /// [`MAX_NEIGHBOURS`] edges to the segments it is the longer of.
-pub fn edges(lines: &LineSet, s: &Settings) -> Vec<Edge> {
+pub fn edges(lines: &LineSet, s: &Settings) -> Result<Vec<Edge>, EngineError> {
     let (r_c, p, fixes) = (s.radius(), &s.params().cluster, s.fixes());
     let bound = distance_bound(r_c, p.cluster_min_weight);
-    let mut e = match bound {
-        Some(b) if fixes.cluster_distance && lines.len() > 1 => edges_hashed(
+    let limit = edge_limit(lines.len());
+    let e = match bound {
+        // At most MAX_NEIGHBOURS <= MAX_EDGES_PER_SEGMENT a segment.
+        Some(b) if fixes.cluster_distance && lines.len() > 1 => Some(edges_hashed(
             lines,
             r_c,
             b,
             p.cluster_min_weight,
             p.cluster_min_cos,
             MAX_NEIGHBOURS,
+        )),
+        Some(b) if lines.len() > 1 => edges_reference_within(
+            lines,
+            r_c,
+            b,
+            p.cluster_min_weight,
+            p.cluster_min_cos,
+            limit,
         ),
-        _ => edges_all_pairs(
+        _ => edges_all_pairs_within(
             lines,
             r_c,
             fixes.cluster_distance,
             p.cluster_min_weight,
             p.cluster_min_cos,
+            limit,
         ),
     };
+    let Some(mut e) = e else {
+        return Err(EngineError::Limit(format!(
+            "step 7 (cluster) needs more than {limit} similarity edges for {} segments, and \
+             it holds at most {MAX_EDGES_PER_SEGMENT} a segment ({} bytes each, so at most \
+             {:.1} MB here): the segments are too dense for the radius {r_c} under the \
+             {}; try a smaller --radius, a higher --cluster-min-weight, or --profile \
+             default (it keeps the {MAX_NEIGHBOURS} most similar neighbours a segment)",
+            lines.len(),
+            std::mem::size_of::<Edge>(),
+            (limit * std::mem::size_of::<Edge>()) as f64 / 1e6,
+            if fixes.cluster_distance {
+                "3D distance"
+            } else {
+                "authors' distance, which links near-parallel segments that end near each \
+                 other however far apart they are across their axis"
+            },
+        )));
+    };
     e.par_sort_unstable();
-    e
+    Ok(e)
+}
+
+/// Most similarity edges step 7 holds, on average a segment: the edges take 16 bytes
+/// each, so the step's edge list never passes 16 KiB a segment (16 MiB for inputs of
+/// up to 1,024 segments, see [`edge_limit`]). Real line sets have a few to about a
+/// hundred a segment; the `default` profile keeps at most [`MAX_NEIGHBOURS`]. A run
+/// that needs more ends with [`EngineError::Limit`] (exit code 1) while the edges are
+/// being found, before they are sorted or clustered.
+pub const MAX_EDGES_PER_SEGMENT: usize = 1024;
+
+/// Most edges step 7 holds for `n` segments: [`MAX_EDGES_PER_SEGMENT`] a segment, and
+/// no fewer than 2^20.
+pub fn edge_limit(n: usize) -> usize {
+    n.saturating_mul(MAX_EDGES_PER_SEGMENT).max(1 << 20)
 }
 
 /// Every pair `i < j`, in parallel over `i` (the result is in `(i, j)` order).
 fn edges_all_pairs(lines: &LineSet, r_c: f64, fix: bool, min_w: f64, min_cos: f64) -> Vec<Edge> {
+    edges_all_pairs_within(lines, r_c, fix, min_w, min_cos, usize::MAX).expect("no limit to pass")
+}
+
+/// [`edges_all_pairs`], or `None` as soon as there are more than `limit` edges.
+fn edges_all_pairs_within(
+    lines: &LineSet,
+    r_c: f64,
+    fix: bool,
+    min_w: f64,
+    min_cos: f64,
+    limit: usize,
+) -> Option<Vec<Edge>> {
     let segs = &lines.segments;
-    (0..segs.len())
+    let count = AtomicUsize::new(0);
+    let rows: Vec<Vec<Edge>> = (0..segs.len())
         .into_par_iter()
-        .flat_map_iter(|i| {
-            (i + 1..segs.len()).filter_map(move |j| {
-                if lines.group(i) == lines.group(j) {
-                    return None;
-                }
-                let w = similarity(&segs[i], &segs[j], r_c, fix, min_cos);
-                (w >= min_w).then(|| Edge::new(i, j, w))
-            })
+        .map(|i| {
+            if count.load(Relaxed) > limit {
+                return Vec::new();
+            }
+            let row: Vec<Edge> = (i + 1..segs.len())
+                .filter_map(|j| {
+                    if lines.group(i) == lines.group(j) {
+                        return None;
+                    }
+                    let w = similarity(&segs[i], &segs[j], r_c, fix, min_cos);
+                    (w >= min_w).then(|| Edge::new(i, j, w))
+                })
+                .collect();
+            count.fetch_add(row.len(), Relaxed);
+            row
         })
-        .collect()
+        .collect();
+    if count.into_inner() > limit {
+        return None;
+    }
+    Some(rows.concat())
 }
 
 /// Most cells of the segment grid (a `u32` start per cell): 16 MiB of table.
@@ -551,6 +622,319 @@ fn edges_hashed(
     all
 }
 
+/// Entries of `d d^T` for a unit direction `d`: `(d . g)^2` is linear in them for any `g`.
+fn moments(d: DVec3) -> [f64; 6] {
+    [
+        d.x * d.x,
+        d.y * d.y,
+        d.z * d.z,
+        d.x * d.y,
+        d.x * d.z,
+        d.y * d.z,
+    ]
+}
+
+/// A node of [`EndTree`]: the box of its endpoints, the range of each of [`moments`] over
+/// their segments' directions, the lowest rank among those segments, and its children
+/// (`u32::MAX` for a leaf) or, in a leaf, its points `start..end`.
+struct EndNode {
+    lo: DVec3,
+    hi: DVec3,
+    m_lo: [f64; 6],
+    m_hi: [f64; 6],
+    min_rank: u32,
+    start: u32,
+    end: u32,
+    left: u32,
+    right: u32,
+}
+
+/// Most points of a leaf of [`EndTree`].
+const END_LEAF: usize = 8;
+
+/// A k-d tree over the endpoints of the segments (each point with its segment), split at
+/// the median of the widest axis; a node knows enough of its segments (directions, ranks)
+/// to be skipped whole by a query that none of them can answer.
+struct EndTree {
+    nodes: Vec<EndNode>,
+    points: Vec<(DVec3, u32)>,
+}
+
+impl EndTree {
+    fn new(points: Vec<(DVec3, u32)>, m: &[[f64; 6]], rank: &[u32]) -> Self {
+        let n = points.len();
+        let mut t = EndTree {
+            nodes: Vec::with_capacity(2 * n.div_ceil(END_LEAF) + 1),
+            points,
+        };
+        t.build(0, n, m, rank);
+        t
+    }
+
+    fn build(&mut self, start: usize, end: usize, m: &[[f64; 6]], rank: &[u32]) -> u32 {
+        let pts = &mut self.points[start..end];
+        let mut lo = DVec3::splat(f64::INFINITY);
+        let mut hi = DVec3::splat(f64::NEG_INFINITY);
+        let (mut m_lo, mut m_hi) = ([f64::INFINITY; 6], [f64::NEG_INFINITY; 6]);
+        let mut min_rank = u32::MAX;
+        for &(p, s) in pts.iter() {
+            lo = lo.min(p);
+            hi = hi.max(p);
+            let ms = &m[s as usize];
+            for k in 0..6 {
+                m_lo[k] = m_lo[k].min(ms[k]);
+                m_hi[k] = m_hi[k].max(ms[k]);
+            }
+            min_rank = min_rank.min(rank[s as usize]);
+        }
+        let id = self.nodes.len();
+        self.nodes.push(EndNode {
+            lo,
+            hi,
+            m_lo,
+            m_hi,
+            min_rank,
+            start: start as u32,
+            end: end as u32,
+            left: u32::MAX,
+            right: u32::MAX,
+        });
+        if end - start > END_LEAF {
+            let e = hi - lo;
+            let axis = if e.x >= e.y && e.x >= e.z {
+                0
+            } else if e.y >= e.z {
+                1
+            } else {
+                2
+            };
+            let mid = (end - start) / 2;
+            pts.select_nth_unstable_by(mid, |a, b| a.0[axis].total_cmp(&b.0[axis]));
+            let left = self.build(start, start + mid, m, rank);
+            let right = self.build(start + mid, end, m, rank);
+            self.nodes[id].left = left;
+            self.nodes[id].right = right;
+        }
+        id as u32
+    }
+}
+
+/// What a segment `G` asks the [`EndTree`] under the authors' distance: the endpoints of
+/// shorter segments (lower rank) near enough in direction (`cos > min_cos`) that lie
+/// where an edge's `dist <= B` puts one of them.
+///
+/// Why that finds every edge of `G` as the longer member (`t`: an endpoint's position
+/// along `G`'s axis from `G.p1`, `L`: lengths): if an endpoint of the shorter `S` has
+/// `0 < t < L_G` (overlap), `dist` is the distance of an endpoint to `G`'s line and both
+/// endpoints have `-L_S < t < L_G + L_S`, so that endpoint is within `B` of `G` extended
+/// by `L_G` at both ends; otherwise `dist` is the least of `|t|` and `|t - L_G|` over
+/// both endpoints, so one lies in the slab of width `2B` around the plane through an
+/// end of `G` across its axis. The slabs have no lateral bound (the authors' gap ignores
+/// the lateral offset), which is why the tree also skips nodes by direction: `(d_G .
+/// d_S)^2` is linear in [`moments`] of `d_S`, so a node's ranges bound it.
+struct EndQuery {
+    p1: DVec3,
+    d: DVec3,
+    len: f64,
+    /// `G` extended by its length at both ends.
+    ext: (DVec3, DVec3),
+    /// `B` with slack for rounding.
+    reach: f64,
+    coef: [f64; 6],
+    /// Below this bound of `cos^2` no pair passes (`-1`: no angle gate).
+    min_cos2: f64,
+    rank: u32,
+}
+
+impl EndQuery {
+    fn node_may(&self, n: &EndNode) -> bool {
+        if n.min_rank >= self.rank {
+            return false;
+        }
+        let mut ub = 0.0;
+        for k in 0..6 {
+            let c = self.coef[k];
+            ub += c * if c >= 0.0 { n.m_hi[k] } else { n.m_lo[k] };
+        }
+        if ub < self.min_cos2 {
+            return false;
+        }
+        let c = (n.lo + n.hi) * 0.5;
+        let e = (n.hi - n.lo) * 0.5;
+        let tc = (c - self.p1).dot(self.d);
+        let ht = e.dot(self.d.abs()) + self.reach;
+        tc.abs() <= ht
+            || (tc - self.len).abs() <= ht
+            || point_segment_distance(c, self.ext) <= self.reach + e.length()
+    }
+
+    fn point_may(&self, p: DVec3) -> bool {
+        let t = (p - self.p1).dot(self.d);
+        t.abs() <= self.reach
+            || (t - self.len).abs() <= self.reach
+            || point_segment_distance(p, self.ext) <= self.reach
+    }
+}
+
+fn point_segment_distance(p: DVec3, (a, b): (DVec3, DVec3)) -> f64 {
+    let ab = b - a;
+    let l2 = ab.length_squared();
+    let t = if l2 > 0.0 {
+        ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (a + ab * t - p).length()
+}
+
+/// Every edge under the authors' distance (`reference`), the same as
+/// [`edges_all_pairs`] gives, from an [`EndTree`] of the endpoints: each segment asks for
+/// the shorter segments that can be its pair ([`EndQuery`]), so a pair is tested from its
+/// longer member only, and every edge is kept (no neighbour bound: the step's decisions
+/// are the authors'). The cost follows the candidates: pairs within `B` of each other,
+/// and near-parallel pairs that end within `B` of each other along the longer's axis
+/// wherever they are across it, which the authors' distance makes edges.
+#[cfg(test)]
+fn edges_reference(lines: &LineSet, r_c: f64, bound: f64, min_w: f64, min_cos: f64) -> Vec<Edge> {
+    edges_reference_within(lines, r_c, bound, min_w, min_cos, usize::MAX).expect("no limit to pass")
+}
+
+/// [`edges_reference`], or `None` as soon as there are more than `limit` edges.
+fn edges_reference_within(
+    lines: &LineSet,
+    r_c: f64,
+    bound: f64,
+    min_w: f64,
+    min_cos: f64,
+    limit: usize,
+) -> Option<Vec<Edge>> {
+    let segs = &lines.segments;
+    let n = segs.len();
+    let mut scale = 0.0f64;
+    for s in segs {
+        scale = scale
+            .max(s.p1.abs().max_element())
+            .max(s.p2.abs().max_element());
+    }
+    if !scale.is_finite() {
+        // Invalid segments are dropped at load; should one get here, no tree is needed.
+        return edges_all_pairs_within(lines, r_c, false, min_w, min_cos, limit);
+    }
+    let dir: Vec<DVec3> = segs.par_iter().map(Segment::dir).collect();
+    let len: Vec<f64> = segs.par_iter().map(Segment::length).collect();
+    // rank: position by length, then by index downwards, so that the longer member of a
+    // pair (`similarity` calls the lower index long on equal lengths) has the higher rank.
+    let mut by_rank: Vec<u32> = (0..n as u32).collect();
+    by_rank
+        .par_sort_unstable_by(|&a, &b| len[a as usize].total_cmp(&len[b as usize]).then(b.cmp(&a)));
+    let mut rank = vec![0u32; n];
+    for (r, &k) in by_rank.iter().enumerate() {
+        rank[k as usize] = r as u32;
+    }
+    drop(by_rank);
+    let m: Vec<[f64; 6]> = dir.iter().map(|&d| moments(d)).collect();
+    let points: Vec<(DVec3, u32)> = (0..n)
+        .flat_map(|k| [(segs[k].p1, k as u32), (segs[k].p2, k as u32)])
+        .collect();
+    let tree = EndTree::new(points, &m, &rank);
+    drop(m);
+    // Queries in tree order, so that neighbouring queries read neighbouring nodes.
+    let mut placed = vec![false; n];
+    let order: Vec<u32> = tree
+        .points
+        .iter()
+        .filter_map(|&(_, k)| (!std::mem::replace(&mut placed[k as usize], true)).then_some(k))
+        .collect();
+    drop(placed);
+    let reach = bound + 1e-9 * (1.0 + scale);
+    let min_cos2 = if min_cos > 0.0 {
+        min_cos * min_cos * (1.0 - 1e-9)
+    } else {
+        -1.0
+    };
+    let chunk = (n / (8 * rayon::current_num_threads())).clamp(256, 1 << 14);
+    let count = AtomicUsize::new(0);
+    let parts: Vec<Vec<Edge>> = order
+        .par_chunks(chunk)
+        .map(|ks| {
+            let mut seen = vec![u32::MAX; n];
+            let mut stack: Vec<u32> = Vec::new();
+            let mut cands: Vec<u32> = Vec::new();
+            let mut out = Vec::new();
+            for &g in ks {
+                if count.load(Relaxed) > limit {
+                    break;
+                }
+                let before = out.len();
+                let (gs, d, l) = (&segs[g as usize], dir[g as usize], len[g as usize]);
+                let q = EndQuery {
+                    p1: gs.p1,
+                    d,
+                    len: l,
+                    ext: (gs.p1 - d * l, gs.p2 + d * l),
+                    reach,
+                    coef: [
+                        d.x * d.x,
+                        d.y * d.y,
+                        d.z * d.z,
+                        2.0 * d.x * d.y,
+                        2.0 * d.x * d.z,
+                        2.0 * d.y * d.z,
+                    ],
+                    min_cos2,
+                    rank: rank[g as usize],
+                };
+                cands.clear();
+                stack.clear();
+                stack.push(0);
+                while let Some(id) = stack.pop() {
+                    let node = &tree.nodes[id as usize];
+                    if !q.node_may(node) {
+                        continue;
+                    }
+                    if node.left != u32::MAX {
+                        stack.extend([node.right, node.left]);
+                        continue;
+                    }
+                    for &(p, o) in &tree.points[node.start as usize..node.end as usize] {
+                        if rank[o as usize] < q.rank && seen[o as usize] != g && q.point_may(p) {
+                            seen[o as usize] = g;
+                            cands.push(o);
+                        }
+                    }
+                }
+                for &o in &cands {
+                    let (i, j) = (g.min(o) as usize, g.max(o) as usize);
+                    if lines.group(i) == lines.group(j) {
+                        continue;
+                    }
+                    let w = similarity_of(
+                        [(&segs[i], len[i], dir[i]), (&segs[j], len[j], dir[j])],
+                        r_c,
+                        false,
+                        min_cos,
+                        min_w,
+                    );
+                    if w >= min_w {
+                        out.push(Edge::new(i, j, w));
+                    }
+                }
+                count.fetch_add(out.len() - before, Relaxed);
+            }
+            out
+        })
+        .collect();
+    drop((tree, order, rank));
+    if count.into_inner() > limit {
+        return None;
+    }
+    let mut all = Vec::with_capacity(parts.iter().map(Vec::len).sum());
+    for p in parts {
+        all.extend_from_slice(&p);
+    }
+    Some(all)
+}
+
 /// Union-find by size with a threshold per root: edges (ascending) join two roots when
 /// `w` is within both thresholds; the new root's threshold becomes `w + c / size`.
 /// Returns the root of every segment.
@@ -625,8 +1009,8 @@ fn greedy_orders(members: &[Vec<usize>], cluster_of: &[u32], edges: &[Edge]) -> 
 /// such a group is set aside before the edges are built (its `m^2 / 2` edges would cost
 /// quadratic time and memory) and comes back as one cluster, its first member in front as
 /// the greedy order puts it, the others in index order (which step 8 cannot tell apart).
-pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
-    let copies = isolated_copies(lines, s);
+pub fn cluster(lines: &LineSet, s: &Settings) -> Result<Vec<Vec<usize>>, EngineError> {
+    let copies = isolated_copies(lines, s)?;
     if copies.is_empty() {
         return cluster_all(lines, s);
     }
@@ -637,7 +1021,7 @@ pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
         }
     }
     let keep: Vec<usize> = (0..lines.len()).filter(|&k| !rest[k]).collect();
-    let mut out: Vec<Vec<usize>> = cluster_all(&lines.select(&keep), s)
+    let mut out: Vec<Vec<usize>> = cluster_all(&lines.select(&keep), s)?
         .into_iter()
         .map(|c| c.into_iter().map(|k| keep[k]).collect())
         .collect();
@@ -651,7 +1035,7 @@ pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
         debug_assert_eq!(out[ci], vec![c[0]]);
         out[ci] = c;
     }
-    out
+    Ok(out)
 }
 
 /// Groups (ascending indices, two or more) of bit-identical segments that step 7 puts in
@@ -661,7 +1045,7 @@ pub fn cluster(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
 /// union-find joins them all: every threshold stays above their common `w < 1`), and, when
 /// merge results are ordered (`order_endpoints`), it is ordered already, so the merge of
 /// two copies gives back the first one bit for bit (`G' = G`, tie keeps `G`).
-fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
+fn isolated_copies(lines: &LineSet, st: &Settings) -> Result<Vec<Vec<usize>>, EngineError> {
     let (r_c, p, fixes) = (st.radius(), &st.params().cluster, st.fixes());
     let bits = |s: &Segment| {
         let (a, b) = (s.p1.to_array(), s.p2.to_array());
@@ -677,21 +1061,22 @@ fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
         same[id].push(k);
     }
     if same.len() == lines.len() {
-        return Vec::new();
+        return Ok(Vec::new());
     }
     let reps = LineSet::new(same.iter().map(|c| lines.segments[c[0]]).collect());
     let mut linked = vec![false; reps.len()];
-    for e in edges(&reps, st) {
+    for e in edges(&reps, st)? {
         linked[e.i()] = true;
         linked[e.j()] = true;
     }
     let n = reps.len();
     let reversed = LineSet::new(reps.segments.iter().rev().copied().collect());
-    for e in edges(&reversed, st) {
+    for e in edges(&reversed, st)? {
         linked[n - 1 - e.i()] = true;
         linked[n - 1 - e.j()] = true;
     }
-    same.into_iter()
+    Ok(same
+        .into_iter()
         .zip(linked)
         .filter(|(c, linked)| {
             let s = &lines.segments[c[0]];
@@ -703,14 +1088,14 @@ fn isolated_copies(lines: &LineSet, st: &Settings) -> Vec<Vec<usize>> {
                 && (!fixes.order_endpoints || s.p1.length() <= s.p2.length())
         })
         .map(|(c, _)| c)
-        .collect()
+        .collect())
 }
 
 /// [`cluster`] without setting copies aside: the definition.
-pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
+pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Result<Vec<Vec<usize>>, EngineError> {
     let n = lines.len();
     let p = &s.params().cluster;
-    let edges = edges(lines, s);
+    let edges = edges(lines, s)?;
     let root = union_find(n, &edges, p.cluster_c);
     let mut id_of_root = vec![usize::MAX; n];
     let mut members: Vec<Vec<usize>> = Vec::new();
@@ -725,7 +1110,7 @@ pub(crate) fn cluster_all(lines: &LineSet, s: &Settings) -> Vec<Vec<usize>> {
         members[id_of_root[r]].push(i);
     }
     drop((root, id_of_root));
-    greedy_orders(&members, &cluster_of, &edges)
+    Ok(greedy_orders(&members, &cluster_of, &edges))
 }
 
 /// Members of one cluster in greedy-matching order, the definition of [`greedy_orders`]: pairs by descending weight (ties in `(i, j)` order),
@@ -923,7 +1308,7 @@ mod tests {
         for scene in 0..6 {
             let lines = random_lines(700, scene + 1, scene % 2 == 0);
             let st = Params::default().with_radius([0.03, 0.05, 0.1][scene as usize % 3]);
-            let mut edges = edges(&lines, &st);
+            let mut edges = edges(&lines, &st).unwrap();
             if scene >= 3 {
                 // Weights on a coarse lattice: many ties.
                 edges = edges
@@ -1008,14 +1393,14 @@ mod tests {
             groups: Some(vec![0, 1, 2, 0, 1]),
         };
         let p = Params::default();
-        let c = cluster(&lines, &p.with_radius(0.03));
+        let c = cluster(&lines, &p.with_radius(0.03)).unwrap();
         // 3 joins 0 and 2 through its edge with 2; 4 never meets 1. Inside, (2, 3) is the
         // strongest pair (the larger length ratio), so it leads the greedy order.
         assert_eq!(c, vec![vec![2, 3, 0], vec![1], vec![4]]);
         // reference: 1 lies 5 away beside 0, with equal lengths and no endpoint strictly
         // inside, so only the (zero) axial gap counts and 1 joins the cluster.
         let p = Params::reference();
-        let c = cluster(&lines, &p.with_radius(0.03));
+        let c = cluster(&lines, &p.with_radius(0.03)).unwrap();
         assert_eq!(c, vec![vec![2, 3, 0, 1], vec![4]]);
     }
 
@@ -1031,9 +1416,9 @@ mod tests {
         };
         for p in [Params::default(), Params::reference()] {
             let st = p.with_radius(0.03);
-            assert_eq!(isolated_copies(&lines, &st), vec![vec![0, 2, 4]]);
-            let c = cluster(&lines, &st);
-            let all = cluster_all(&lines, &st);
+            assert_eq!(isolated_copies(&lines, &st).unwrap(), vec![vec![0, 2, 4]]);
+            let c = cluster(&lines, &st).unwrap();
+            let all = cluster_all(&lines, &st).unwrap();
             assert_eq!(c, vec![vec![0, 2, 4], vec![1, 5, 3]]);
             // The definition: the same clusters, the first member the same.
             assert_eq!(all.len(), c.len());
@@ -1248,6 +1633,98 @@ mod tests {
         assert_eq!(edges_hashed(&lines, 0.03, b, 0.4, 0.5, usize::MAX), all);
     }
 
+    /// Under the authors' distance the tree finds exactly the all-pairs edges: random
+    /// scenes (near-duplicates, equal lengths, groups), the real Line3D++ set, and pairs
+    /// that end at the other's end far across its axis, which only that distance links.
+    #[test]
+    fn the_endpoint_tree_finds_exactly_the_authors_all_pairs_edges() {
+        let real = read_obj(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/data/line3dpp/line3dpp_optimized.obj"
+        ));
+        let mut scenes: Vec<(LineSet, f64, f64, f64)> = vec![
+            (real.clone(), 0.03, 0.4, 0.5),
+            (real.clone(), 0.2, 0.4, 0.5),
+            (real, 0.05, 0.2, 0.0),
+        ];
+        for (seed, n, r_c, w_min, min_cos) in [
+            (1u64, 600usize, 0.03, 0.4, 0.5),
+            (2, 800, 0.05, 0.4, 0.5),
+            (3, 500, 0.02, 0.2, 0.9),
+            (4, 400, 0.1, 0.7, 0.5),
+            (5, 700, 0.05, 0.4, 0.0),
+        ] {
+            for grouped in [false, true] {
+                scenes.push((random_lines(n, seed, grouped), r_c, w_min, min_cos));
+            }
+        }
+        // Parallel pieces on a grid across one axis: every piece ends where others end.
+        let mut r = Lcg(9);
+        let across: Vec<Segment> = (0..600)
+            .map(|k| {
+                let o = DVec3::new(0.0, (k % 20) as f64 * 0.7, (k / 20) as f64 * 0.9);
+                let t = (k % 7) as f64 * 0.3 + r.f() * 0.01;
+                seg(
+                    (o + DVec3::new(t, 0.0, 0.0)).to_array(),
+                    (o + DVec3::new(t + 0.3 + r.f() * 0.05, r.f() * 0.2, 0.0)).to_array(),
+                )
+            })
+            .collect();
+        scenes.push((LineSet::new(across), 0.03, 0.4, 0.5));
+        for (k, (lines, r_c, w_min, min_cos)) in scenes.into_iter().enumerate() {
+            let b = distance_bound(r_c, w_min).unwrap();
+            let mut tree = edges_reference(&lines, r_c, b, w_min, min_cos);
+            tree.sort_by_key(|e| (e.i(), e.j()));
+            let all = edges_all_pairs(&lines, r_c, false, w_min, min_cos);
+            let far = all
+                .iter()
+                .filter(|e| lines.segments[e.i()].distance_to(&lines.segments[e.j()]) > 2.0 * b)
+                .count();
+            assert!(
+                all.len() > lines.len() / 4,
+                "scene {k}: {} edges",
+                all.len()
+            );
+            assert!(far > 0, "scene {k}: no edge across the axis");
+            assert_eq!(tree, all, "scene {k}");
+        }
+    }
+
+    /// 4,000 pieces within 0.02 of each other on one line, each its own input line: every
+    /// pair is an edge under the authors' distance, 8 x 10^6 of them, past the bound of
+    /// 1,024 a segment; step 7 says so instead of taking the memory. The default profile
+    /// keeps 128 a segment and clusters them.
+    #[test]
+    fn step_7_stops_at_its_edge_bound_with_a_message() {
+        let mut r = Lcg(3);
+        let lines = LineSet::new(
+            (0..4000)
+                .map(|_| {
+                    let t = r.f() * 0.019;
+                    let j = (r.v() - 0.5) * 2e-4;
+                    Segment::new(
+                        DVec3::new(t, 0.0, 0.0) + j,
+                        DVec3::new(t + 1e-3, 0.0, 0.0) - j,
+                    )
+                })
+                .collect(),
+        );
+        assert_eq!(edge_limit(lines.len()), 4000 * MAX_EDGES_PER_SEGMENT);
+        let reference = Params::reference().with_radius(0.03);
+        let Err(EngineError::Limit(why)) = cluster(&lines, &reference) else {
+            panic!("no limit reached");
+        };
+        assert!(
+            why.contains("step 7") && why.contains("4096000 similarity edges for 4000 segments"),
+            "{why}"
+        );
+        let c = cluster(&lines, &Params::default().with_radius(0.03)).unwrap();
+        assert!(c.len() < 100, "{} clusters", c.len());
+        // Under the bound the same scene clusters: a tenth of it.
+        let few = lines.select(&(0..400).collect::<Vec<_>>());
+        assert!(cluster(&few, &reference).unwrap().len() < 100);
+    }
+
     #[test]
     fn clusters_do_not_depend_on_the_thread_count() {
         let lines = random_lines(1500, 7, true);
@@ -1256,7 +1733,7 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| cluster(&lines, &p.with_radius(0.03)))
+                .install(|| cluster(&lines, &p.with_radius(0.03)).unwrap())
         };
         for p in [Params::default(), Params::reference()] {
             let one = run(1, &p);

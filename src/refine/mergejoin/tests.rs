@@ -539,8 +539,8 @@ fn batched_rounds_give_the_sequential_result_on_random_clusters() {
         }
         // Step 7 sets isolated exact copies aside: still the definition's result.
         let (c, c_all) = (
-            crate::refine::cluster::cluster(&lines, &st),
-            crate::refine::cluster::cluster_all(&lines, &st),
+            crate::refine::cluster::cluster(&lines, &st).unwrap(),
+            crate::refine::cluster::cluster_all(&lines, &st).unwrap(),
         );
         let got = merge_join(&e, &lines, &c, &st).unwrap();
         let def = sequential::merge_join_sequential(&e, &lines, &c_all, &st).unwrap();
