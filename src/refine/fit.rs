@@ -23,8 +23,9 @@ pub struct Attributes {
     /// Opacity of each Gaussian in `[0, 1]`: the fit's per-point weight with
     /// `--fit-opacity-weight`.
     pub opacity: Option<Vec<f32>>,
-    /// Thickness of each Gaussian (its smallest standard deviation).
-    pub thickness: Option<Vec<f32>>,
+    /// Extent of each Gaussian (its largest standard deviation, scene units): how far a
+    /// face's splats reach beyond their centres, for the face-end estimate.
+    pub extent: Option<Vec<f32>>,
 }
 
 /// `values` (one per center, same order) cut to the working set of `segments` by the same
@@ -60,7 +61,7 @@ impl Attributes {
         Some(Attributes {
             normals: Some(cut_to_working_set(centers, normals, segments)?),
             opacity: None,
-            thickness: None,
+            extent: None,
         })
     }
 
@@ -144,6 +145,9 @@ pub enum Estimate {
     Corner,
     /// The ridge of the centers: the mode of their cross-section.
     Ridge,
+    /// The end of one face's splats across the line: where their centres stop, plus
+    /// their extent.
+    FaceEnd,
 }
 
 /// What [`decide`] did with one segment.
@@ -213,6 +217,35 @@ pub struct RidgeEvidence {
     pub statistical: f64,
 }
 
+/// The face end's evidence: one face whose splats stop across the line.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FaceEndEvidence {
+    /// Members of the face (on its plane, normals within 20° of its normal).
+    pub count: usize,
+    /// Robust spread of the face's splats about their plane, scene units.
+    pub residual: f64,
+    /// Where the centres stop (the face's [`FACE_END_RANK`]-th member from its end,
+    /// measured along the face from the input line, positive inside the face) and the
+    /// splats' extent there (median largest standard deviation of the members within r/4
+    /// of the end), scene units; the edge lies [`FACE_END_REACH`] extents beyond the
+    /// centres' end.
+    pub stop: f64,
+    pub extent: f64,
+    /// Face members per unit length across the line within r/2 of the end.
+    pub density: f64,
+    /// Share of the members with a normal more than 20° off the face (and off a second
+    /// face where the normals split into two).
+    pub off_faces: f64,
+    /// Distance of the input line from the face's end (its farther end), scene units.
+    pub distance: f64,
+    /// How well the end is known: systematic floor (the face's residual, half the
+    /// reach and, where a second face meets it, the end's distance from the two faces'
+    /// corner, over the share of the normals that agree) and statistical part (the mean
+    /// gap between members at the end, `1 / density`).
+    pub floor: f64,
+    pub statistical: f64,
+}
+
 /// One segment's decision with its numbers (the report's `refine.fit_decisions`,
 /// `refine --explain N`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -231,12 +264,14 @@ pub struct Decision {
     pub sigma: f64,
     pub corner: Option<CornerEvidence>,
     pub ridge: Option<RidgeEvidence>,
+    pub face_end: Option<FaceEndEvidence>,
     /// The input segment and the fitted one (`x1 y1 z1 x2 y2 z2`).
     pub input: [f64; 6],
     pub fitted: [f64; 6],
     /// The two estimates' lines, where they exist.
     pub corner_line: Option<[f64; 6]>,
     pub ridge_line: Option<[f64; 6]>,
+    pub face_end_line: Option<[f64; 6]>,
 }
 
 /// A line moves onto an estimate only when it lies farther from it than this many times
@@ -527,6 +562,182 @@ fn corner_evidence(
     ))
 }
 
+/// The centres of a face's splats stop this many of its members before its end (the
+/// `FACE_END_RANK`-th member from the end: one stray splat does not move the end).
+pub const FACE_END_RANK: usize = 3;
+
+/// A face's edge lies this many of its splats' extents (largest standard deviation)
+/// beyond where their centres stop: a trained splat straddling the edge would paint past
+/// it, so the trainer leaves the centres about one extent inside. Half of it counts in the
+/// estimate's floor.
+pub const FACE_END_REACH: f64 = 1.0;
+
+/// The end of one face's splats across the input line (`pts`: the members of the input
+/// line's cylinder in its own cross-section frame, where the line is the origin): normals
+/// name the faces (one, or two families); each face's plane is the median of its
+/// splats' offsets along its normal; a face that stops inside the cylinder (its members
+/// all on one side of their end, the end within `r/2` of the line) gives an edge
+/// [`FACE_END_REACH`] extents beyond its [`FACE_END_RANK`]-th member from the end. The
+/// best known face's end, if any.
+fn face_end_evidence(
+    c: &CornerInput<'_>,
+    extent: Option<&[f32]>,
+    r: f64,
+    min_points: usize,
+) -> Option<(DVec2, FaceEndEvidence)> {
+    let CornerInput {
+        pts,
+        pw,
+        normals,
+        ids,
+        frame: (e1, e2),
+        ..
+    } = *c;
+    let mut keep = Vec::new();
+    let mut n2 = Vec::new();
+    let mut with_normal = Vec::new();
+    for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
+        if p.1.length() > r {
+            continue;
+        }
+        let n = crate::geom::p64(normals[*id as usize]);
+        if n == DVec3::ZERO {
+            continue;
+        }
+        with_normal.push(n);
+        let across = DVec2::new(n.dot(e1), n.dot(e2));
+        if across.length() > 0.866 {
+            keep.push(i);
+            n2.push(across.normalize());
+        }
+    }
+    if keep.len() < 2 * min_points.max(FACE_END_RANK) {
+        return None;
+    }
+    // The faces: two families where the normals split, else their one mean direction.
+    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
+    let faces: Vec<DVec2> = match families(&n2, &sub_w, min_points) {
+        Some(f) => vec![f[0].0, f[1].0],
+        None => {
+            let dbl: DVec2 = n2
+                .iter()
+                .map(|a| DVec2::new(a.x * a.x - a.y * a.y, 2.0 * a.x * a.y))
+                .sum();
+            let ang = 0.5 * dbl.y.atan2(dbl.x);
+            vec![DVec2::new(ang.cos(), ang.sin())]
+        }
+    };
+    let cos20 = 20f64.to_radians().cos();
+    let lift = |n: DVec2| e1 * n.x + e2 * n.y;
+    let off = with_normal
+        .iter()
+        .filter(|n| faces.iter().all(|f| n.dot(lift(*f)).abs() < cos20))
+        .count();
+    let off_faces = off as f64 / with_normal.len().max(1) as f64;
+    // Each face's members and plane (median offset along its normal, robust spread).
+    let planes: Vec<(DVec2, Vec<usize>, f64, f64)> = faces
+        .iter()
+        .map(|&n| {
+            let on: Vec<usize> = keep
+                .iter()
+                .zip(&n2)
+                .filter(|(_, a)| a.dot(n).abs() >= cos20)
+                .map(|(&i, _)| i)
+                .collect();
+            let mut offs: Vec<f64> = on.iter().map(|&i| n.dot(pts[i].1)).collect();
+            let (plane, residual) = if offs.is_empty() {
+                (0.0, 0.0)
+            } else {
+                median_sigma(&mut offs)
+            };
+            (n, on, plane, residual)
+        })
+        .collect();
+    // Where two faces meet, their corner: a face end away from it is not the edge (a
+    // face that stops short of the corner), and the floor counts how far it is.
+    let corner = match planes.as_slice() {
+        [(a, _, ca, _), (b, _, cb, _)] => {
+            let det = a.x * b.y - a.y * b.x;
+            (det.abs() > 1e-9)
+                .then(|| DVec2::new((ca * b.y - cb * a.y) / det, (a.x * cb - b.x * ca) / det))
+        }
+        _ => None,
+    };
+    let mut best: Option<(DVec2, FaceEndEvidence)> = None;
+    for (n, on, plane, residual) in planes {
+        if on.len() < 2 * min_points.max(FACE_END_RANK) {
+            continue;
+        }
+        let u = DVec2::new(-n.y, n.x);
+        let band = (3.0 * residual).max(1e-9);
+        let mut across: Vec<(f64, usize)> = on
+            .iter()
+            .filter(|&&i| (n.dot(pts[i].1) - plane).abs() <= band)
+            .map(|&i| (u.dot(pts[i].1), i))
+            .collect();
+        if across.len() < 2 * min_points.max(FACE_END_RANK) {
+            continue;
+        }
+        // The face lies on the side with more of its members; its end is toward the
+        // other side.
+        let plus = across.iter().filter(|a| a.0 > 0.0).count();
+        let side = if 2 * plus >= across.len() { 1.0 } else { -1.0 };
+        for a in &mut across {
+            a.0 *= side;
+        }
+        across.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let end = across[FACE_END_RANK - 1].0;
+        // The face must stop inside the cylinder, near the line.
+        if end.abs() > 0.5 * r {
+            continue;
+        }
+        let near: Vec<usize> = across
+            .iter()
+            .filter(|a| a.0 - end <= 0.5 * r)
+            .map(|a| a.1)
+            .collect();
+        if near.len() < min_points.max(FACE_END_RANK) {
+            continue;
+        }
+        let density = near.len() as f64 / (0.5 * r);
+        let mut ext: Vec<f64> = across
+            .iter()
+            .filter(|a| a.0 - end <= 0.25 * r)
+            .map(|a| extent.map_or(0.0, |e| f64::from(e[ids[a.1] as usize])))
+            .filter(|e| e.is_finite())
+            .collect();
+        let extent = if ext.is_empty() {
+            0.0
+        } else {
+            median(&mut ext)
+        };
+        let reach = FACE_END_REACH * extent;
+        let edge = n * plane + u * (side * (end - reach));
+        let apart = corner.map_or(0.0, |c| (edge - c).length());
+        let floor = residual.hypot(0.5 * reach).hypot(apart) / (1.0 - off_faces).max(1e-3);
+        let statistical = 1.0 / density;
+        let e = FaceEndEvidence {
+            count: across.len(),
+            residual,
+            stop: end,
+            extent,
+            density,
+            off_faces,
+            distance: edge.length(),
+            floor,
+            statistical,
+        };
+        let sigma = floor.hypot(statistical);
+        if best
+            .as_ref()
+            .is_none_or(|b| sigma < b.1.floor.hypot(b.1.statistical))
+        {
+            best = Some((edge, e));
+        }
+    }
+    best
+}
+
 /// What [`corner_evidence`] reads of one fitted segment: its members (cross-section
 /// offsets, weights, working-set ids), the model's normals, the fitted line's
 /// cross-section frame and the input line's ends in it.
@@ -579,10 +790,12 @@ pub fn decide(
             sigma: 0.0,
             corner: None,
             ridge: None,
+            face_end: None,
             input: seg6(&input[i]),
             fitted: seg6(&fitted.segments[i]),
             corner_line: None,
             ridge_line: None,
+            face_end_line: None,
         })
         .collect();
     if moved.is_empty() {
@@ -610,19 +823,23 @@ pub fn decide(
             })
         })
         .collect();
+    // The fitted lines' members (corner, ridge) and the input lines' (face end), one
+    // batch.
     let queries: Vec<Query> = moved
         .iter()
         .map(|&i| Query::new(fitted.segments[i], r))
+        .chain(moved.iter().map(|&i| Query::new(input[i], r)))
         .collect();
-    let members = engine.members(&queries)?;
+    let mut members = engine.members(&queries)?;
+    let at_input = members.split_off(moved.len());
     let h = p.fit_bandwidth * r;
     let min_points = p.fit_min_points.max(1) as usize;
     let decided: Vec<(Decision, Option<Segment>)> = {
         use rayon::prelude::*;
         moved
             .par_iter()
-            .zip(&members)
-            .map(|(&i, m)| {
+            .zip(members.par_iter().zip(&at_input))
+            .map(|(&i, (m, m_in))| {
                 let s = &fitted.segments[i];
                 let d = s.dir();
                 let (e1, e2) = basis(d);
@@ -655,10 +872,32 @@ pub fn decide(
                         min_points,
                     )
                 });
-                let at = |c: DVec2| {
+                // The face end, in the input line's own frame.
+                let g = &input[i];
+                let frame_in = basis(g.dir());
+                let face_end = attrs.normals.as_deref().and_then(|ns| {
+                    let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
+                    let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
+                    face_end_evidence(
+                        &CornerInput {
+                            pts: &pts,
+                            pw: &pw,
+                            normals: ns,
+                            ids: &ids,
+                            frame: frame_in,
+                            ends: [DVec2::ZERO; 2],
+                        },
+                        attrs.extent.as_deref(),
+                        r,
+                        min_points,
+                    )
+                });
+                let shifted = |base: &Segment, (e1, e2): (DVec3, DVec3), c: DVec2| {
                     let shift = e1 * c.x + e2 * c.y;
-                    seg6(&Segment::new(s.p1 + shift, s.p2 + shift))
+                    Segment::new(base.p1 + shift, base.p2 + shift)
                 };
+                let face_end_line = face_end.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
+                let at = |c: DVec2| seg6(&shifted(s, (e1, e2), c));
                 let corner_line = corner.as_ref().map(|c| at(c.0));
                 let ridge_line = ridge.as_ref().map(|c| at(c.0));
                 // The corner's floor: its faces' residuals and the disagreement of the
@@ -697,12 +936,21 @@ pub fn decide(
                         best = Some((Estimate::Ridge, *c, e.distance, s));
                     }
                 }
+                if let Some((c, e)) = &face_end {
+                    let s = sig(e.floor, e.statistical);
+                    if best.is_none_or(|b| s < b.3) {
+                        best = Some((Estimate::FaceEnd, *c, e.distance, s));
+                    }
+                }
                 let (verdict, estimate, distance, sigma, seg) = match best {
                     None => (Verdict::TooFewMembers, None, 0.0, 0.0, None),
                     Some((est, c, dist, sigma)) => {
                         if dist > MOVE_MARGIN * sigma {
-                            let shift = e1 * c.x + e2 * c.y;
-                            let seg = Segment::new(s.p1 + shift, s.p2 + shift);
+                            let seg = if est == Estimate::FaceEnd {
+                                shifted(g, frame_in, c)
+                            } else {
+                                shifted(s, (e1, e2), c)
+                            };
                             (Verdict::Moved, Some(est), dist, sigma, Some(seg))
                         } else {
                             (Verdict::ModelKnowsLess, Some(est), dist, sigma, None)
@@ -719,10 +967,12 @@ pub fn decide(
                         sigma,
                         corner: corner.map(|c| c.1),
                         ridge: ridge.map(|c| c.1),
+                        face_end: face_end.map(|c| c.1),
                         input: seg6(&input[i]),
                         fitted: seg6(s),
                         corner_line,
                         ridge_line,
+                        face_end_line,
                     },
                     seg,
                 )
@@ -735,7 +985,7 @@ pub fn decide(
             (Verdict::Moved, Some(seg)) => {
                 fitted.segments[i] = *seg;
                 fitted.how[i] = match dec.estimate {
-                    Some(Estimate::Corner) => How::Corner,
+                    Some(Estimate::Corner | Estimate::FaceEnd) => How::Corner,
                     _ => How::Ridge,
                 };
             }
@@ -912,6 +1162,7 @@ impl Estimate {
         match self {
             Estimate::Corner => "corner of two faces",
             Estimate::Ridge => "ridge of the centres",
+            Estimate::FaceEnd => "end of a face's splats",
         }
     }
 }
