@@ -24,6 +24,9 @@ pub struct GaussianAttributes {
     pub min_scale: Vec<f32>,
     /// Opacity in `[0, 1]` (`sigmoid` of the stored logit), where the file has it.
     pub opacity: Option<Vec<f32>>,
+    /// Base colour (RGB, `0.5 + C0 x f_dc_i`: the SH degree-0 terms), where the file has
+    /// `f_dc_0..2`.
+    pub colour: Option<Vec<[f32; 3]>>,
 }
 
 /// Unit normals of the Gaussians that [`super::read_gaussians`] keeps with the same
@@ -106,11 +109,17 @@ fn attributes_from(
         None if min_opacity.is_some() => return Ok(None),
         None => false,
     };
+    let dc = ["f_dc_0", "f_dc_1", "f_dc_2"].map(scalar);
+    let has_colour = dc.iter().all(Option::is_some);
+    if has_colour {
+        wanted.extend(dc.iter().flatten());
+    }
+    let at_dc = if has_opacity { 11 } else { 10 };
     let mut body = Body::new(ch, &header, header_lines);
     for elem in &header.elements[..vi] {
         body.skip(path, elem)?;
     }
-    let mut out = GaussianAttributes::with_capacity(vertex.count, has_opacity);
+    let mut out = GaussianAttributes::with_capacity(vertex.count, has_opacity, has_colour);
     body.for_each(path, vertex, &wanted, |_, v| {
         let c = [v[0] as f32, v[1] as f32, v[2] as f32];
         if !c.iter().all(|x| x.is_finite()) {
@@ -122,27 +131,29 @@ fn attributes_from(
                 return Ok(());
             }
         }
-        out.push([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]], alpha);
+        let colour = has_colour.then(|| [v[at_dc], v[at_dc + 1], v[at_dc + 2]]);
+        out.push_one(Attribute::of(
+            [v[3], v[4], v[5], v[6]],
+            [v[7], v[8], v[9]],
+            alpha,
+            colour,
+        ));
         Ok(())
     })?;
     Ok(Some(out))
 }
 
 impl GaussianAttributes {
-    /// Empty, with room for `n` Gaussians; opacities where `has_opacity`.
-    pub(crate) fn with_capacity(n: usize, has_opacity: bool) -> Self {
+    /// Empty, with room for `n` Gaussians; opacities where `has_opacity`, colours where
+    /// `has_colour`.
+    pub(crate) fn with_capacity(n: usize, has_opacity: bool, has_colour: bool) -> Self {
         GaussianAttributes {
             normals: Vec::with_capacity(n),
             max_scale: Vec::with_capacity(n),
             min_scale: Vec::with_capacity(n),
             opacity: has_opacity.then(|| Vec::with_capacity(n)),
+            colour: has_colour.then(|| Vec::with_capacity(n)),
         }
-    }
-
-    /// One kept Gaussian's attributes from its rotation (w x y z), log scales and opacity
-    /// (`sigmoid` of the stored logit, where the file has one).
-    pub(crate) fn push(&mut self, rot: [f64; 4], log_scale: [f64; 3], alpha: Option<f64>) {
-        self.push_one(Attribute::of(rot, log_scale, alpha));
     }
 
     /// One kept Gaussian's attributes, computed already.
@@ -152,6 +163,9 @@ impl GaussianAttributes {
         self.min_scale.push(a.min_scale);
         if let (Some(o), Some(a)) = (&mut self.opacity, a.opacity) {
             o.push(a);
+        }
+        if let (Some(c), Some(a)) = (&mut self.colour, a.colour) {
+            c.push(a);
         }
     }
 }
@@ -163,12 +177,21 @@ pub(crate) struct Attribute {
     max_scale: f32,
     min_scale: f32,
     opacity: Option<f32>,
+    colour: Option<[f32; 3]>,
 }
 
+/// The SH degree-0 basis constant: a Gaussian's base colour is `0.5 + C0 x f_dc`.
+const SH_C0: f64 = 0.282_094_791_773_878_14;
+
 impl Attribute {
-    /// From its rotation (w x y z), log scales and opacity (`sigmoid` of the stored logit,
-    /// where the file has one).
-    pub(crate) fn of(rot: [f64; 4], log_scale: [f64; 3], alpha: Option<f64>) -> Attribute {
+    /// From its rotation (w x y z), log scales, opacity (`sigmoid` of the stored logit,
+    /// where the file has one) and SH degree-0 terms `f_dc_0..2` (where it has them).
+    pub(crate) fn of(
+        rot: [f64; 4],
+        log_scale: [f64; 3],
+        alpha: Option<f64>,
+        dc: Option<[f64; 3]>,
+    ) -> Attribute {
         let [a, b, c] = log_scale;
         let scale = |s: f64| if s.is_nan() { f32::INFINITY } else { s as f32 };
         Attribute {
@@ -176,6 +199,7 @@ impl Attribute {
             max_scale: scale(a.max(b).max(c).exp()),
             min_scale: scale(a.min(b).min(c).exp()),
             opacity: alpha.map(|a| if a.is_nan() { 0.0 } else { a as f32 }),
+            colour: dc.map(|d| d.map(|c| (0.5 + SH_C0 * c) as f32)),
         }
     }
 }

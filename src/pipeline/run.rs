@@ -166,6 +166,7 @@ impl Refiner {
             normals,
             opacity,
             extent: None,
+            colour: None,
         };
         self.attrs = a;
         true
@@ -188,7 +189,24 @@ impl Refiner {
         }
     }
 
-    /// Gives `scene`'s attributes (normals, opacity, extent) to the edge fit; `true`
+    /// Gives the decision rule each Gaussian's base colour (in the order of `gaussians`);
+    /// `false` (and nothing set) when the count differs.
+    pub fn set_colour(
+        &mut self,
+        gaussians: &[[f32; 3]],
+        colour: &[[f32; 3]],
+        segments: &[Segment],
+    ) -> bool {
+        match refine::fit::cut_to_working_set(gaussians, colour, segments) {
+            Some(w) if w.len() == self.n_box() => {
+                self.attrs.colour = Some(w);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Gives `scene`'s attributes (normals, opacity, extent, colour) to the edge fit; `true`
     /// when the model had some that did not line up with its centers (they are not used).
     pub fn set_scene_attributes(&mut self, scene: &Scene) -> bool {
         let mut unused = false;
@@ -197,6 +215,9 @@ impl Refiner {
             unused = !self.set_attributes(g, scene.normals.as_deref(), scene.opacity.as_deref(), l);
             if let Some(ex) = &scene.max_scale {
                 unused |= !self.set_extent(g, ex, l);
+            }
+            if let Some(c) = &scene.colour {
+                unused |= !self.set_colour(g, c, l);
             }
         }
         unused
@@ -402,6 +423,7 @@ impl Job {
             max_scale: Some(pick_of(sc, &keep)),
             min_scale: scene.min_scale.as_deref().map(|v| pick_of(v, &keep)),
             opacity: scene.opacity.as_deref().map(|o| pick_of(o, &keep)),
+            colour: scene.colour.as_deref().map(|c| pick_of(c, &keep)),
             lines: scene.lines.clone(),
             input: scene.input.clone(),
             warnings: scene.warnings.clone(),

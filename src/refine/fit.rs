@@ -26,6 +26,9 @@ pub struct Attributes {
     /// Extent of each Gaussian (its largest standard deviation, scene units): how far a
     /// face's splats reach beyond their centres, for the face-end estimate.
     pub extent: Option<Vec<f32>>,
+    /// Base colour of each Gaussian (RGB from its SH degree-0 terms), for the colour-change
+    /// estimate.
+    pub colour: Option<Vec<[f32; 3]>>,
 }
 
 /// `values` (one per center, same order) cut to the working set of `segments` by the same
@@ -62,6 +65,7 @@ impl Attributes {
             normals: Some(cut_to_working_set(centers, normals, segments)?),
             opacity: None,
             extent: None,
+            colour: None,
         })
     }
 
@@ -148,6 +152,8 @@ pub enum Estimate {
     /// The end of one face's splats across the line: where their centres stop, plus
     /// their extent.
     FaceEnd,
+    /// A change of the splats' colour across the line within one face.
+    Colour,
 }
 
 /// What [`decide`] did with one segment.
@@ -246,6 +252,31 @@ pub struct FaceEndEvidence {
     pub statistical: f64,
 }
 
+/// The colour change's evidence: a step in the base colour of one face's splats across
+/// the line, the face continuing on both sides.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ColourEvidence {
+    /// Members of the face (on its plane, normals within 20° of its normal).
+    pub count: usize,
+    /// The step: distance between the two sides' mean colours (RGB in `[0, 1]`), and the
+    /// share of the members whose colour is nearer the other side's.
+    pub step: f64,
+    pub mixed: f64,
+    /// Half the width of the span of steps that leave at most `sqrt(k)` (at least 1) more
+    /// members on the wrong side than the best step's `k` (a profile of the count), scene
+    /// units.
+    pub width: f64,
+    /// The splats' extent at the step (median largest standard deviation within r/4).
+    pub extent: f64,
+    /// Distance of the input line from the step (its farther end), scene units.
+    pub distance: f64,
+    /// How well the step is known: systematic floor (the profile's half width and half
+    /// the extent, over the share of members the two colours explain) and statistical
+    /// part (the mean gap between members at the step).
+    pub floor: f64,
+    pub statistical: f64,
+}
+
 /// One segment's decision with its numbers (the report's `refine.fit_decisions`,
 /// `refine --explain N`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -265,6 +296,7 @@ pub struct Decision {
     pub corner: Option<CornerEvidence>,
     pub ridge: Option<RidgeEvidence>,
     pub face_end: Option<FaceEndEvidence>,
+    pub colour: Option<ColourEvidence>,
     /// The input segment and the fitted one (`x1 y1 z1 x2 y2 z2`).
     pub input: [f64; 6],
     pub fitted: [f64; 6],
@@ -272,6 +304,7 @@ pub struct Decision {
     pub corner_line: Option<[f64; 6]>,
     pub ridge_line: Option<[f64; 6]>,
     pub face_end_line: Option<[f64; 6]>,
+    pub colour_line: Option<[f64; 6]>,
 }
 
 /// A line moves onto an estimate only when it lies farther from it than this many times
@@ -738,6 +771,178 @@ fn face_end_evidence(
     best
 }
 
+/// A step of the base colour across the input line within one face (`pts` as for
+/// [`face_end_evidence`]): the faces' planes as there; for each face that continues at
+/// least `r/2` on both sides of its best step, the step that best splits the members'
+/// colours in two (least squares of the RGB means over every split of the members
+/// ordered across the line), placed on the face's plane midway between the two members
+/// it falls between. The best known step, if any.
+fn colour_evidence(
+    c: &CornerInput<'_>,
+    colour: &[[f32; 3]],
+    extent: Option<&[f32]>,
+    r: f64,
+    min_points: usize,
+) -> Option<(DVec2, ColourEvidence)> {
+    let CornerInput {
+        pts,
+        normals,
+        ids,
+        frame: (e1, e2),
+        ..
+    } = *c;
+    let lim = 2 * min_points.max(FACE_END_RANK);
+    let mut keep = Vec::new();
+    let mut n2 = Vec::new();
+    for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
+        if p.1.length() > r {
+            continue;
+        }
+        let n = crate::geom::p64(normals[*id as usize]);
+        let across = DVec2::new(n.dot(e1), n.dot(e2));
+        if n != DVec3::ZERO && across.length() > 0.866 {
+            keep.push(i);
+            n2.push(across.normalize());
+        }
+    }
+    if keep.len() < lim {
+        return None;
+    }
+    let w1 = vec![1.0; n2.len()];
+    let faces: Vec<DVec2> = match families(&n2, &w1, min_points) {
+        Some(f) => vec![f[0].0, f[1].0],
+        None => {
+            let dbl: DVec2 = n2
+                .iter()
+                .map(|a| DVec2::new(a.x * a.x - a.y * a.y, 2.0 * a.x * a.y))
+                .sum();
+            let ang = 0.5 * dbl.y.atan2(dbl.x);
+            vec![DVec2::new(ang.cos(), ang.sin())]
+        }
+    };
+    let cos20 = 20f64.to_radians().cos();
+    let rgb = |i: usize| DVec3::from(colour[ids[i] as usize].map(f64::from));
+    let mut best: Option<(DVec2, ColourEvidence)> = None;
+    for n in faces {
+        let on: Vec<usize> = keep
+            .iter()
+            .zip(&n2)
+            .filter(|(_, a)| a.dot(n).abs() >= cos20)
+            .map(|(&i, _)| i)
+            .collect();
+        if on.len() < lim {
+            continue;
+        }
+        let mut offs: Vec<f64> = on.iter().map(|&i| n.dot(pts[i].1)).collect();
+        let (plane, residual) = median_sigma(&mut offs);
+        let u = DVec2::new(-n.y, n.x);
+        let band = (3.0 * residual).max(1e-9);
+        let mut across: Vec<(f64, usize)> = on
+            .iter()
+            .filter(|&&i| (n.dot(pts[i].1) - plane).abs() <= band)
+            .map(|&i| (u.dot(pts[i].1), i))
+            .filter(|_| true)
+            .collect();
+        let k = across.len();
+        if k < lim || across.iter().any(|a| !rgb(a.1).is_finite()) {
+            continue;
+        }
+        across.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        // Least squares over every split j (members [0, j) | [j, k)), both sides at least
+        // `min_points`: the best split maximises j |m1|^2 + (k - j) |m2|^2.
+        let total: DVec3 = across.iter().map(|a| rgb(a.1)).sum();
+        let lo = min_points.max(FACE_END_RANK);
+        let mut acc = DVec3::ZERO;
+        let mut split: Option<(usize, f64)> = None;
+        for j in 1..k {
+            acc += rgb(across[j - 1].1);
+            if j < lo || k - j < lo {
+                continue;
+            }
+            let (a, b) = (acc / j as f64, (total - acc) / (k - j) as f64);
+            let gain = j as f64 * a.length_squared() + (k - j) as f64 * b.length_squared();
+            if split.is_none_or(|s| gain > s.1) {
+                split = Some((j, gain));
+            }
+        }
+        let Some((j, _)) = split else { continue };
+        let pos = 0.5 * (across[j - 1].0 + across[j].0);
+        // The face continues on both sides of the step.
+        if pos - across[0].0 < 0.5 * r || across[k - 1].0 - pos < 0.5 * r {
+            continue;
+        }
+        let head: DVec3 = across[..j].iter().map(|a| rgb(a.1)).sum::<DVec3>() / j as f64;
+        let tail = (total - head * j as f64) / (k - j) as f64;
+        let dv = tail - head;
+        let step = dv.length();
+        if step <= 0.0 {
+            continue;
+        }
+        // Which side each member's colour is nearer; the count of members on the wrong
+        // side of every split, and the span of splits within sqrt(best) (at least 1) of
+        // the best count.
+        let far: Vec<bool> = across
+            .iter()
+            .map(|a| (rgb(a.1) - head).dot(dv) > 0.5 * dv.length_squared())
+            .collect();
+        let mut wrong: Vec<usize> = Vec::with_capacity(k + 1);
+        let mut count = far.iter().filter(|&&f| !f).count();
+        wrong.push(count);
+        for f in &far {
+            if *f {
+                count += 1;
+            } else {
+                count -= 1;
+            }
+            wrong.push(count);
+        }
+        let least = *wrong.iter().min()?;
+        let within = least as f64 + (least as f64).sqrt().max(1.0);
+        let at = |s: usize| match s {
+            0 => across[0].0,
+            s if s == k => across[k - 1].0,
+            s => 0.5 * (across[s - 1].0 + across[s].0),
+        };
+        let inside: Vec<usize> = (0..=k).filter(|&s| wrong[s] as f64 <= within).collect();
+        let width = 0.5 * (at(*inside.last()?) - at(inside[0]));
+        let mixed = least as f64 / k as f64;
+        let near: Vec<f64> = across
+            .iter()
+            .filter(|a| (a.0 - pos).abs() <= 0.25 * r)
+            .map(|a| extent.map_or(0.0, |e| f64::from(e[ids[a.1] as usize])))
+            .filter(|e| e.is_finite())
+            .collect();
+        let density = near.len() as f64 / (0.5 * r);
+        let mut near = near;
+        let extent = if near.is_empty() {
+            0.0
+        } else {
+            median(&mut near)
+        };
+        let floor = width.hypot(0.5 * extent) / (1.0 - 2.0 * mixed).max(1e-3);
+        let statistical = 1.0 / density.max(1e-9);
+        let edge = n * plane + u * pos;
+        let e = ColourEvidence {
+            count: k,
+            step,
+            mixed,
+            width,
+            extent,
+            distance: edge.length(),
+            floor,
+            statistical,
+        };
+        let sigma = floor.hypot(statistical);
+        if best
+            .as_ref()
+            .is_none_or(|b| sigma < b.1.floor.hypot(b.1.statistical))
+        {
+            best = Some((edge, e));
+        }
+    }
+    best
+}
+
 /// What [`corner_evidence`] reads of one fitted segment: its members (cross-section
 /// offsets, weights, working-set ids), the model's normals, the fitted line's
 /// cross-section frame and the input line's ends in it.
@@ -791,11 +996,13 @@ pub fn decide(
             corner: None,
             ridge: None,
             face_end: None,
+            colour: None,
             input: seg6(&input[i]),
             fitted: seg6(&fitted.segments[i]),
             corner_line: None,
             ridge_line: None,
             face_end_line: None,
+            colour_line: None,
         })
         .collect();
     if moved.is_empty() {
@@ -897,6 +1104,28 @@ pub fn decide(
                     Segment::new(base.p1 + shift, base.p2 + shift)
                 };
                 let face_end_line = face_end.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
+                let colour = match (attrs.normals.as_deref(), attrs.colour.as_deref()) {
+                    (Some(ns), Some(cs)) => {
+                        let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
+                        let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
+                        colour_evidence(
+                            &CornerInput {
+                                pts: &pts,
+                                pw: &pw,
+                                normals: ns,
+                                ids: &ids,
+                                frame: frame_in,
+                                ends: [DVec2::ZERO; 2],
+                            },
+                            cs,
+                            attrs.extent.as_deref(),
+                            r,
+                            min_points,
+                        )
+                    }
+                    _ => None,
+                };
+                let colour_line = colour.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
                 let at = |c: DVec2| seg6(&shifted(s, (e1, e2), c));
                 let corner_line = corner.as_ref().map(|c| at(c.0));
                 let ridge_line = ridge.as_ref().map(|c| at(c.0));
@@ -942,11 +1171,17 @@ pub fn decide(
                         best = Some((Estimate::FaceEnd, *c, e.distance, s));
                     }
                 }
+                if let Some((c, e)) = &colour {
+                    let s = sig(e.floor, e.statistical);
+                    if best.is_none_or(|b| s < b.3) {
+                        best = Some((Estimate::Colour, *c, e.distance, s));
+                    }
+                }
                 let (verdict, estimate, distance, sigma, seg) = match best {
                     None => (Verdict::TooFewMembers, None, 0.0, 0.0, None),
                     Some((est, c, dist, sigma)) => {
                         if dist > MOVE_MARGIN * sigma {
-                            let seg = if est == Estimate::FaceEnd {
+                            let seg = if matches!(est, Estimate::FaceEnd | Estimate::Colour) {
                                 shifted(g, frame_in, c)
                             } else {
                                 shifted(s, (e1, e2), c)
@@ -968,11 +1203,13 @@ pub fn decide(
                         corner: corner.map(|c| c.1),
                         ridge: ridge.map(|c| c.1),
                         face_end: face_end.map(|c| c.1),
+                        colour: colour.map(|c| c.1),
                         input: seg6(&input[i]),
                         fitted: seg6(s),
                         corner_line,
                         ridge_line,
                         face_end_line,
+                        colour_line,
                     },
                     seg,
                 )
@@ -985,7 +1222,7 @@ pub fn decide(
             (Verdict::Moved, Some(seg)) => {
                 fitted.segments[i] = *seg;
                 fitted.how[i] = match dec.estimate {
-                    Some(Estimate::Corner | Estimate::FaceEnd) => How::Corner,
+                    Some(Estimate::Corner | Estimate::FaceEnd | Estimate::Colour) => How::Corner,
                     _ => How::Ridge,
                 };
             }
@@ -1163,6 +1400,7 @@ impl Estimate {
             Estimate::Corner => "corner of two faces",
             Estimate::Ridge => "ridge of the centres",
             Estimate::FaceEnd => "end of a face's splats",
+            Estimate::Colour => "change of the splats' colour",
         }
     }
 }
