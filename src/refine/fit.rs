@@ -288,6 +288,9 @@ pub struct Decision {
     pub estimate: Option<Estimate>,
     /// Members within r of the fitted line.
     pub members: usize,
+    /// Share of those members that are flat (a normal: shortest axis 1.5x shorter than
+    /// the next), where the model has normals.
+    pub flat_share: Option<f64>,
     /// The input line's distance from the estimate and how well the estimate is known
     /// (`sqrt(floor^2 + statistical^2)`), scene units; the line moves when `distance`
     /// exceeds [`MOVE_MARGIN`] x `sigma`.
@@ -991,6 +994,7 @@ pub fn decide(
             verdict: Verdict::TooFewMembers,
             estimate: None,
             members: 0,
+            flat_share: None,
             distance: 0.0,
             sigma: 0.0,
             corner: None,
@@ -1198,6 +1202,10 @@ pub fn decide(
                         verdict,
                         estimate,
                         members: m.len(),
+                        flat_share: attrs.normals.as_deref().map(|ns| {
+                            let flat = m.iter().filter(|mm| ns[mm.id as usize] != [0.0; 3]).count();
+                            flat as f64 / m.len().max(1) as f64
+                        }),
                         distance,
                         sigma,
                         corner: corner.map(|c| c.1),
@@ -1248,51 +1256,70 @@ pub fn decide(
 /// `refine.diagnosis`): the kind most segments show, in words, and the counts.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Diagnosis {
-    /// `edges` (centres on the edges), `faces` (splats on the faces), `sunk` (splats
-    /// below the faces, off the edges) or `sparse` (too few members).
+    /// `edges` (centres on the edges), `faces` (splats on the faces), `sunk` (flat splats
+    /// below the faces, off the edges), `round` (round splats, no face to speak of, off
+    /// the edges) or `sparse` (too few members).
     pub kind: String,
     /// The kind in words, with how far the model's centres sit from the lines where they
-    /// are sunk.
+    /// are off the edges.
     pub text: String,
     /// Segments of each kind.
     pub edges: usize,
     pub faces: usize,
     pub sunk: usize,
+    pub round: usize,
     pub sparse: usize,
     /// Segments the rule moved, kept because the model knows the edge less well than the
     /// line does, and kept for lack of members.
     pub moved: usize,
     pub model_knows_less: usize,
     pub too_few_members: usize,
-    /// Median distance from the lines of the centres' ridge, where the model is sunk.
+    /// Median distance from the lines of the centres' ridge, where the model is sunk or
+    /// round.
     pub sunk_by: Option<f64>,
 }
 
-/// A corner whose floor is below this many r says the splats lie on the faces.
+/// An estimate from the faces (corner, face end, colour change) whose floor is below
+/// this many r says the splats lie on the faces.
 pub const FACES_FLOOR: f64 = 0.15;
 
 /// A ridge whose floor is below this many r says the centres lie on the edges.
 pub const EDGES_FLOOR: f64 = 0.15;
 
+/// Members off the edges and off the faces are `round` where fewer than this share of
+/// them are flat (else `sunk`).
+pub const ROUND_FLAT: f64 = 0.5;
+
 /// The diagnosis of the model near the lines from the rule's decisions; `None` when there
-/// are none.
+/// are none. Each segment is named by its own evidence: centres on the edges where the
+/// ridge is well known, splats on the faces where an estimate from the faces is,
+/// otherwise round (mostly round members) or sunk (mostly flat ones, whose faces do not
+/// meet at the line), or sparse (too few members).
 pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
     if decisions.is_empty() {
         return None;
     }
-    let (mut edges, mut faces, mut sunk, mut sparse) = (0, 0, 0, 0);
+    let (mut edges, mut faces, mut sunk, mut round, mut sparse) = (0, 0, 0, 0, 0);
     let mut depth = Vec::new();
     for d in decisions {
-        let corner = d.corner.as_ref().filter(|c| c.floor < FACES_FLOOR * r);
+        let on_faces = d.corner.as_ref().is_some_and(|c| c.floor < FACES_FLOOR * r)
+            || d.face_end
+                .as_ref()
+                .is_some_and(|c| c.floor < FACES_FLOOR * r)
+            || d.colour.as_ref().is_some_and(|c| c.floor < FACES_FLOOR * r);
         let ridge = d.ridge.as_ref().filter(|e| e.floor < EDGES_FLOOR * r);
         if d.verdict == Verdict::TooFewMembers {
             sparse += 1;
-        } else if corner.is_some() {
+        } else if on_faces {
             faces += 1;
         } else if ridge.is_some() {
             edges += 1;
         } else {
-            sunk += 1;
+            if d.flat_share.is_some_and(|f| f < ROUND_FLAT) {
+                round += 1;
+            } else {
+                sunk += 1;
+            }
             if let Some(e) = &d.ridge {
                 depth.push(e.distance);
             }
@@ -1300,22 +1327,23 @@ pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
     }
     let count = |v: Verdict| decisions.iter().filter(|d| d.verdict == v).count();
     let sunk_by = (!depth.is_empty()).then(|| median(&mut depth));
-    let most = [edges, faces, sunk, sparse].into_iter().max().unwrap_or(0);
+    let most = [edges, faces, sunk, round, sparse]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
     let n = decisions.len();
+    let off = |what: &str| match sunk_by {
+        Some(x) => format!("{what}: the centres' ridge lies about {x:.3} from the lines"),
+        None => what.to_string(),
+    };
     let (kind, text) = if most == edges {
         ("edges", "centres on the edges".to_string())
     } else if most == faces {
         ("faces", "splats on the faces".to_string())
     } else if most == sunk {
-        (
-            "sunk",
-            match sunk_by {
-                Some(x) => format!(
-                    "sunk below the faces: the centres' ridge lies about {x:.3} from the lines"
-                ),
-                None => "sunk below the faces".to_string(),
-            },
-        )
+        ("sunk", off("sunk below the faces"))
+    } else if most == round {
+        ("round", off("round splats off the edges"))
     } else {
         ("sparse", "too sparse".to_string())
     };
@@ -1325,6 +1353,7 @@ pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
         edges,
         faces,
         sunk,
+        round,
         sparse,
         moved: count(Verdict::Moved),
         model_knows_less: count(Verdict::ModelKnowsLess),
@@ -1372,6 +1401,37 @@ impl Decision {
                 c.counts[0],
                 c.counts[1],
                 u(c.statistical)
+            );
+        }
+        if let Some(e) = &self.face_end {
+            s += &format!(
+                "\n  face end: {} from the line, floor {} (face's residual {:.4}; centres stop \
+                 {:.4} along the face from the line, extent {:.4}; {:.0} % of normals off the \
+                 faces; {} splats), statistical {} ({:.0} members per unit across)",
+                u(e.distance),
+                u(e.floor),
+                e.residual,
+                e.stop,
+                e.extent,
+                100.0 * e.off_faces,
+                e.count,
+                u(e.statistical),
+                e.density
+            );
+        }
+        if let Some(e) = &self.colour {
+            s += &format!(
+                "\n  colour change: {} from the line, floor {} (step {:.3} in RGB, {:.0} % of \
+                 splats nearer the other side's colour, profile half width {:.4}, extent \
+                 {:.4}; {} splats), statistical {}",
+                u(e.distance),
+                u(e.floor),
+                e.step,
+                100.0 * e.mixed,
+                e.width,
+                e.extent,
+                e.count,
+                u(e.statistical)
             );
         }
         if let Some(e) = &self.ridge {
