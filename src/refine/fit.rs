@@ -181,8 +181,9 @@ pub struct CornerEvidence {
     pub residuals: [f64; 2],
     /// Angle between the faces' normals, degrees.
     pub angle_deg: f64,
-    /// Share of the members with a normal that is more than 20° off both faces (a rounded
-    /// corner, or normals that say nothing about the positions).
+    /// Share of the members within r with a normal that is more than 20° off both faces
+    /// (a rounded corner, or normals that say nothing about the positions) or with no
+    /// normal at all (round splats).
     pub off_faces: f64,
     /// How far the input line lies outside both faces (the smaller of its two distances,
     /// each its ends' mean, on the side away from the other face's splats); negative where
@@ -239,8 +240,8 @@ pub struct FaceEndEvidence {
     pub extent: f64,
     /// Face members per unit length across the line within r/2 of the end.
     pub density: f64,
-    /// Share of the members with a normal more than 20° off the face (and off a second
-    /// face where the normals split into two).
+    /// Share of the members within r with a normal more than 20° off the face (and off a
+    /// second face where the normals split into two) or with no normal at all.
     pub off_faces: f64,
     /// Distance of the input line from the face's end (its farther end), scene units.
     pub distance: f64,
@@ -271,8 +272,9 @@ pub struct ColourEvidence {
     /// Distance of the input line from the step (its farther end), scene units.
     pub distance: f64,
     /// How well the step is known: systematic floor (the profile's half width and half
-    /// the extent, over the share of members the two colours explain) and statistical
-    /// part (the mean gap between members at the step).
+    /// the extent, over the share of members the two colours explain and the share of
+    /// the members within r that are flat) and statistical part (the mean gap between
+    /// members at the step).
     pub floor: f64,
     pub statistical: f64,
 }
@@ -489,10 +491,12 @@ fn corner_evidence(
     let mut keep = Vec::new();
     let mut n2 = Vec::new();
     let mut with_normal = Vec::new();
+    let mut within = 0usize;
     for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
         if p.1.length() > r {
             continue;
         }
+        within += 1;
         let n = crate::geom::p64(normals[*id as usize]);
         if n != DVec3::ZERO {
             with_normal.push(n);
@@ -553,18 +557,15 @@ fn corner_evidence(
         (Some(a), Some(b)) => (a - b).length(),
         _ => -1.0,
     };
-    // Normals more than 20° off both faces (3D: a normal along the line is off both).
+    // Normals more than 20° off both faces (3D: a normal along the line is off both),
+    // and members with no normal (round: they do not say where a face is).
     let lift = |n: DVec2| e1 * n.x + e2 * n.y;
     let cos20 = 20f64.to_radians().cos();
-    let off_faces = if with_normal.is_empty() {
-        0.0
-    } else {
-        let off = with_normal
-            .iter()
-            .filter(|n| n.dot(lift(n1)).abs() < cos20 && n.dot(lift(n2v)).abs() < cos20)
-            .count();
-        off as f64 / with_normal.len() as f64
-    };
+    let off = with_normal
+        .iter()
+        .filter(|n| n.dot(lift(n1)).abs() < cos20 && n.dot(lift(n2v)).abs() < cos20)
+        .count();
+    let off_faces = (off + within - with_normal.len()) as f64 / within.max(1) as f64;
     let _ = d;
     // The outside of face k: away from the other face's splats.
     let mut outside = f64::INFINITY;
@@ -632,10 +633,12 @@ fn face_end_evidence(
     let mut keep = Vec::new();
     let mut n2 = Vec::new();
     let mut with_normal = Vec::new();
+    let mut within = 0usize;
     for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
         if p.1.length() > r {
             continue;
         }
+        within += 1;
         let n = crate::geom::p64(normals[*id as usize]);
         if n == DVec3::ZERO {
             continue;
@@ -669,7 +672,7 @@ fn face_end_evidence(
         .iter()
         .filter(|n| faces.iter().all(|f| n.dot(lift(*f)).abs() < cos20))
         .count();
-    let off_faces = off as f64 / with_normal.len().max(1) as f64;
+    let off_faces = (off + within - with_normal.len()) as f64 / within.max(1) as f64;
     // Each face's members and plane (median offset along its normal, robust spread).
     let planes: Vec<(DVec2, Vec<usize>, f64, f64)> = faces
         .iter()
@@ -797,11 +800,14 @@ fn colour_evidence(
     let lim = 2 * min_points.max(FACE_END_RANK);
     let mut keep = Vec::new();
     let mut n2 = Vec::new();
+    let (mut in_r, mut round) = (0usize, 0usize);
     for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
         if p.1.length() > r {
             continue;
         }
+        in_r += 1;
         let n = crate::geom::p64(normals[*id as usize]);
+        round += usize::from(n == DVec3::ZERO);
         let across = DVec2::new(n.dot(e1), n.dot(e2));
         if n != DVec3::ZERO && across.length() > 0.866 {
             keep.push(i);
@@ -922,7 +928,8 @@ fn colour_evidence(
         } else {
             median(&mut near)
         };
-        let floor = width.hypot(0.5 * extent) / (1.0 - 2.0 * mixed).max(1e-3);
+        let flat = 1.0 - round as f64 / in_r.max(1) as f64;
+        let floor = width.hypot(0.5 * extent) / ((1.0 - 2.0 * mixed) * flat).max(1e-3);
         let statistical = 1.0 / density.max(1e-9);
         let edge = n * plane + u * pos;
         let e = ColourEvidence {
