@@ -51,6 +51,7 @@ fn two_face_families_give_the_corner_not_the_centroid() {
         normals: Some(normals),
         opacity: None,
         extent: None,
+        colour: None,
     };
     let f = fit_edges(&e, &[input], &attrs, R, &edge_params()).unwrap();
     assert_eq!(f.how[0], How::Corner);
@@ -203,6 +204,7 @@ fn faces(n: usize, near: f64, far: f64, rng: &mut TestRng) -> (Vec<[f32; 3]>, At
         normals: Some(normals),
         opacity: None,
         extent: thickness,
+        colour: None,
     };
     (pts, attrs)
 }
@@ -248,6 +250,7 @@ fn the_gate_keeps_a_line_over_a_one_sided_shell_of_splats() {
         normals: Some(normals),
         opacity: None,
         extent: Some(vec![(0.02 * R) as f32; pts.len()]),
+        colour: None,
     };
     let input = seg([0.0, 0.0, 0.4 * R], [1.0, 0.0, 0.4 * R]);
     let e = cpu_engine(&pts, &[input], R);
@@ -270,6 +273,7 @@ fn the_gate_lets_a_ridge_of_small_round_gaussians_be_reached() {
         normals: Some(vec![[0.0; 3]; pts.len()]),
         opacity: None,
         extent: Some(vec![0.004; pts.len()]),
+        colour: None,
     };
     let input = seg([0.0, 0.6 * R, 0.0], [1.0, 0.6 * R, 0.0]);
     let e = cpu_engine(&pts, &[input], R);

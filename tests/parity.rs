@@ -789,6 +789,7 @@ fn the_device_fit_answers_like_the_host() {
         normals: Some(normals),
         opacity: None,
         extent: None,
+        colour: None,
     };
     let ask = FitAsk::new(&spec, with.fit_points());
     assert_eq!(

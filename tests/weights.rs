@@ -37,6 +37,7 @@ fn opacity_weighting_keeps_the_line_on_the_opaque_edge_not_on_faint_floaters() {
         normals: None,
         opacity: cut_to_working_set(&pts, &opacity, &[input]),
         extent: None,
+        colour: None,
     };
     let weighted = Params {
         fit_opacity_weight: true,

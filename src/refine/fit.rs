@@ -238,7 +238,7 @@ pub struct FaceEndEvidence {
     /// centres' end.
     pub stop: f64,
     pub extent: f64,
-    /// Face members per unit length across the line within r/2 of the end.
+    /// Face members per unit length across the line within r/4 of the end.
     pub density: f64,
     /// Share of the members within r with a normal more than 20° off the face (and off a
     /// second face where the normals split into two) or with no normal at all.
@@ -603,6 +603,10 @@ fn corner_evidence(
 /// `FACE_END_RANK`-th member from the end: one stray splat does not move the end).
 pub const FACE_END_RANK: usize = 3;
 
+/// A face end counts where it lies within this many r of the input line: a quarter r of
+/// the face beyond it stays inside the cylinder, and lines up to half r off are reached.
+pub const FACE_END_WITHIN: f64 = 0.6;
+
 /// A face's edge lies this many of its splats' extents (largest standard deviation)
 /// beyond where their centres stop: a trained splat straddling the edge would paint past
 /// it, so the trainer leaves the centres about one extent inside. Half of it counts in the
@@ -613,9 +617,9 @@ pub const FACE_END_REACH: f64 = 1.0;
 /// line's cylinder in its own cross-section frame, where the line is the origin): normals
 /// name the faces (one, or two families); each face's plane is the median of its
 /// splats' offsets along its normal; a face that stops inside the cylinder (its members
-/// all on one side of their end, the end within `r/2` of the line) gives an edge
-/// [`FACE_END_REACH`] extents beyond its [`FACE_END_RANK`]-th member from the end. The
-/// best known face's end, if any.
+/// all on one side of their end, the end within [`FACE_END_WITHIN`] r of the line) gives
+/// an edge [`FACE_END_REACH`] extents beyond its [`FACE_END_RANK`]-th member from the
+/// end. The best known face's end, if any.
 fn face_end_evidence(
     c: &CornerInput<'_>,
     extent: Option<&[f32]>,
@@ -726,19 +730,20 @@ fn face_end_evidence(
         }
         across.sort_by(|a, b| a.0.total_cmp(&b.0));
         let end = across[FACE_END_RANK - 1].0;
-        // The face must stop inside the cylinder, near the line.
-        if end.abs() > 0.5 * r {
+        // The face must stop inside the cylinder, with r/4 of it seen beyond its end
+        // (not where it merely leaves the cylinder).
+        if end.abs() > FACE_END_WITHIN * r {
             continue;
         }
         let near: Vec<usize> = across
             .iter()
-            .filter(|a| a.0 - end <= 0.5 * r)
+            .filter(|a| a.0 - end <= 0.25 * r)
             .map(|a| a.1)
             .collect();
         if near.len() < min_points.max(FACE_END_RANK) {
             continue;
         }
-        let density = near.len() as f64 / (0.5 * r);
+        let density = near.len() as f64 / (0.25 * r);
         let mut ext: Vec<f64> = across
             .iter()
             .filter(|a| a.0 - end <= 0.25 * r)
