@@ -125,17 +125,34 @@ fn the_gate_decides_alike_on_both_engines() {
         println!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1)");
         return;
     }
-    let (_, cpu) = refine("proc", params(), Backend::Cpu);
-    let (_, gpu) = refine("proc", params(), Backend::Gpu);
-    assert_eq!(cpu.lines.segments, gpu.lines.segments);
-    let (c, g) = (
-        cpu.report.refine.as_ref().unwrap(),
-        gpu.report.refine.as_ref().unwrap(),
-    );
-    assert_eq!(
-        (c.fit_corner, c.fit_ridge, c.fit_unclear, c.fit_kept),
-        (g.fit_corner, g.fit_ridge, g.fit_unclear, g.fit_kept)
-    );
+    // Coarse splats; and the boundary and colour edges with lines 0.012 off, which the
+    // face end and the colour change move.
+    for pair in ["proc", "proc_surf_edges"] {
+        let (scene, _) = refine(pair, params(), Backend::Cpu);
+        let mut s = scene.clone();
+        if pair != "proc" {
+            s.lines = linegs_gpu::geom::LineSet::new(biased(&scene.lines.segments, 0.012));
+        }
+        let run = |backend| {
+            let job = Job {
+                gpu: common::gpu_setup(linegs_gpu::engine::gpu::GpuOptions::for_commands()),
+                ..Job::new(params(), backend)
+            };
+            job.refine(&s, |_| {}).unwrap()
+        };
+        let (cpu, gpu) = (run(Backend::Cpu), run(Backend::Gpu));
+        assert_eq!(cpu.lines.segments, gpu.lines.segments, "{pair}");
+        let (c, g) = (
+            cpu.report.refine.as_ref().unwrap(),
+            gpu.report.refine.as_ref().unwrap(),
+        );
+        assert_eq!(c.fit_decisions, g.fit_decisions, "{pair}");
+        assert_eq!(
+            (c.fit_corner, c.fit_ridge, c.fit_unclear, c.fit_kept),
+            (g.fit_corner, g.fit_ridge, g.fit_unclear, g.fit_kept),
+            "{pair}"
+        );
+    }
 }
 
 /// Each segment of `segs` moved `by` across itself (alternately along the two axes of its
@@ -301,7 +318,6 @@ fn boundary_and_colour_edges_bring_biased_lines_back_and_keep_exact_ones() {
     assert!(acc_off > 0.01, "{acc_off}");
     let out = refine_lines(&scene, off, params());
     let (acc, _, _) = scores(&out.lines.segments, &truth);
-    eprintln!("biased: accuracy {acc} (input {acc_off})");
     assert!(acc <= 0.004, "biased: accuracy {acc} (input {acc_off})");
     let (ends, colours) = (
         moved_onto(&out, Estimate::FaceEnd),
