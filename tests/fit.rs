@@ -50,7 +50,8 @@ fn two_face_families_give_the_corner_not_the_centroid() {
     let attrs = Attributes {
         normals: Some(normals),
         opacity: None,
-        thickness: None,
+        extent: None,
+        colour: None,
     };
     let f = fit_edges(&e, &[input], &attrs, R, &edge_params()).unwrap();
     assert_eq!(f.how[0], How::Corner);
@@ -202,7 +203,8 @@ fn faces(n: usize, near: f64, far: f64, rng: &mut TestRng) -> (Vec<[f32; 3]>, At
     let attrs = Attributes {
         normals: Some(normals),
         opacity: None,
-        thickness,
+        extent: thickness,
+        colour: None,
     };
     (pts, attrs)
 }
@@ -247,7 +249,8 @@ fn the_gate_keeps_a_line_over_a_one_sided_shell_of_splats() {
     let attrs = Attributes {
         normals: Some(normals),
         opacity: None,
-        thickness: Some(vec![(0.02 * R) as f32; pts.len()]),
+        extent: Some(vec![(0.02 * R) as f32; pts.len()]),
+        colour: None,
     };
     let input = seg([0.0, 0.0, 0.4 * R], [1.0, 0.0, 0.4 * R]);
     let e = cpu_engine(&pts, &[input], R);
@@ -269,7 +272,8 @@ fn the_gate_lets_a_ridge_of_small_round_gaussians_be_reached() {
     let attrs = Attributes {
         normals: Some(vec![[0.0; 3]; pts.len()]),
         opacity: None,
-        thickness: Some(vec![0.004; pts.len()]),
+        extent: Some(vec![0.004; pts.len()]),
+        colour: None,
     };
     let input = seg([0.0, 0.6 * R, 0.0], [1.0, 0.6 * R, 0.0]);
     let e = cpu_engine(&pts, &[input], R);
@@ -295,8 +299,9 @@ fn the_gate_decides_each_distinct_segment_once_and_every_copy_alike() {
     assert!(moved >= 1);
     let before = e.counters().queries;
     decide(&e, &input, &mut f, &attrs, R, &edge_params()).unwrap();
-    // One member list per distinct moved segment, not one per copy.
-    assert_eq!(e.counters().queries - before, moved as u64);
+    // Two member lists per distinct moved segment (about its fitted line and about its
+    // input line), not per copy.
+    assert_eq!(e.counters().queries - before, 2 * moved as u64);
     let alone = [
         fit_and_gate(&e, corner, &attrs),
         fit_and_gate(&e, inside, &attrs),

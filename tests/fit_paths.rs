@@ -142,7 +142,8 @@ fn the_trained_pairs_fit_alike_both_ways_with_normals_and_opacities() {
         let attrs = Attributes {
             normals: cut_to_working_set(c, scene.normals.as_ref().unwrap(), segs),
             opacity: cut(&scene.opacity),
-            thickness: None,
+            extent: None,
+            colour: None,
         };
         let r = 0.03;
         let f = both(c, segs, &attrs, r, &spec());

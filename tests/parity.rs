@@ -788,7 +788,8 @@ fn the_device_fit_answers_like_the_host() {
     let with = Attributes {
         normals: Some(normals),
         opacity: None,
-        thickness: None,
+        extent: None,
+        colour: None,
     };
     let ask = FitAsk::new(&spec, with.fit_points());
     assert_eq!(

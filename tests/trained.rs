@@ -126,27 +126,34 @@ fn the_gate_decides_alike_on_both_engines() {
         println!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1)");
         return;
     }
-    let (_, cpu) = refine("proc", params(), Backend::Cpu);
-    let (_, gpu) = refine("proc", params(), Backend::Gpu);
-    assert_eq!(cpu.lines.segments, gpu.lines.segments);
-    let (c, g) = (
-        cpu.report.refine.as_ref().unwrap(),
-        gpu.report.refine.as_ref().unwrap(),
-    );
-    assert_eq!(
-        (
-            c.fit.fit_corner,
-            c.fit.fit_ridge,
-            c.fit.fit_unclear,
-            c.fit.fit_kept
-        ),
-        (
-            g.fit.fit_corner,
-            g.fit.fit_ridge,
-            g.fit.fit_unclear,
-            g.fit.fit_kept
-        )
-    );
+    // Coarse splats; and the boundary and colour edges with lines 0.012 off, which the
+    // face end and the colour change move.
+    for pair in ["proc", "proc_surf_edges"] {
+        let (scene, _) = refine(pair, params(), Backend::Cpu);
+        let mut s = scene.clone();
+        if pair != "proc" {
+            s.lines = linegs_gpu::geom::LineSet::new(biased(&scene.lines.segments, 0.012));
+        }
+        let run = |backend| {
+            let job = Job {
+                gpu: common::gpu_setup(linegs_gpu::engine::gpu::GpuOptions::for_commands()),
+                ..Job::new(params(), backend)
+            };
+            job.refine(&s, |_| {}).unwrap()
+        };
+        let (cpu, gpu) = (run(Backend::Cpu), run(Backend::Gpu));
+        assert_eq!(cpu.lines.segments, gpu.lines.segments, "{pair}");
+        let (c, g) = (
+            cpu.report.refine.as_ref().unwrap(),
+            gpu.report.refine.as_ref().unwrap(),
+        );
+        assert_eq!(c.fit.fit_decisions, g.fit.fit_decisions, "{pair}");
+        assert_eq!(
+            (c.fit.fit_corner, c.fit.fit_ridge, c.fit.fit_unclear, c.fit.fit_kept),
+            (g.fit.fit_corner, g.fit.fit_ridge, g.fit.fit_unclear, g.fit.fit_kept),
+            "{pair}"
+        );
+    }
 }
 
 /// Each segment of `segs` moved `by` across itself (alternately along the two axes of its
@@ -270,4 +277,78 @@ fn edge_samples_are_named_and_biased_lines_come_back() {
         .unwrap();
     assert_eq!(d.kind, "edges", "{d:?}");
     assert!(d.moved > d.model_knows_less, "{d:?}");
+}
+
+/// The decisions of `out` that moved a line onto `estimate`.
+fn moved_onto(out: &Outcome, estimate: linegs_gpu::refine::fit::Estimate) -> usize {
+    use linegs_gpu::refine::fit::Verdict;
+    let notes = out.report.refine.as_ref().unwrap();
+    notes
+        .fit_decisions
+        .iter()
+        .filter(|d| d.verdict == Verdict::Moved && d.estimate == Some(estimate))
+        .count()
+}
+
+/// Splats on the faces where no corner exists (`real_pairs/proc_surf_edges`: 11 Line3D++
+/// segments on one-face boundary edges of thin quads and 4 on the colour-only edges of a
+/// patch lying on the ground, and the Gaussians within 0.045 of them): exact lines stay;
+/// lines 0.012 off come back onto where the quads' splats end and where the patch's
+/// colour changes. Fails when either estimate is broken (the biased lines then stay:
+/// accuracy about 0.01) or moves exact lines.
+#[test]
+fn boundary_and_colour_edges_bring_biased_lines_back_and_keep_exact_ones() {
+    use linegs_gpu::refine::fit::Estimate;
+    let (scene, out) = refine("proc_surf_edges", params(), Backend::Cpu);
+    let truth = gt_of("proc_surf_edges", "gt_lines.txt");
+    let (acc_in, _, _) = scores(&scene.lines.segments, &truth);
+    let (acc, _, _) = scores(&out.lines.segments, &truth);
+    assert!(
+        acc <= acc_in + 1e-4,
+        "clean: accuracy {acc} vs input {acc_in}"
+    );
+    let d = out
+        .report
+        .refine
+        .as_ref()
+        .unwrap()
+        .diagnosis
+        .clone()
+        .unwrap();
+    assert_eq!(d.moved, 0, "{d:?}");
+    assert_eq!(d.kind, "faces", "{d:?}");
+
+    let off = biased(&scene.lines.segments, 0.012);
+    let (acc_off, _, _) = scores(&off, &truth);
+    assert!(acc_off > 0.01, "{acc_off}");
+    let out = refine_lines(&scene, off, params());
+    let (acc, _, _) = scores(&out.lines.segments, &truth);
+    assert!(acc <= 0.004, "biased: accuracy {acc} (input {acc_off})");
+    let (ends, colours) = (
+        moved_onto(&out, Estimate::FaceEnd),
+        moved_onto(&out, Estimate::Colour),
+    );
+    assert!(ends >= 9, "{ends} lines moved onto a face's end");
+    assert!(colours >= 3, "{colours} lines moved onto a colour change");
+}
+
+/// Early round splats (`real_pairs/proc_iso250_crop`: 8 Line3D++ segments of
+/// `real_pairs/proc_iso250` and the Gaussians within 0.045 of them): named round, with
+/// how far their ridge lies from the lines, and nothing moves.
+#[test]
+fn early_round_splats_are_named_round_and_move_nothing() {
+    let (scene, out) = refine("proc_iso250_crop", params(), Backend::Cpu);
+    let d = out
+        .report
+        .refine
+        .as_ref()
+        .unwrap()
+        .diagnosis
+        .clone()
+        .unwrap();
+    assert_eq!(d.kind, "round", "{d:?}");
+    assert_eq!(d.round, 8, "{d:?}");
+    assert_eq!(d.moved, 0, "{d:?}");
+    assert!((0.008..0.03).contains(&d.sunk_by.unwrap()), "{d:?}");
+    assert_eq!(out.lines.segments, scene.lines.segments);
 }

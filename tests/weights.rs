@@ -36,7 +36,8 @@ fn opacity_weighting_keeps_the_line_on_the_opaque_edge_not_on_faint_floaters() {
     let attrs = Attributes {
         normals: None,
         opacity: cut_to_working_set(&pts, &opacity, &[input]),
-        thickness: None,
+        extent: None,
+        colour: None,
     };
     let weighted = {
         let mut q = Params::default();

@@ -108,6 +108,9 @@ struct Arrays {
     max_scale: Option<Vec<f32>>,
     opacity: Option<Vec<f32>>,
     min_scale: Option<Vec<f32>>,
+    /// Base colours (SH degree-0), where the file has them: the decision rule's colour
+    /// estimate reads them; not shown as a view.
+    colour: Option<Vec<[f32; 3]>>,
 }
 
 /// Where a model's buffers are (address, rows): fixed for the model's life, since the
@@ -148,6 +151,7 @@ impl Model {
         check("max scales", a.max_scale.as_ref().map(Vec::len))?;
         check("opacities", a.opacity.as_ref().map(Vec::len))?;
         check("min scales", a.min_scale.as_ref().map(Vec::len))?;
+        check("colours", a.colour.as_ref().map(Vec::len))?;
         if a.normals.is_some() != a.max_scale.is_some() {
             return Err(RunError::Input(
                 "gaussians: normals and max scales come together (both read from the rotations and scales)".into(),
@@ -198,6 +202,7 @@ impl Model {
             s.max_scale = a.max_scale.as_deref().map(|v| keep(v, 1));
             s.opacity = a.opacity.as_deref().map(|v| keep(v, 1));
             s.min_scale = a.min_scale.as_deref().map(|v| keep(v, 1));
+            s.colour = a.colour.as_deref().map(keep3);
             return f(&s);
         }
         drop(finite);
@@ -215,12 +220,14 @@ impl Model {
         s.max_scale = a.max_scale.take();
         s.opacity = a.opacity.take();
         s.min_scale = a.min_scale.take();
+        s.colour = a.colour.take();
         let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&s)));
         a.centers = std::mem::take(&mut s.gaussians);
         a.normals = s.normals.take();
         a.max_scale = s.max_scale.take();
         a.opacity = s.opacity.take();
         a.min_scale = s.min_scale.take();
+        a.colour = s.colour.take();
         out.unwrap_or_else(|p| std::panic::resume_unwind(p))
     }
 }
@@ -280,6 +287,7 @@ impl Model {
             max_scale: max_scale.map(|v| column(v.as_array())),
             opacity: opacity.map(|v| column(v.as_array())),
             min_scale: min_scale.map(|v| column(v.as_array())),
+            colour: None,
         };
         Model::new(a).map_err(to_py)
     }
@@ -368,6 +376,7 @@ fn read_gaussians(
             max_scale: Some(a.max_scale),
             opacity: a.opacity,
             min_scale: Some(a.min_scale),
+            colour: a.colour,
         },
         None => Arrays {
             centers: cloud.centers,

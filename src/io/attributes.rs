@@ -1,6 +1,6 @@
 //! What a 3DGS model carries beyond the centers, per Gaussian: the surface normal (the
 //! shortest axis of rotation `rot_0..3` = w x y z and log scales `scale_0..2`), the largest
-//! and smallest scale and the opacity. Filled by the PLY reader's own walk
+//! and smallest scale, the opacity and the base colour (`f_dc_0..2`). Filled by the PLY reader's own walk
 //! (`ply::read_gaussians_with_attributes`) and by the pass of `normals.rs`.
 
 /// What a 3DGS PLY carries beyond the centers, per Gaussian kept by
@@ -16,23 +16,22 @@ pub struct GaussianAttributes {
     pub min_scale: Vec<f32>,
     /// Opacity in `[0, 1]` (`sigmoid` of the stored logit), where the file has it.
     pub opacity: Option<Vec<f32>>,
+    /// Base colour (RGB, `0.5 + C0 x f_dc_i`: the SH degree-0 terms), where the file has
+    /// `f_dc_0..2`.
+    pub colour: Option<Vec<[f32; 3]>>,
 }
 
 impl GaussianAttributes {
-    /// Empty, with room for `n` Gaussians; opacities where `has_opacity`.
-    pub(crate) fn with_capacity(n: usize, has_opacity: bool) -> Self {
+    /// Empty, with room for `n` Gaussians; opacities where `has_opacity`, colours where
+    /// `has_colour`.
+    pub(crate) fn with_capacity(n: usize, has_opacity: bool, has_colour: bool) -> Self {
         GaussianAttributes {
             normals: Vec::with_capacity(n),
             max_scale: Vec::with_capacity(n),
             min_scale: Vec::with_capacity(n),
             opacity: has_opacity.then(|| Vec::with_capacity(n)),
+            colour: has_colour.then(|| Vec::with_capacity(n)),
         }
-    }
-
-    /// One kept Gaussian's attributes from its rotation (w x y z), log scales and opacity
-    /// (`sigmoid` of the stored logit, where the file has one).
-    pub(crate) fn push(&mut self, rot: [f64; 4], log_scale: [f64; 3], alpha: Option<f64>) {
-        self.push_one(Attribute::of(rot, log_scale, alpha));
     }
 
     /// One kept Gaussian's attributes, computed already.
@@ -42,6 +41,9 @@ impl GaussianAttributes {
         self.min_scale.push(a.min_scale);
         if let (Some(o), Some(a)) = (&mut self.opacity, a.opacity) {
             o.push(a);
+        }
+        if let (Some(c), Some(a)) = (&mut self.colour, a.colour) {
+            c.push(a);
         }
     }
 }
@@ -53,12 +55,21 @@ pub(crate) struct Attribute {
     max_scale: f32,
     min_scale: f32,
     opacity: Option<f32>,
+    colour: Option<[f32; 3]>,
 }
 
+/// The SH degree-0 basis constant: a Gaussian's base colour is `0.5 + C0 x f_dc`.
+const SH_C0: f64 = 0.282_094_791_773_878_14;
+
 impl Attribute {
-    /// From its rotation (w x y z), log scales and opacity (`sigmoid` of the stored logit,
-    /// where the file has one).
-    pub(crate) fn of(rot: [f64; 4], log_scale: [f64; 3], alpha: Option<f64>) -> Attribute {
+    /// From its rotation (w x y z), log scales, opacity (`sigmoid` of the stored logit,
+    /// where the file has one) and SH degree-0 terms `f_dc_0..2` (where it has them).
+    pub(crate) fn of(
+        rot: [f64; 4],
+        log_scale: [f64; 3],
+        alpha: Option<f64>,
+        dc: Option<[f64; 3]>,
+    ) -> Attribute {
         let [a, b, c] = log_scale;
         let scale = |s: f64| if s.is_nan() { f32::INFINITY } else { s as f32 };
         Attribute {
@@ -66,6 +77,7 @@ impl Attribute {
             max_scale: scale(a.max(b).max(c).exp()),
             min_scale: scale(a.min(b).min(c).exp()),
             opacity: alpha.map(|a| if a.is_nan() { 0.0 } else { a as f32 }),
+            colour: dc.map(|d| d.map(|c| (0.5 + SH_C0 * c) as f32)),
         }
     }
 }

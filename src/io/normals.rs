@@ -93,11 +93,17 @@ fn attributes_from(
         None if min_opacity.is_some() => return Ok(None),
         None => false,
     };
+    let dc = ["f_dc_0", "f_dc_1", "f_dc_2"].map(scalar);
+    let has_colour = dc.iter().all(Option::is_some);
+    if has_colour {
+        wanted.extend(dc.iter().flatten());
+    }
+    let at_dc = if has_opacity { 11 } else { 10 };
     let mut body = Body::new(ch, &header, header_lines);
     for elem in &header.elements[..vi] {
         body.skip(path, elem)?;
     }
-    let mut out = GaussianAttributes::with_capacity(vertex.count, has_opacity);
+    let mut out = GaussianAttributes::with_capacity(vertex.count, has_opacity, has_colour);
     body.for_each(path, vertex, &wanted, |_, v| {
         let c = [v[0] as f32, v[1] as f32, v[2] as f32];
         if !c.iter().all(|x| x.is_finite()) {
@@ -109,7 +115,13 @@ fn attributes_from(
                 return Ok(());
             }
         }
-        out.push([v[3], v[4], v[5], v[6]], [v[7], v[8], v[9]], alpha);
+        let colour = has_colour.then(|| [v[at_dc], v[at_dc + 1], v[at_dc + 2]]);
+        out.push_one(Attribute::of(
+            [v[3], v[4], v[5], v[6]],
+            [v[7], v[8], v[9]],
+            alpha,
+            colour,
+        ));
         Ok(())
     })?;
     Ok(Some(out))

@@ -50,7 +50,8 @@ fn radius_of(params: &Params, centers: &[[f32; 3]], scene: &Scene) -> Option<f64
 
 impl Scene {
     /// Maps the Gaussians by `t`, as [`Scene::load`] does with a transform: the normals
-    /// and scales (which would have to turn and scale too) are dropped, opacities kept.
+    /// and scales (which would have to turn and scale too) are dropped, opacities and
+    /// colours kept.
     pub fn apply_transform(&mut self, t: &io::GaussianTransform) {
         t.apply(&mut self.gaussians);
         self.normals = None;

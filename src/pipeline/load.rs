@@ -74,6 +74,9 @@ pub struct Scene {
     /// Each Gaussian's opacity in `[0, 1]`, same order, where the file has rotations,
     /// scales and opacities (`--fit-opacity-weight`).
     pub opacity: Option<Vec<f32>>,
+    /// Each Gaussian's base colour (RGB from its SH degree-0 terms), same order, where the
+    /// file has `f_dc_0..2` (the decision rule's colour-change estimate).
+    pub colour: Option<Vec<[f32; 3]>>,
     /// What the scene is, when it was made rather than read (the demo's synthetic scene).
     pub description: Option<String>,
 }
@@ -85,17 +88,18 @@ impl Scene {
         // Normals for the edge fit (PLY with rotations and scales). A frame transform
         // would have to turn them too: with one, the edge fit uses the centers only.
         let (mut cloud, attrs) = read_gaussians_and_attributes(gaussians, opts)?;
-        let (normals, max_scale, min_scale, opacity) = match attrs {
-            // Opacities do not depend on the frame; normals would have to turn and scales
-            // to scale with it: with a transform only the opacities are used.
-            Some(a) if opts.transform.is_some() => (None, None, None, a.opacity),
+        let (normals, max_scale, min_scale, opacity, colour) = match attrs {
+            // Opacities and colours do not depend on the frame; normals would have to turn
+            // and scales to scale with it: with a transform only those two are used.
+            Some(a) if opts.transform.is_some() => (None, None, None, a.opacity, a.colour),
             Some(a) => (
                 Some(a.normals),
                 Some(a.max_scale),
                 Some(a.min_scale),
                 a.opacity,
+                a.colour,
             ),
-            None => (None, None, None, None),
+            None => (None, None, None, None, None),
         };
         if let Some(t) = &opts.transform {
             t.apply(&mut cloud.centers);
@@ -127,6 +131,7 @@ impl Scene {
             max_scale,
             min_scale,
             opacity,
+            colour,
             description: None,
         })
     }
@@ -202,6 +207,7 @@ impl Scene {
             normals: None,
             max_scale: None,
             min_scale: None,
+            colour: None,
             opacity: None,
             description: None,
         })

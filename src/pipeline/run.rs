@@ -166,38 +166,59 @@ impl Refiner {
         let a = refine::fit::Attributes {
             normals,
             opacity,
-            thickness: None,
+            extent: None,
+            colour: None,
         };
         self.attrs = a;
         true
     }
 
-    /// Gives the move gate each Gaussian's thickness (smallest standard deviation, in the
+    /// Gives the decision rule each Gaussian's extent (largest standard deviation, in the
     /// order of `gaussians`); `false` (and nothing set) when the count differs.
-    pub fn set_thickness(
+    pub fn set_extent(
         &mut self,
         gaussians: &[[f32; 3]],
-        thickness: &[f32],
+        extent: &[f32],
         segments: &[Segment],
     ) -> bool {
-        match refine::fit::cut_to_working_set(gaussians, thickness, segments) {
+        match refine::fit::cut_to_working_set(gaussians, extent, segments) {
             Some(w) if w.len() == self.n_box() => {
-                self.attrs.thickness = Some(w);
+                self.attrs.extent = Some(w);
                 true
             }
             _ => false,
         }
     }
 
-    /// Gives `scene`'s attributes (normals, opacity, thickness) to the edge fit; `true`
+    /// Gives the decision rule each Gaussian's base colour (in the order of `gaussians`);
+    /// `false` (and nothing set) when the count differs.
+    pub fn set_colour(
+        &mut self,
+        gaussians: &[[f32; 3]],
+        colour: &[[f32; 3]],
+        segments: &[Segment],
+    ) -> bool {
+        match refine::fit::cut_to_working_set(gaussians, colour, segments) {
+            Some(w) if w.len() == self.n_box() => {
+                self.attrs.colour = Some(w);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Gives `scene`'s attributes (normals, opacity, extent, colour) to the edge fit; `true`
     /// when the model had some that did not line up with its centers (they are not used).
     pub fn set_scene_attributes(&mut self, scene: &Scene) -> bool {
         let mut unused = false;
         if scene.normals.is_some() || scene.opacity.is_some() {
             let (g, l) = (&scene.gaussians, &scene.lines.segments);
             unused = !self.set_attributes(g, scene.normals.as_deref(), scene.opacity.as_deref(), l);
-            if let Some(th) = &scene.min_scale {
-                unused |= !self.set_thickness(g, th, l);
+            if let Some(ex) = &scene.max_scale {
+                unused |= !self.set_extent(g, ex, l);
+            }
+            if let Some(c) = &scene.colour {
+                unused |= !self.set_colour(g, c, l);
             }
         }
         unused
@@ -454,6 +475,7 @@ impl Job {
             max_scale: Some(pick_of(sc, &keep)),
             min_scale: scene.min_scale.as_deref().map(|v| pick_of(v, &keep)),
             opacity: scene.opacity.as_deref().map(|o| pick_of(o, &keep)),
+            colour: scene.colour.as_deref().map(|c| pick_of(c, &keep)),
             lines: scene.lines.clone(),
             input: scene.input.clone(),
             warnings: scene.warnings.clone(),

@@ -24,8 +24,12 @@ pub struct Attributes {
     /// Opacity of each Gaussian in `[0, 1]`: the fit's per-point weight with
     /// `--fit-opacity-weight`.
     pub opacity: Option<Vec<f32>>,
-    /// Thickness of each Gaussian (its smallest standard deviation).
-    pub thickness: Option<Vec<f32>>,
+    /// Extent of each Gaussian (its largest standard deviation, scene units): how far a
+    /// face's splats reach beyond their centres, for the face-end estimate.
+    pub extent: Option<Vec<f32>>,
+    /// Base colour of each Gaussian (RGB from its SH degree-0 terms), for the colour-change
+    /// estimate.
+    pub colour: Option<Vec<[f32; 3]>>,
 }
 
 /// `values` (one per center, same order) cut to the working set of `segments` by the same
@@ -61,7 +65,8 @@ impl Attributes {
         Some(Attributes {
             normals: Some(cut_to_working_set(centers, normals, segments)?),
             opacity: None,
-            thickness: None,
+            extent: None,
+            colour: None,
         })
     }
 
@@ -145,6 +150,11 @@ pub enum Estimate {
     Corner,
     /// The ridge of the centers: the mode of their cross-section.
     Ridge,
+    /// The end of one face's splats across the line: where their centres stop, plus
+    /// their extent.
+    FaceEnd,
+    /// A change of the splats' colour across the line within one face.
+    Colour,
 }
 
 /// What [`decide`] did with one segment.
@@ -172,8 +182,9 @@ pub struct CornerEvidence {
     pub residuals: [f64; 2],
     /// Angle between the faces' normals, degrees.
     pub angle_deg: f64,
-    /// Share of the members with a normal that is more than 20° off both faces (a rounded
-    /// corner, or normals that say nothing about the positions).
+    /// Share of the members within r with a normal that is more than 20° off both faces
+    /// (a rounded corner, or normals that say nothing about the positions) or with no
+    /// normal at all (round splats).
     pub off_faces: f64,
     /// How far the input line lies outside both faces (the smaller of its two distances,
     /// each its ends' mean, on the side away from the other face's splats); negative where
@@ -214,6 +225,61 @@ pub struct RidgeEvidence {
     pub statistical: f64,
 }
 
+/// The face end's evidence: one face whose splats stop across the line.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FaceEndEvidence {
+    /// Members of the face (on its plane, normals within 20° of its normal).
+    pub count: usize,
+    /// Robust spread of the face's splats about their plane, scene units.
+    pub residual: f64,
+    /// Where the centres stop (the face's [`FACE_END_RANK`]-th member from its end,
+    /// measured along the face from the input line, positive inside the face) and the
+    /// splats' extent there (median largest standard deviation of the members within r/4
+    /// of the end), scene units; the edge lies [`FACE_END_REACH`] extents beyond the
+    /// centres' end.
+    pub stop: f64,
+    pub extent: f64,
+    /// Face members per unit length across the line within r/4 of the end.
+    pub density: f64,
+    /// Share of the members within r with a normal more than 20° off the face (and off a
+    /// second face where the normals split into two) or with no normal at all.
+    pub off_faces: f64,
+    /// Distance of the input line from the face's end (its farther end), scene units.
+    pub distance: f64,
+    /// How well the end is known: systematic floor (the face's residual, half the
+    /// reach and, where a second face meets it, the end's distance from the two faces'
+    /// corner, over the share of the normals that agree) and statistical part (the mean
+    /// gap between members at the end, `1 / density`).
+    pub floor: f64,
+    pub statistical: f64,
+}
+
+/// The colour change's evidence: a step in the base colour of one face's splats across
+/// the line, the face continuing on both sides.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ColourEvidence {
+    /// Members of the face (on its plane, normals within 20° of its normal).
+    pub count: usize,
+    /// The step: distance between the two sides' mean colours (RGB in `[0, 1]`), and the
+    /// share of the members whose colour is nearer the other side's.
+    pub step: f64,
+    pub mixed: f64,
+    /// Half the width of the span of steps that leave at most `sqrt(k)` (at least 1) more
+    /// members on the wrong side than the best step's `k` (a profile of the count), scene
+    /// units.
+    pub width: f64,
+    /// The splats' extent at the step (median largest standard deviation within r/4).
+    pub extent: f64,
+    /// Distance of the input line from the step (its farther end), scene units.
+    pub distance: f64,
+    /// How well the step is known: systematic floor (the profile's half width and half
+    /// the extent, over the share of members the two colours explain and the share of
+    /// the members within r that are flat) and statistical part (the mean gap between
+    /// members at the step).
+    pub floor: f64,
+    pub statistical: f64,
+}
+
 /// One segment's decision with its numbers (the report's `refine.fit_decisions`,
 /// `refine --explain N`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -225,6 +291,9 @@ pub struct Decision {
     pub estimate: Option<Estimate>,
     /// Members within r of the fitted line.
     pub members: usize,
+    /// Share of those members that are flat (a normal: shortest axis 1.5x shorter than
+    /// the next), where the model has normals.
+    pub flat_share: Option<f64>,
     /// The input line's distance from the estimate and how well the estimate is known
     /// (`sqrt(floor^2 + statistical^2)`), scene units; the line moves when `distance`
     /// exceeds [`MOVE_MARGIN`] x `sigma`.
@@ -232,12 +301,16 @@ pub struct Decision {
     pub sigma: f64,
     pub corner: Option<CornerEvidence>,
     pub ridge: Option<RidgeEvidence>,
+    pub face_end: Option<FaceEndEvidence>,
+    pub colour: Option<ColourEvidence>,
     /// The input segment and the fitted one (`x1 y1 z1 x2 y2 z2`).
     pub input: [f64; 6],
     pub fitted: [f64; 6],
     /// The two estimates' lines, where they exist.
     pub corner_line: Option<[f64; 6]>,
     pub ridge_line: Option<[f64; 6]>,
+    pub face_end_line: Option<[f64; 6]>,
+    pub colour_line: Option<[f64; 6]>,
 }
 
 /// A line moves onto an estimate only when it lies farther from it than this many times
@@ -419,10 +492,12 @@ fn corner_evidence(
     let mut keep = Vec::new();
     let mut n2 = Vec::new();
     let mut with_normal = Vec::new();
+    let mut within = 0usize;
     for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
         if p.1.length() > r {
             continue;
         }
+        within += 1;
         let n = crate::geom::p64(normals[*id as usize]);
         if n != DVec3::ZERO {
             with_normal.push(n);
@@ -483,18 +558,15 @@ fn corner_evidence(
         (Some(a), Some(b)) => (a - b).length(),
         _ => -1.0,
     };
-    // Normals more than 20° off both faces (3D: a normal along the line is off both).
+    // Normals more than 20° off both faces (3D: a normal along the line is off both),
+    // and members with no normal (round: they do not say where a face is).
     let lift = |n: DVec2| e1 * n.x + e2 * n.y;
     let cos20 = 20f64.to_radians().cos();
-    let off_faces = if with_normal.is_empty() {
-        0.0
-    } else {
-        let off = with_normal
-            .iter()
-            .filter(|n| n.dot(lift(n1)).abs() < cos20 && n.dot(lift(n2v)).abs() < cos20)
-            .count();
-        off as f64 / with_normal.len() as f64
-    };
+    let off = with_normal
+        .iter()
+        .filter(|n| n.dot(lift(n1)).abs() < cos20 && n.dot(lift(n2v)).abs() < cos20)
+        .count();
+    let off_faces = (off + within - with_normal.len()) as f64 / within.max(1) as f64;
     let _ = d;
     // The outside of face k: away from the other face's splats.
     let mut outside = f64::INFINITY;
@@ -526,6 +598,365 @@ fn corner_evidence(
             statistical,
         },
     ))
+}
+
+/// The centres of a face's splats stop this many of its members before its end (the
+/// `FACE_END_RANK`-th member from the end: one stray splat does not move the end).
+pub const FACE_END_RANK: usize = 3;
+
+/// A face end counts where it lies within this many r of the input line: a quarter r of
+/// the face beyond it stays inside the cylinder, and lines up to half r off are reached.
+pub const FACE_END_WITHIN: f64 = 0.6;
+
+/// A face's edge lies this many of its splats' extents (largest standard deviation)
+/// beyond where their centres stop: a trained splat straddling the edge would paint past
+/// it, so the trainer leaves the centres about one extent inside. Half of it counts in the
+/// estimate's floor.
+pub const FACE_END_REACH: f64 = 1.0;
+
+/// The end of one face's splats across the input line (`pts`: the members of the input
+/// line's cylinder in its own cross-section frame, where the line is the origin): normals
+/// name the faces (one, or two families); each face's plane is the median of its
+/// splats' offsets along its normal; a face that stops inside the cylinder (its members
+/// all on one side of their end, the end within [`FACE_END_WITHIN`] r of the line) gives
+/// an edge [`FACE_END_REACH`] extents beyond its [`FACE_END_RANK`]-th member from the
+/// end. The best known face's end, if any.
+fn face_end_evidence(
+    c: &CornerInput<'_>,
+    extent: Option<&[f32]>,
+    r: f64,
+    min_points: usize,
+) -> Option<(DVec2, FaceEndEvidence)> {
+    let CornerInput {
+        pts,
+        pw,
+        normals,
+        ids,
+        frame: (e1, e2),
+        ..
+    } = *c;
+    let mut keep = Vec::new();
+    let mut n2 = Vec::new();
+    let mut with_normal = Vec::new();
+    let mut within = 0usize;
+    for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
+        if p.1.length() > r {
+            continue;
+        }
+        within += 1;
+        let n = crate::geom::p64(normals[*id as usize]);
+        if n == DVec3::ZERO {
+            continue;
+        }
+        with_normal.push(n);
+        let across = DVec2::new(n.dot(e1), n.dot(e2));
+        if across.length() > 0.866 {
+            keep.push(i);
+            n2.push(across.normalize());
+        }
+    }
+    if keep.len() < 2 * min_points.max(FACE_END_RANK) {
+        return None;
+    }
+    // The faces: two families where the normals split, else their one mean direction.
+    let sub_w: Vec<f64> = keep.iter().map(|&i| pw[i]).collect();
+    let faces: Vec<DVec2> = match families(&n2, &sub_w, min_points) {
+        Some(f) => vec![f[0].0, f[1].0],
+        None => {
+            let dbl: DVec2 = n2
+                .iter()
+                .map(|a| DVec2::new(a.x * a.x - a.y * a.y, 2.0 * a.x * a.y))
+                .sum();
+            let ang = 0.5 * dbl.y.atan2(dbl.x);
+            vec![DVec2::new(ang.cos(), ang.sin())]
+        }
+    };
+    let cos20 = 20f64.to_radians().cos();
+    let lift = |n: DVec2| e1 * n.x + e2 * n.y;
+    let off = with_normal
+        .iter()
+        .filter(|n| faces.iter().all(|f| n.dot(lift(*f)).abs() < cos20))
+        .count();
+    let off_faces = (off + within - with_normal.len()) as f64 / within.max(1) as f64;
+    // Each face's members and plane (median offset along its normal, robust spread).
+    let planes: Vec<(DVec2, Vec<usize>, f64, f64)> = faces
+        .iter()
+        .map(|&n| {
+            let on: Vec<usize> = keep
+                .iter()
+                .zip(&n2)
+                .filter(|(_, a)| a.dot(n).abs() >= cos20)
+                .map(|(&i, _)| i)
+                .collect();
+            let mut offs: Vec<f64> = on.iter().map(|&i| n.dot(pts[i].1)).collect();
+            let (plane, residual) = if offs.is_empty() {
+                (0.0, 0.0)
+            } else {
+                median_sigma(&mut offs)
+            };
+            (n, on, plane, residual)
+        })
+        .collect();
+    // Where two faces meet, their corner: a face end away from it is not the edge (a
+    // face that stops short of the corner), and the floor counts how far it is.
+    let corner = match planes.as_slice() {
+        [(a, _, ca, _), (b, _, cb, _)] => {
+            let det = a.x * b.y - a.y * b.x;
+            (det.abs() > 1e-9)
+                .then(|| DVec2::new((ca * b.y - cb * a.y) / det, (a.x * cb - b.x * ca) / det))
+        }
+        _ => None,
+    };
+    let mut best: Option<(DVec2, FaceEndEvidence)> = None;
+    for (n, on, plane, residual) in planes {
+        if on.len() < 2 * min_points.max(FACE_END_RANK) {
+            continue;
+        }
+        let u = DVec2::new(-n.y, n.x);
+        let band = (3.0 * residual).max(1e-9);
+        let mut across: Vec<(f64, usize)> = on
+            .iter()
+            .filter(|&&i| (n.dot(pts[i].1) - plane).abs() <= band)
+            .map(|&i| (u.dot(pts[i].1), i))
+            .collect();
+        if across.len() < 2 * min_points.max(FACE_END_RANK) {
+            continue;
+        }
+        // The face lies on the side with more of its members; its end is toward the
+        // other side.
+        let plus = across.iter().filter(|a| a.0 > 0.0).count();
+        let side = if 2 * plus >= across.len() { 1.0 } else { -1.0 };
+        for a in &mut across {
+            a.0 *= side;
+        }
+        across.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let end = across[FACE_END_RANK - 1].0;
+        // The face must stop inside the cylinder, with r/4 of it seen beyond its end
+        // (not where it merely leaves the cylinder).
+        if end.abs() > FACE_END_WITHIN * r {
+            continue;
+        }
+        let near: Vec<usize> = across
+            .iter()
+            .filter(|a| a.0 - end <= 0.25 * r)
+            .map(|a| a.1)
+            .collect();
+        if near.len() < min_points.max(FACE_END_RANK) {
+            continue;
+        }
+        let density = near.len() as f64 / (0.25 * r);
+        let mut ext: Vec<f64> = across
+            .iter()
+            .filter(|a| a.0 - end <= 0.25 * r)
+            .map(|a| extent.map_or(0.0, |e| f64::from(e[ids[a.1] as usize])))
+            .filter(|e| e.is_finite())
+            .collect();
+        let extent = if ext.is_empty() {
+            0.0
+        } else {
+            median(&mut ext)
+        };
+        let reach = FACE_END_REACH * extent;
+        let edge = n * plane + u * (side * (end - reach));
+        let apart = corner.map_or(0.0, |c| (edge - c).length());
+        let floor = residual.hypot(0.5 * reach).hypot(apart) / (1.0 - off_faces).max(1e-3);
+        let statistical = 1.0 / density;
+        let e = FaceEndEvidence {
+            count: across.len(),
+            residual,
+            stop: end,
+            extent,
+            density,
+            off_faces,
+            distance: edge.length(),
+            floor,
+            statistical,
+        };
+        let sigma = floor.hypot(statistical);
+        if best
+            .as_ref()
+            .is_none_or(|b| sigma < b.1.floor.hypot(b.1.statistical))
+        {
+            best = Some((edge, e));
+        }
+    }
+    best
+}
+
+/// A step of the base colour across the input line within one face (`pts` as for
+/// [`face_end_evidence`]): the faces' planes as there; for each face that continues at
+/// least `r/2` on both sides of its best step, the step that best splits the members'
+/// colours in two (least squares of the RGB means over every split of the members
+/// ordered across the line), placed on the face's plane midway between the two members
+/// it falls between. The best known step, if any.
+fn colour_evidence(
+    c: &CornerInput<'_>,
+    colour: &[[f32; 3]],
+    extent: Option<&[f32]>,
+    r: f64,
+    min_points: usize,
+) -> Option<(DVec2, ColourEvidence)> {
+    let CornerInput {
+        pts,
+        normals,
+        ids,
+        frame: (e1, e2),
+        ..
+    } = *c;
+    let lim = 2 * min_points.max(FACE_END_RANK);
+    let mut keep = Vec::new();
+    let mut n2 = Vec::new();
+    let (mut in_r, mut round) = (0usize, 0usize);
+    for (i, (p, id)) in pts.iter().zip(ids).enumerate() {
+        if p.1.length() > r {
+            continue;
+        }
+        in_r += 1;
+        let n = crate::geom::p64(normals[*id as usize]);
+        round += usize::from(n == DVec3::ZERO);
+        let across = DVec2::new(n.dot(e1), n.dot(e2));
+        if n != DVec3::ZERO && across.length() > 0.866 {
+            keep.push(i);
+            n2.push(across.normalize());
+        }
+    }
+    if keep.len() < lim {
+        return None;
+    }
+    let w1 = vec![1.0; n2.len()];
+    let faces: Vec<DVec2> = match families(&n2, &w1, min_points) {
+        Some(f) => vec![f[0].0, f[1].0],
+        None => {
+            let dbl: DVec2 = n2
+                .iter()
+                .map(|a| DVec2::new(a.x * a.x - a.y * a.y, 2.0 * a.x * a.y))
+                .sum();
+            let ang = 0.5 * dbl.y.atan2(dbl.x);
+            vec![DVec2::new(ang.cos(), ang.sin())]
+        }
+    };
+    let cos20 = 20f64.to_radians().cos();
+    let rgb = |i: usize| DVec3::from(colour[ids[i] as usize].map(f64::from));
+    let mut best: Option<(DVec2, ColourEvidence)> = None;
+    for n in faces {
+        let on: Vec<usize> = keep
+            .iter()
+            .zip(&n2)
+            .filter(|(_, a)| a.dot(n).abs() >= cos20)
+            .map(|(&i, _)| i)
+            .collect();
+        if on.len() < lim {
+            continue;
+        }
+        let mut offs: Vec<f64> = on.iter().map(|&i| n.dot(pts[i].1)).collect();
+        let (plane, residual) = median_sigma(&mut offs);
+        let u = DVec2::new(-n.y, n.x);
+        let band = (3.0 * residual).max(1e-9);
+        let mut across: Vec<(f64, usize)> = on
+            .iter()
+            .filter(|&&i| (n.dot(pts[i].1) - plane).abs() <= band)
+            .map(|&i| (u.dot(pts[i].1), i))
+            .filter(|_| true)
+            .collect();
+        let k = across.len();
+        if k < lim || across.iter().any(|a| !rgb(a.1).is_finite()) {
+            continue;
+        }
+        across.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        // Least squares over every split j (members [0, j) | [j, k)), both sides at least
+        // `min_points`: the best split maximises j |m1|^2 + (k - j) |m2|^2.
+        let total: DVec3 = across.iter().map(|a| rgb(a.1)).sum();
+        let lo = min_points.max(FACE_END_RANK);
+        let mut acc = DVec3::ZERO;
+        let mut split: Option<(usize, f64)> = None;
+        for j in 1..k {
+            acc += rgb(across[j - 1].1);
+            if j < lo || k - j < lo {
+                continue;
+            }
+            let (a, b) = (acc / j as f64, (total - acc) / (k - j) as f64);
+            let gain = j as f64 * a.length_squared() + (k - j) as f64 * b.length_squared();
+            if split.is_none_or(|s| gain > s.1) {
+                split = Some((j, gain));
+            }
+        }
+        let Some((j, _)) = split else { continue };
+        let pos = 0.5 * (across[j - 1].0 + across[j].0);
+        // The face continues on both sides of the step.
+        if pos - across[0].0 < 0.5 * r || across[k - 1].0 - pos < 0.5 * r {
+            continue;
+        }
+        let head: DVec3 = across[..j].iter().map(|a| rgb(a.1)).sum::<DVec3>() / j as f64;
+        let tail = (total - head * j as f64) / (k - j) as f64;
+        let dv = tail - head;
+        let step = dv.length();
+        if step <= 0.0 {
+            continue;
+        }
+        // Which side each member's colour is nearer; the count of members on the wrong
+        // side of every split, and the span of splits within sqrt(best) (at least 1) of
+        // the best count.
+        let far: Vec<bool> = across
+            .iter()
+            .map(|a| (rgb(a.1) - head).dot(dv) > 0.5 * dv.length_squared())
+            .collect();
+        let mut wrong: Vec<usize> = Vec::with_capacity(k + 1);
+        let mut count = far.iter().filter(|&&f| !f).count();
+        wrong.push(count);
+        for f in &far {
+            if *f {
+                count += 1;
+            } else {
+                count -= 1;
+            }
+            wrong.push(count);
+        }
+        let least = *wrong.iter().min()?;
+        let within = least as f64 + (least as f64).sqrt().max(1.0);
+        let at = |s: usize| match s {
+            0 => across[0].0,
+            s if s == k => across[k - 1].0,
+            s => 0.5 * (across[s - 1].0 + across[s].0),
+        };
+        let inside: Vec<usize> = (0..=k).filter(|&s| wrong[s] as f64 <= within).collect();
+        let width = 0.5 * (at(*inside.last()?) - at(inside[0]));
+        let mixed = least as f64 / k as f64;
+        let near: Vec<f64> = across
+            .iter()
+            .filter(|a| (a.0 - pos).abs() <= 0.25 * r)
+            .map(|a| extent.map_or(0.0, |e| f64::from(e[ids[a.1] as usize])))
+            .filter(|e| e.is_finite())
+            .collect();
+        let density = near.len() as f64 / (0.5 * r);
+        let mut near = near;
+        let extent = if near.is_empty() {
+            0.0
+        } else {
+            median(&mut near)
+        };
+        let flat = 1.0 - round as f64 / in_r.max(1) as f64;
+        let floor = width.hypot(0.5 * extent) / ((1.0 - 2.0 * mixed) * flat).max(1e-3);
+        let statistical = 1.0 / density.max(1e-9);
+        let edge = n * plane + u * pos;
+        let e = ColourEvidence {
+            count: k,
+            step,
+            mixed,
+            width,
+            extent,
+            distance: edge.length(),
+            floor,
+            statistical,
+        };
+        let sigma = floor.hypot(statistical);
+        if best
+            .as_ref()
+            .is_none_or(|b| sigma < b.1.floor.hypot(b.1.statistical))
+        {
+            best = Some((edge, e));
+        }
+    }
+    best
 }
 
 /// What [`corner_evidence`] reads of one fitted segment: its members (cross-section
@@ -576,14 +1007,19 @@ pub fn decide(
             verdict: Verdict::TooFewMembers,
             estimate: None,
             members: 0,
+            flat_share: None,
             distance: 0.0,
             sigma: 0.0,
             corner: None,
             ridge: None,
+            face_end: None,
+            colour: None,
             input: seg6(&input[i]),
             fitted: seg6(&fitted.segments[i]),
             corner_line: None,
             ridge_line: None,
+            face_end_line: None,
+            colour_line: None,
         })
         .collect();
     if moved.is_empty() {
@@ -611,19 +1047,23 @@ pub fn decide(
             })
         })
         .collect();
+    // The fitted lines' members (corner, ridge) and the input lines' (face end), one
+    // batch.
     let queries: Vec<Query> = moved
         .iter()
         .map(|&i| Query::new(fitted.segments[i], r))
+        .chain(moved.iter().map(|&i| Query::new(input[i], r)))
         .collect();
-    let members = engine.members(&queries)?;
+    let mut members = engine.members(&queries)?;
+    let at_input = members.split_off(moved.len());
     let h = p.fit_bandwidth * r;
     let min_points = p.fit_min_points.max(1) as usize;
     let decided: Vec<(Decision, Option<Segment>)> = {
         use rayon::prelude::*;
         moved
             .par_iter()
-            .zip(&members)
-            .map(|(&i, m)| {
+            .zip(members.par_iter().zip(&at_input))
+            .map(|(&i, (m, m_in))| {
                 let s = &fitted.segments[i];
                 let d = s.dir();
                 let (e1, e2) = basis(d);
@@ -656,10 +1096,54 @@ pub fn decide(
                         min_points,
                     )
                 });
-                let at = |c: DVec2| {
+                // The face end, in the input line's own frame.
+                let g = &input[i];
+                let frame_in = basis(g.dir());
+                let face_end = attrs.normals.as_deref().and_then(|ns| {
+                    let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
+                    let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
+                    face_end_evidence(
+                        &CornerInput {
+                            pts: &pts,
+                            pw: &pw,
+                            normals: ns,
+                            ids: &ids,
+                            frame: frame_in,
+                            ends: [DVec2::ZERO; 2],
+                        },
+                        attrs.extent.as_deref(),
+                        r,
+                        min_points,
+                    )
+                });
+                let shifted = |base: &Segment, (e1, e2): (DVec3, DVec3), c: DVec2| {
                     let shift = e1 * c.x + e2 * c.y;
-                    seg6(&Segment::new(s.p1 + shift, s.p2 + shift))
+                    Segment::new(base.p1 + shift, base.p2 + shift)
                 };
+                let face_end_line = face_end.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
+                let colour = match (attrs.normals.as_deref(), attrs.colour.as_deref()) {
+                    (Some(ns), Some(cs)) => {
+                        let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
+                        let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
+                        colour_evidence(
+                            &CornerInput {
+                                pts: &pts,
+                                pw: &pw,
+                                normals: ns,
+                                ids: &ids,
+                                frame: frame_in,
+                                ends: [DVec2::ZERO; 2],
+                            },
+                            cs,
+                            attrs.extent.as_deref(),
+                            r,
+                            min_points,
+                        )
+                    }
+                    _ => None,
+                };
+                let colour_line = colour.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
+                let at = |c: DVec2| seg6(&shifted(s, (e1, e2), c));
                 let corner_line = corner.as_ref().map(|c| at(c.0));
                 let ridge_line = ridge.as_ref().map(|c| at(c.0));
                 // The corner's floor: its faces' residuals and the disagreement of the
@@ -698,12 +1182,27 @@ pub fn decide(
                         best = Some((Estimate::Ridge, *c, e.distance, s));
                     }
                 }
+                if let Some((c, e)) = &face_end {
+                    let s = sig(e.floor, e.statistical);
+                    if best.is_none_or(|b| s < b.3) {
+                        best = Some((Estimate::FaceEnd, *c, e.distance, s));
+                    }
+                }
+                if let Some((c, e)) = &colour {
+                    let s = sig(e.floor, e.statistical);
+                    if best.is_none_or(|b| s < b.3) {
+                        best = Some((Estimate::Colour, *c, e.distance, s));
+                    }
+                }
                 let (verdict, estimate, distance, sigma, seg) = match best {
                     None => (Verdict::TooFewMembers, None, 0.0, 0.0, None),
                     Some((est, c, dist, sigma)) => {
                         if dist > MOVE_MARGIN * sigma {
-                            let shift = e1 * c.x + e2 * c.y;
-                            let seg = Segment::new(s.p1 + shift, s.p2 + shift);
+                            let seg = if matches!(est, Estimate::FaceEnd | Estimate::Colour) {
+                                shifted(g, frame_in, c)
+                            } else {
+                                shifted(s, (e1, e2), c)
+                            };
                             (Verdict::Moved, Some(est), dist, sigma, Some(seg))
                         } else {
                             (Verdict::ModelKnowsLess, Some(est), dist, sigma, None)
@@ -716,14 +1215,22 @@ pub fn decide(
                         verdict,
                         estimate,
                         members: m.len(),
+                        flat_share: attrs.normals.as_deref().map(|ns| {
+                            let flat = m.iter().filter(|mm| ns[mm.id as usize] != [0.0; 3]).count();
+                            flat as f64 / m.len().max(1) as f64
+                        }),
                         distance,
                         sigma,
                         corner: corner.map(|c| c.1),
                         ridge: ridge.map(|c| c.1),
+                        face_end: face_end.map(|c| c.1),
+                        colour: colour.map(|c| c.1),
                         input: seg6(&input[i]),
                         fitted: seg6(s),
                         corner_line,
                         ridge_line,
+                        face_end_line,
+                        colour_line,
                     },
                     seg,
                 )
@@ -736,7 +1243,7 @@ pub fn decide(
             (Verdict::Moved, Some(seg)) => {
                 fitted.segments[i] = *seg;
                 fitted.how[i] = match dec.estimate {
-                    Some(Estimate::Corner) => How::Corner,
+                    Some(Estimate::Corner | Estimate::FaceEnd | Estimate::Colour) => How::Corner,
                     _ => How::Ridge,
                 };
             }
@@ -762,51 +1269,70 @@ pub fn decide(
 /// `refine.diagnosis`): the kind most segments show, in words, and the counts.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Diagnosis {
-    /// `edges` (centres on the edges), `faces` (splats on the faces), `sunk` (splats
-    /// below the faces, off the edges) or `sparse` (too few members).
+    /// `edges` (centres on the edges), `faces` (splats on the faces), `sunk` (flat splats
+    /// below the faces, off the edges), `round` (round splats, no face to speak of, off
+    /// the edges) or `sparse` (too few members).
     pub kind: String,
     /// The kind in words, with how far the model's centres sit from the lines where they
-    /// are sunk.
+    /// are off the edges.
     pub text: String,
     /// Segments of each kind.
     pub edges: usize,
     pub faces: usize,
     pub sunk: usize,
+    pub round: usize,
     pub sparse: usize,
     /// Segments the rule moved, kept because the model knows the edge less well than the
     /// line does, and kept for lack of members.
     pub moved: usize,
     pub model_knows_less: usize,
     pub too_few_members: usize,
-    /// Median distance from the lines of the centres' ridge, where the model is sunk.
+    /// Median distance from the lines of the centres' ridge, where the model is sunk or
+    /// round.
     pub sunk_by: Option<f64>,
 }
 
-/// A corner whose floor is below this many r says the splats lie on the faces.
+/// An estimate from the faces (corner, face end, colour change) whose floor is below
+/// this many r says the splats lie on the faces.
 pub const FACES_FLOOR: f64 = 0.15;
 
 /// A ridge whose floor is below this many r says the centres lie on the edges.
 pub const EDGES_FLOOR: f64 = 0.15;
 
+/// Members off the edges and off the faces are `round` where fewer than this share of
+/// them are flat (else `sunk`).
+pub const ROUND_FLAT: f64 = 0.5;
+
 /// The diagnosis of the model near the lines from the rule's decisions; `None` when there
-/// are none.
+/// are none. Each segment is named by its own evidence: centres on the edges where the
+/// ridge is well known, splats on the faces where an estimate from the faces is,
+/// otherwise round (mostly round members) or sunk (mostly flat ones, whose faces do not
+/// meet at the line), or sparse (too few members).
 pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
     if decisions.is_empty() {
         return None;
     }
-    let (mut edges, mut faces, mut sunk, mut sparse) = (0, 0, 0, 0);
+    let (mut edges, mut faces, mut sunk, mut round, mut sparse) = (0, 0, 0, 0, 0);
     let mut depth = Vec::new();
     for d in decisions {
-        let corner = d.corner.as_ref().filter(|c| c.floor < FACES_FLOOR * r);
+        let on_faces = d.corner.as_ref().is_some_and(|c| c.floor < FACES_FLOOR * r)
+            || d.face_end
+                .as_ref()
+                .is_some_and(|c| c.floor < FACES_FLOOR * r)
+            || d.colour.as_ref().is_some_and(|c| c.floor < FACES_FLOOR * r);
         let ridge = d.ridge.as_ref().filter(|e| e.floor < EDGES_FLOOR * r);
         if d.verdict == Verdict::TooFewMembers {
             sparse += 1;
-        } else if corner.is_some() {
+        } else if on_faces {
             faces += 1;
         } else if ridge.is_some() {
             edges += 1;
         } else {
-            sunk += 1;
+            if d.flat_share.is_some_and(|f| f < ROUND_FLAT) {
+                round += 1;
+            } else {
+                sunk += 1;
+            }
             if let Some(e) = &d.ridge {
                 depth.push(e.distance);
             }
@@ -814,22 +1340,23 @@ pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
     }
     let count = |v: Verdict| decisions.iter().filter(|d| d.verdict == v).count();
     let sunk_by = (!depth.is_empty()).then(|| median(&mut depth));
-    let most = [edges, faces, sunk, sparse].into_iter().max().unwrap_or(0);
+    let most = [edges, faces, sunk, round, sparse]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
     let n = decisions.len();
+    let off = |what: &str| match sunk_by {
+        Some(x) => format!("{what}: the centres' ridge lies about {x:.3} from the lines"),
+        None => what.to_string(),
+    };
     let (kind, text) = if most == edges {
         ("edges", "centres on the edges".to_string())
     } else if most == faces {
         ("faces", "splats on the faces".to_string())
     } else if most == sunk {
-        (
-            "sunk",
-            match sunk_by {
-                Some(x) => format!(
-                    "sunk below the faces: the centres' ridge lies about {x:.3} from the lines"
-                ),
-                None => "sunk below the faces".to_string(),
-            },
-        )
+        ("sunk", off("sunk below the faces"))
+    } else if most == round {
+        ("round", off("round splats off the edges"))
     } else {
         ("sparse", "too sparse".to_string())
     };
@@ -839,6 +1366,7 @@ pub fn diagnose(decisions: &[Decision], r: f64) -> Option<Diagnosis> {
         edges,
         faces,
         sunk,
+        round,
         sparse,
         moved: count(Verdict::Moved),
         model_knows_less: count(Verdict::ModelKnowsLess),
@@ -888,6 +1416,37 @@ impl Decision {
                 u(c.statistical)
             );
         }
+        if let Some(e) = &self.face_end {
+            s += &format!(
+                "\n  face end: {} from the line, floor {} (face's residual {:.4}; centres stop \
+                 {:.4} along the face from the line, extent {:.4}; {:.0} % of normals off the \
+                 faces; {} splats), statistical {} ({:.0} members per unit across)",
+                u(e.distance),
+                u(e.floor),
+                e.residual,
+                e.stop,
+                e.extent,
+                100.0 * e.off_faces,
+                e.count,
+                u(e.statistical),
+                e.density
+            );
+        }
+        if let Some(e) = &self.colour {
+            s += &format!(
+                "\n  colour change: {} from the line, floor {} (step {:.3} in RGB, {:.0} % of \
+                 splats nearer the other side's colour, profile half width {:.4}, extent \
+                 {:.4}; {} splats), statistical {}",
+                u(e.distance),
+                u(e.floor),
+                e.step,
+                100.0 * e.mixed,
+                e.width,
+                e.extent,
+                e.count,
+                u(e.statistical)
+            );
+        }
         if let Some(e) = &self.ridge {
             s += &format!(
                 "\n  ridge: {} from the line, floor {} (mode moves {} with a kernel twice as \
@@ -913,6 +1472,8 @@ impl Estimate {
         match self {
             Estimate::Corner => "corner of two faces",
             Estimate::Ridge => "ridge of the centres",
+            Estimate::FaceEnd => "end of a face's splats",
+            Estimate::Colour => "change of the splats' colour",
         }
     }
 }

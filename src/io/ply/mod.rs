@@ -190,6 +190,7 @@ struct AttrPlan {
     rot: [usize; 4],
     scale: [usize; 3],
     opacity: Option<usize>,
+    dc: Option<[usize; 3]>,
 }
 
 impl AttrPlan {
@@ -205,10 +206,15 @@ impl AttrPlan {
             Some(_) => Some(f32_at("opacity")?),
             None => None,
         };
+        let dc = ["f_dc_0", "f_dc_1", "f_dc_2"].map(f32_at);
         Some(AttrPlan {
             rot: [rot[0]?, rot[1]?, rot[2]?, rot[3]?],
             scale: [scale[0]?, scale[1]?, scale[2]?],
             opacity,
+            dc: match dc {
+                [Some(a), Some(b), Some(c)] => Some([a, b, c]),
+                _ => None,
+            },
         })
     }
 
@@ -220,6 +226,7 @@ impl AttrPlan {
             self.rot.map(v),
             self.scale.map(v),
             self.opacity.map(|o| opacity_of(f32_le(rec, o))),
+            self.dc.map(|d| d.map(v)),
         )
     }
 }
@@ -360,7 +367,7 @@ fn gaussians_from<R: Read>(
         .flatten();
     let mut attributes = plan
         .as_ref()
-        .map(|p| GaussianAttributes::with_capacity(capacity, p.opacity.is_some()));
+        .map(|p| GaussianAttributes::with_capacity(capacity, p.opacity.is_some(), p.dc.is_some()));
     let mut body = Body::new(ch, &header, header_lines);
     for elem in &header.elements[..vi] {
         body.skip(path, elem)?;
