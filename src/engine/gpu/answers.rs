@@ -225,7 +225,7 @@ impl GpuEngine {
     ) -> Result<Vec<Vec<Member>>, EngineError> {
         let mut out: Vec<Vec<Member>> = vec![Vec::new(); queries.len()];
         let grid = &*self.grid;
-        let fallbacks = &self.fallbacks;
+        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         self.run(b, Kind::Members, queries, &[], &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -256,6 +256,7 @@ impl GpuEngine {
                     .flatten();
                 *m = list.unwrap_or_else(|| {
                     fallbacks.fetch_add(1, Ordering::Relaxed);
+                    host_lists.fetch_add(1, Ordering::Relaxed);
                     crate::engine::cpu::member_list(grid, q)
                 });
             });

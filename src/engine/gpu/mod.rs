@@ -592,9 +592,9 @@ impl Engine for GpuEngine {
     /// [`GpuOptions::members`] resolved to the host (a software adapter, for the commands).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
-        self.host_lists
-            .fetch_add(queries.len() as u64, Ordering::Relaxed);
         if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
+            self.host_lists
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
             return self.on_cpu(queries.len(), || self.cpu.members(queries));
         }
         let (order, sent) = self.in_order(queries);
@@ -614,7 +614,14 @@ impl Engine for GpuEngine {
             && queries.len() > self.small_batch
             && self.ridge_on_device(ask.spec, &ask.points);
         if !device {
+            // The steps are the host's: counted as host walks wherever the device listed
+            // the members (the host's own lists count themselves).
+            let listed_on_host = queries.len() <= self.small_batch || self.members_on_host;
             let members = self.members(queries)?;
+            if !listed_on_host {
+                self.host_lists
+                    .fetch_add(queries.len() as u64, Ordering::Relaxed);
+            }
             let t = std::time::Instant::now();
             let out = super::fit::steps(queries, &members, ask);
             self.clock.add(t.elapsed().as_secs_f64(), 0.0);
