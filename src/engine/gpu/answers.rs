@@ -257,7 +257,7 @@ impl GpuEngine {
                 *m = list.unwrap_or_else(|| {
                     fallbacks.fetch_add(1, Ordering::Relaxed);
                     host_lists.fetch_add(1, Ordering::Relaxed);
-                    crate::engine::cpu::member_list(grid, q)
+                    self.cpu_members(q)
                 });
             });
             Ok(())
@@ -309,7 +309,7 @@ impl GpuEngine {
                 *e = got.unwrap_or_else(|| {
                     fallbacks.fetch_add(1, Ordering::Relaxed);
                     host_lists.fetch_add(1, Ordering::Relaxed);
-                    crate::engine::cpu::extent_of(grid, q)
+                    self.cpu_extent(q)
                 });
             });
             Ok(())
