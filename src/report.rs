@@ -122,8 +122,8 @@ pub struct Stage {
     /// and evaluation pass).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub point_bytes: Option<u64>,
-    /// GPU engine: queries of this stage whose member lists the host walked or read
-    /// back (`Counters::host_lists`).
+    /// GPU engine: queries of this stage whose members the host walked
+    /// (`Counters::host_lists`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub host_lists: Option<u64>,
 }

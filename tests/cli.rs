@@ -805,6 +805,27 @@ fn the_gpu_benchmark_script_runs() {
         "{out}"
     );
     assert!(out.contains("gpu / cpu total time: "), "{out}");
+    // The host share per stage beside the CPU run's seconds in it, and the setup stages.
+    assert!(
+        out.contains("stage") && out.contains("cpu (s)") && out.contains("host (s)"),
+        "{out}"
+    );
+    assert!(out.contains("gpu index + engine "), "{out}");
+    // Held to a target no run can meet, it fails loudly.
+    let o = std::process::Command::new("bash")
+        .arg(format!("{root}/scripts/bench-gpu.sh"))
+        .env("LINEGS_GPU_BIN", env!("CARGO_BIN_EXE_linegs-gpu"))
+        .env("BENCH_GPU_SIZES", "20000 200 120")
+        .env("BENCH_GPU_MAX_HOST_SHARE", "-1")
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("FAILED: at 20000 x 200 the GPU run's host seconds are "),
+        "{err}"
+    );
+    assert!(err.contains("(target <= -1 %)"), "{err}");
 }
 
 #[test]

@@ -69,12 +69,18 @@ struct HostShare {
     gpu_host_seconds: f64,
     /// `gpu_host_seconds / cpu_total_seconds`.
     share: f64,
+    /// The GPU run's index and engine stages together (the grid, the device's opening
+    /// and the upload) and the CPU run's index stage.
+    gpu_setup_seconds: f64,
+    cpu_index_seconds: f64,
     stages: Vec<StageShare>,
 }
 
 #[derive(Serialize)]
 struct StageShare {
     name: String,
+    /// The CPU run's seconds in the stage of the same name.
+    cpu_seconds: f64,
     host_seconds: f64,
     device_seconds: f64,
     /// `host_seconds / cpu_total_seconds`.
@@ -87,8 +93,16 @@ struct StageShare {
 impl HostShare {
     /// `None` unless both a CPU and a GPU run (with host clocks) are there.
     fn of(runs: &[RunTiming]) -> Option<HostShare> {
-        let cpu = runs.iter().find(|r| r.backend == "cpu")?.total_seconds;
+        let cpu_run = runs.iter().find(|r| r.backend == "cpu")?;
+        let cpu = cpu_run.total_seconds;
         let gpu = runs.iter().find(|r| r.backend == "gpu")?;
+        let seconds = |r: &RunTiming, name: &str| {
+            r.stages
+                .iter()
+                .filter(|s| s.name == name)
+                .map(|s| s.seconds)
+                .sum::<f64>()
+        };
         let host = gpu.host_seconds?;
         if cpu <= 0.0 {
             return None;
@@ -99,6 +113,7 @@ impl HostShare {
             .filter_map(|s| {
                 Some(StageShare {
                     name: s.name.clone(),
+                    cpu_seconds: seconds(cpu_run, &s.name),
                     host_seconds: s.host_seconds?,
                     device_seconds: s.device_seconds.unwrap_or(0.0),
                     share: s.host_seconds? / cpu,
@@ -112,6 +127,8 @@ impl HostShare {
             cpu_total_seconds: cpu,
             gpu_host_seconds: host,
             share: host / cpu,
+            gpu_setup_seconds: seconds(gpu, "index") + seconds(gpu, "engine"),
+            cpu_index_seconds: seconds(cpu_run, "index"),
             stages,
         })
     }
@@ -288,20 +305,22 @@ fn print_case(c: &Case) {
     }
 }
 
-/// The GPU run's host seconds per stage beside the CPU run's total, and the device's work.
+/// The GPU run's host seconds per stage beside the CPU run's seconds in the same stage
+/// and its total, and the device's work.
 fn print_host_share(h: &HostShare) {
     println!(
         "gpu host share (the gpu run's host seconds / the cpu run's total {:.3} s):",
         h.cpu_total_seconds
     );
     println!(
-        "{:<18}{:>10}{:>10}{:>8}{:>12}{:>12}{:>12}",
-        "stage", "host (s)", "dev (s)", "share", "items", "MB read", "host lists"
+        "{:<18}{:>10}{:>10}{:>10}{:>8}{:>12}{:>12}{:>12}",
+        "stage", "cpu (s)", "host (s)", "dev (s)", "share", "items", "MB read", "host lists"
     );
     for s in &h.stages {
         println!(
-            "{:<18}{:>10.3}{:>10.3}{:>7.1}%{:>12}{:>12.1}{:>12}",
+            "{:<18}{:>10.3}{:>10.3}{:>10.3}{:>7.1}%{:>12}{:>12.1}{:>12}",
             s.name,
+            s.cpu_seconds,
             s.host_seconds,
             s.device_seconds,
             100.0 * s.share,
@@ -311,10 +330,15 @@ fn print_host_share(h: &HostShare) {
         );
     }
     println!(
-        "{:<18}{:>10.3}{:>10}{:>7.1}%",
+        "{:<18}{:>10.3}{:>10.3}{:>10}{:>7.1}%",
         "total",
+        h.cpu_total_seconds,
         h.gpu_host_seconds,
         "",
         100.0 * h.share
+    );
+    println!(
+        "gpu index + engine {:.3} s (the grid, the device's opening, the upload); cpu index {:.3} s",
+        h.gpu_setup_seconds, h.cpu_index_seconds
     );
 }

@@ -317,11 +317,13 @@ pub struct Counters {
     pub device_items: u64,
     #[serde(default)]
     pub point_bytes: u64,
-    /// GPU engine: queries whose members the host walked or read: every
-    /// [`Engine::members`] query (its list comes back to the host), the queries of
-    /// [`Engine::axial`] and [`Engine::extent`] batches the CPU engine's code answered, and
+    /// GPU engine: queries whose members the host walked (the CPU engine's code over the
+    /// grid): the queries of [`Engine::members`], [`Engine::axial`] and [`Engine::extent`]
+    /// batches the CPU engine's code answered (small batches, member lists on the host),
     /// every query the device left to the host (a walk too long, a boundary member of a
-    /// k-nearest set or a device fit, a tie in an extent). 0 for the CPU engine.
+    /// k-nearest set or a device fit, a tie in an extent, a list it could not give) and
+    /// every edge-fit step fitted on the host. A member list the device gives and the host
+    /// only measures (each sure member's f64 position) is not one. 0 for the CPU engine.
     #[serde(default)]
     pub host_lists: u64,
 }

@@ -225,7 +225,7 @@ impl GpuEngine {
     ) -> Result<Vec<Vec<Member>>, EngineError> {
         let mut out: Vec<Vec<Member>> = vec![Vec::new(); queries.len()];
         let grid = &*self.grid;
-        let fallbacks = &self.fallbacks;
+        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         self.run(b, Kind::Members, queries, &[], &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -256,7 +256,8 @@ impl GpuEngine {
                     .flatten();
                 *m = list.unwrap_or_else(|| {
                     fallbacks.fetch_add(1, Ordering::Relaxed);
-                    crate::engine::cpu::member_list(grid, q)
+                    host_lists.fetch_add(1, Ordering::Relaxed);
+                    self.cpu_members(q)
                 });
             });
             Ok(())
@@ -308,7 +309,7 @@ impl GpuEngine {
                 *e = got.unwrap_or_else(|| {
                     fallbacks.fetch_add(1, Ordering::Relaxed);
                     host_lists.fetch_add(1, Ordering::Relaxed);
-                    crate::engine::cpu::extent_of(grid, q)
+                    self.cpu_extent(q)
                 });
             });
             Ok(())

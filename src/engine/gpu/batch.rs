@@ -8,42 +8,12 @@ use super::kernels::Kernels;
 use super::layout::*;
 use super::query::gquery;
 use super::resources::{Buffers, Limits, Statics};
+pub use super::sizes::Kind;
+use super::sizes::{member_scan_max, Bound, Sizes};
 use super::stages::{self, Recorder};
 use crate::engine::{EngineError, Query};
 use crate::index::Grid;
 use rayon::prelude::*;
-
-/// What a batch asks of the evaluation kernel.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Kind {
-    /// Counts and sums (and side counts); with `cover`, the coverage mask too.
-    Stats {
-        sides: bool,
-        cover: bool,
-    },
-    Nearest,
-    /// The members: each query's sure members' sorted indices (and the flagged points).
-    Members,
-    /// The edge fit's ridge of each query (`fit.wgsl`) over its sure members, left on the
-    /// device (and the flagged points).
-    Fit,
-    /// Each query's extent (`extent.wgsl`) over its sure members, left on the device (and
-    /// the flagged points).
-    Extent,
-}
-
-impl Kind {
-    /// Whether the batch lists each query's members on the device.
-    pub fn lists(self) -> bool {
-        matches!(self, Kind::Members | Kind::Fit | Kind::Extent)
-    }
-
-    /// Whether the batch uploads per-query frames (`FitQuery`) for an f64 kernel and
-    /// reads back its per-query output.
-    pub fn f64_kernel(self) -> bool {
-        matches!(self, Kind::Fit | Kind::Extent)
-    }
-}
 
 /// One sub-batch's answers: per query its result (and k-nearest plan), and the flagged
 /// points as (query slot | kind, sorted point index), sorted. A members batch also has
@@ -145,7 +115,7 @@ pub fn submit(
         items_run += got.items.min(b.item_cap) as u64;
         points_read += got.points;
         let mut again = false;
-        if kind.lists() && got.items > stages::member_scan_max(lim) {
+        if kind.lists() && got.items > member_scan_max(lim) {
             return Ok(Attempt::TooLarge(waited, items_run, points_read));
         }
         if got.items > b.item_cap {
@@ -194,157 +164,6 @@ struct Readback {
     members: u64,
     /// Points the evaluation passes read from the point store.
     points: u64,
-}
-
-/// Byte sizes of everything one try binds, from the batch and the buffers' capacities.
-pub struct Sizes {
-    pub n: u32,
-    /// The levels of the queries' item-count scan, its total's index and its bytes.
-    pub levels: Vec<stages::Level>,
-    pub total_idx: u32,
-    pub scan: u64,
-    /// The levels of a members batch's scan of the items' member counts, and its bytes.
-    pub mlevels: Vec<stages::Level>,
-    pub mscan: u64,
-    pub items: u64,
-    pub partials: u64,
-    pub results: u64,
-    pub ctl: u64,
-    pub hist: u64,
-    pub plans: u64,
-    pub members: u64,
-    pub fitq: u64,
-    pub fitout: u64,
-    /// The histograms, the coverage mask or the member list (whichever `kind` uses).
-    pub aux: u64,
-    /// What comes back: results, the control words, then the plans, members or ridges.
-    pub staging: u64,
-}
-
-impl Sizes {
-    fn of(kind: Kind, n: u32, b: &Buffers, lim: &Limits) -> Sizes {
-        let n64 = n as u64;
-        let (levels, total_idx, scan_len) = stages::scan_levels(n);
-        // The items' member counts are scanned over the buffer's capacity (the total is on
-        // the device); entries past the total do not change the offsets before it.
-        let (mlevels, _, mscan_len) =
-            stages::scan_levels(b.item_cap.min(stages::member_scan_max(lim)));
-        let size_of = |bytes: usize, count: u64| count * bytes as u64;
-        let results = size_of(std::mem::size_of::<QResult>(), n64);
-        let ctl = (CTL_HEAD as u64 + 2 * b.flag_cap as u64) * 4;
-        let hist = n64 * NBINS as u64 * 4;
-        let plans = size_of(std::mem::size_of::<Plan>(), n64);
-        let members = b.member_cap as u64 * 4;
-        let fitout = match kind {
-            Kind::Extent => size_of(std::mem::size_of::<ExtentOut>(), n64),
-            _ => size_of(std::mem::size_of::<FitOut>(), n64),
-        };
-        let aux = match kind {
-            Kind::Nearest => hist,
-            Kind::Stats { cover: true, .. } => b.aux_len,
-            Kind::Stats { cover: false, .. } => 4,
-            Kind::Members | Kind::Fit | Kind::Extent => members,
-        };
-        let tail = match kind {
-            Kind::Nearest => plans,
-            Kind::Members => members,
-            Kind::Fit | Kind::Extent => fitout,
-            Kind::Stats { .. } => 0,
-        };
-        Sizes {
-            n,
-            levels,
-            total_idx,
-            scan: scan_len as u64 * 4,
-            mlevels,
-            mscan: if kind.lists() {
-                mscan_len as u64 * 4
-            } else {
-                4
-            },
-            items: size_of(std::mem::size_of::<Item>(), b.item_cap as u64),
-            partials: size_of(std::mem::size_of::<Partial>(), b.item_cap as u64),
-            results,
-            ctl,
-            hist,
-            plans,
-            members,
-            fitq: size_of(std::mem::size_of::<FitQuery>(), n64),
-            fitout,
-            aux,
-            staging: results + ctl + tail,
-        }
-    }
-}
-
-/// The buffers one try binds, each at least its size in [`Sizes`] (the reusable buffers
-/// of [`Buffers`], grown where they were smaller).
-pub struct Bound {
-    pub params: wgpu::Buffer,
-    /// The batch's queries as texels ([`super::device::QueryTexture`]): what the walk,
-    /// the evaluation and the cut read.
-    pub qtex: wgpu::TextureView,
-    pub scan: wgpu::Buffer,
-    pub items: wgpu::Buffer,
-    pub partials: wgpu::Buffer,
-    pub results: wgpu::Buffer,
-    pub ctl: wgpu::Buffer,
-    pub indirect: wgpu::Buffer,
-    /// The k-nearest histograms, the coverage mask, or (a members or fit batch) the
-    /// member list.
-    pub aux: wgpu::Buffer,
-    pub mscan: wgpu::Buffer,
-    pub plans: wgpu::Buffer,
-    /// A fit batch's query frames and ridges.
-    pub fitq: Option<wgpu::Buffer>,
-    pub fitout: Option<wgpu::Buffer>,
-    pub staging: wgpu::Buffer,
-}
-
-impl Bound {
-    /// The buffers of a try of `kind`; the first try of a sub-batch also uploads its
-    /// queries (and fit frames): a rerun finds them in place.
-    #[allow(clippy::too_many_arguments)]
-    fn take(
-        ctx: &Context,
-        b: &mut Buffers,
-        kind: Kind,
-        sz: &Sizes,
-        params_bytes: u64,
-        gq: &[GQuery],
-        fit: &[FitQuery],
-        rerun: bool,
-    ) -> Bound {
-        let fitq = kind.f64_kernel().then(|| b.fitq.get(ctx, sz.fitq).clone());
-        if !rerun {
-            b.qtex.write(ctx, gq);
-            if let Some(q) = &fitq {
-                ctx.queue.write_buffer(q, 0, bytemuck::cast_slice(fit));
-            }
-        }
-        Bound {
-            params: b.params.get(ctx, params_bytes).clone(),
-            qtex: b.qtex.view().expect("written at the first try").clone(),
-            scan: b.scan.get(ctx, sz.scan).clone(),
-            items: b.items.get(ctx, sz.items).clone(),
-            partials: b.partials.get(ctx, sz.partials).clone(),
-            results: b.results.get(ctx, sz.results).clone(),
-            ctl: b.ctl.get(ctx, sz.ctl).clone(),
-            indirect: b.indirect.get(ctx, 24).clone(),
-            aux: if kind.lists() {
-                b.members.get(ctx, sz.aux).clone()
-            } else {
-                b.aux.get(ctx, sz.aux).clone()
-            },
-            mscan: b.mscan.get(ctx, sz.mscan).clone(),
-            fitq,
-            fitout: kind
-                .f64_kernel()
-                .then(|| b.fitout.get(ctx, sz.fitout).clone()),
-            plans: b.plans.get(ctx, sz.plans.max(16)).clone(),
-            staging: b.staging.get(ctx, sz.staging).clone(),
-        }
-    }
 }
 
 /// One try: every stage recorded into one compute pass, then one readback. A `rerun`

@@ -53,6 +53,7 @@ pub mod layout;
 mod options;
 mod query;
 mod resources;
+mod sizes;
 mod stages;
 
 pub use device::{
@@ -115,8 +116,10 @@ pub struct GpuEngine {
     /// coordinates uploaded).
     device_fit: bool,
     clock: Clock,
-    /// Answers the batches of at most `small_batch` queries, over the same grid.
-    cpu: super::cpu::CpuEngine,
+    /// The CPU engine over the same grid, used only through the [`Engine`] interface:
+    /// the batches of at most `small_batch` queries, member lists on the host, and the
+    /// queries the device leaves to the host.
+    cpu: Box<dyn Engine>,
     small_batch: usize,
     /// [`GpuOptions::members`] resolved for this adapter.
     members_on_host: bool,
@@ -266,7 +269,7 @@ impl GpuDevice {
         let device_fit = fit_wanted && kernels.fit.is_some() && statics.world.is_some();
         let device_extent = fit_wanted && kernels.extent.is_some() && statics.world.is_some();
         Ok(GpuEngine {
-            cpu: super::cpu::CpuEngine::new(grid.clone()),
+            cpu: Box::new(super::cpu::CpuEngine::new(grid.clone())),
             small_batch: opts.small_batch,
             members_on_host: match opts.members {
                 MembersOn::Device => false,
@@ -487,7 +490,7 @@ impl GpuEngine {
                             fallbacks.fetch_add(1, Ordering::Relaxed);
                             refitted.fetch_add(1, Ordering::Relaxed);
                             host_lists.fetch_add(1, Ordering::Relaxed);
-                            let m = super::cpu::member_list(grid, q);
+                            let m = self.cpu_members(q);
                             let one = FitAsk {
                                 warm: ask.warm.get(first + i..=first + i).unwrap_or(&[]),
                                 ..*ask
@@ -593,9 +596,9 @@ impl Engine for GpuEngine {
     /// [`GpuOptions::members`] resolved to the host (a software adapter, for the commands).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
         self.count_batch(queries.len());
-        self.host_lists
-            .fetch_add(queries.len() as u64, Ordering::Relaxed);
         if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
+            self.host_lists
+                .fetch_add(queries.len() as u64, Ordering::Relaxed);
             return self.on_cpu(queries.len(), || self.cpu.members(queries));
         }
         let (order, sent) = self.in_order(queries);
@@ -615,7 +618,14 @@ impl Engine for GpuEngine {
             && queries.len() > self.small_batch
             && self.ridge_on_device(ask.spec, &ask.points);
         if !device {
+            // The steps are the host's: counted as host walks wherever the device listed
+            // the members (the host's own lists count themselves).
+            let listed_on_host = queries.len() <= self.small_batch || self.members_on_host;
             let members = self.members(queries)?;
+            if !listed_on_host {
+                self.host_lists
+                    .fetch_add(queries.len() as u64, Ordering::Relaxed);
+            }
             let t = std::time::Instant::now();
             let out = super::fit::steps(queries, &members, ask);
             self.clock.add(t.elapsed().as_secs_f64(), 0.0);
@@ -647,14 +657,16 @@ impl Engine for GpuEngine {
 
     /// With the ridge on the device ([`GpuOptions::fit`], the plain ridge), one batch
     /// per iteration ([`super::fit::by_batches`]: each batch's ridge on the device);
-    /// otherwise the CPU engine's fit over the same grid, each neighbourhood gathered
-    /// once ([`super::fit::gathered`]), as one host batch.
+    /// otherwise the CPU engine's [`Engine::fit_edges`] over the same grid (each
+    /// neighbourhood gathered once), as one host batch.
     fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
         if self.device_fit && self.ridge_on_device(job.spec, &job.points) {
             return super::fit::by_batches(self, job);
         }
         self.count_batch(0);
-        let (out, steps) = self.on_cpu(0, || super::fit::gathered(&self.grid, job));
+        let before = self.cpu.counters().queries;
+        let out = self.on_cpu(0, || self.cpu.fit_edges(job))?;
+        let steps = self.cpu.counters().queries - before;
         self.queries.fetch_add(steps, Ordering::Relaxed);
         self.cpu_queries.fetch_add(steps, Ordering::Relaxed);
         self.host_lists.fetch_add(steps, Ordering::Relaxed);
@@ -687,6 +699,21 @@ impl GpuEngine {
     /// points to fit.
     fn ridge_on_device(&self, spec: &FitSpec, points: &FitPoints<'_>) -> bool {
         points.normals.is_none() && !spec.opacity_weight && !self.grid.is_empty()
+    }
+
+    /// The CPU engine's members of `q` (the host's walk), for a query the device leaves
+    /// to the host.
+    fn cpu_members(&self, q: &Query) -> Vec<super::Member> {
+        // The CPU engine answers every batch (its `members` cannot fail).
+        let lists = self.cpu.members(std::slice::from_ref(q));
+        lists.ok().and_then(|mut l| l.pop()).unwrap_or_default()
+    }
+
+    /// The CPU engine's extent of `q` (the host's walk).
+    fn cpu_extent(&self, q: &Query) -> super::Extent {
+        // As [`Self::cpu_members`].
+        let e = self.cpu.extent(std::slice::from_ref(q));
+        e.ok().and_then(|mut e| e.pop()).unwrap_or_default()
     }
 
     /// `f()`, its time counted as the engine's host work (`host_seconds`).

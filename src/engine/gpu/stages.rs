@@ -12,49 +12,12 @@
 //! [`Recorder`] hands out the slots and returns their bytes for the host to write before
 //! the submit.
 
-use super::batch::{Bound, Sizes};
 use super::device::{self, Context};
 use super::kernels::Kernels;
 use super::layout::*;
 use super::resources::{Limits, Statics};
+use super::sizes::{Bound, Level, Sizes};
 use crate::engine::EngineError;
-
-/// One level of a multi-level prefix scan: the first element, the elements, and where its
-/// block sums go.
-#[derive(Clone, Copy, Debug)]
-pub struct Level {
-    pub base: u32,
-    pub len: u32,
-    pub sums: u32,
-}
-
-impl Level {
-    fn groups(&self) -> u32 {
-        self.len.div_ceil(SCAN_WG).max(1)
-    }
-}
-
-/// Levels of the prefix scan over `n` counts, the index of the grand total and the scan
-/// buffer's length.
-pub fn scan_levels(n: u32) -> (Vec<Level>, u32, u32) {
-    let mut levels = Vec::new();
-    let (mut base, mut len) = (0u32, n);
-    loop {
-        let blocks = len.div_ceil(SCAN_WG).max(1);
-        let sums = base + len;
-        levels.push(Level { base, len, sums });
-        if blocks == 1 {
-            return (levels, sums, sums + 1);
-        }
-        base = sums;
-        len = blocks;
-    }
-}
-
-/// Most items a members batch may scan: one scan level within `max_x` workgroups.
-pub fn member_scan_max(lim: &Limits) -> u32 {
-    SCAN_WG.saturating_mul(lim.max_x)
-}
 
 /// Most uniform slots a try records: the walk's two passes, the args, the members'
 /// gather and scatter, the cut, the reduction and the fit (8); two slots per scan level

@@ -1,0 +1,227 @@
+//! What one try of a device batch binds: the [`Kind`] of batch, the byte [`Sizes`] of its
+//! buffers (with the levels of its prefix scans) and the [`Bound`] buffers themselves.
+//! [`super::batch`] sizes and binds a try; [`super::stages`] records its dispatches over
+//! them.
+
+use super::device::Context;
+use super::layout::*;
+use super::resources::{Buffers, Limits};
+
+/// What a batch asks of the evaluation kernel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    /// Counts and sums (and side counts); with `cover`, the coverage mask too.
+    Stats {
+        sides: bool,
+        cover: bool,
+    },
+    Nearest,
+    /// The members: each query's sure members' sorted indices (and the flagged points).
+    Members,
+    /// The edge fit's ridge of each query (`fit.wgsl`) over its sure members, left on the
+    /// device (and the flagged points).
+    Fit,
+    /// Each query's extent (`extent.wgsl`) over its sure members, left on the device (and
+    /// the flagged points).
+    Extent,
+}
+
+impl Kind {
+    /// Whether the batch lists each query's members on the device.
+    pub fn lists(self) -> bool {
+        matches!(self, Kind::Members | Kind::Fit | Kind::Extent)
+    }
+
+    /// Whether the batch uploads per-query frames (`FitQuery`) for an f64 kernel and
+    /// reads back its per-query output.
+    pub fn f64_kernel(self) -> bool {
+        matches!(self, Kind::Fit | Kind::Extent)
+    }
+}
+
+/// One level of a multi-level prefix scan: the first element, the elements, and where its
+/// block sums go.
+#[derive(Clone, Copy, Debug)]
+pub struct Level {
+    pub base: u32,
+    pub len: u32,
+    pub sums: u32,
+}
+
+impl Level {
+    pub(super) fn groups(&self) -> u32 {
+        self.len.div_ceil(SCAN_WG).max(1)
+    }
+}
+
+/// Levels of the prefix scan over `n` counts, the index of the grand total and the scan
+/// buffer's length.
+pub fn scan_levels(n: u32) -> (Vec<Level>, u32, u32) {
+    let mut levels = Vec::new();
+    let (mut base, mut len) = (0u32, n);
+    loop {
+        let blocks = len.div_ceil(SCAN_WG).max(1);
+        let sums = base + len;
+        levels.push(Level { base, len, sums });
+        if blocks == 1 {
+            return (levels, sums, sums + 1);
+        }
+        base = sums;
+        len = blocks;
+    }
+}
+
+/// Most items a members batch may scan: one scan level within `max_x` workgroups.
+pub fn member_scan_max(lim: &Limits) -> u32 {
+    SCAN_WG.saturating_mul(lim.max_x)
+}
+
+/// Byte sizes of everything one try binds, from the batch and the buffers' capacities.
+pub struct Sizes {
+    pub n: u32,
+    /// The levels of the queries' item-count scan, its total's index and its bytes.
+    pub levels: Vec<Level>,
+    pub total_idx: u32,
+    pub scan: u64,
+    /// The levels of a members batch's scan of the items' member counts, and its bytes.
+    pub mlevels: Vec<Level>,
+    pub mscan: u64,
+    pub items: u64,
+    pub partials: u64,
+    pub results: u64,
+    pub ctl: u64,
+    pub hist: u64,
+    pub plans: u64,
+    pub members: u64,
+    pub fitq: u64,
+    pub fitout: u64,
+    /// The histograms, the coverage mask or the member list (whichever `kind` uses).
+    pub aux: u64,
+    /// What comes back: results, the control words, then the plans, members or ridges.
+    pub staging: u64,
+}
+
+impl Sizes {
+    pub(super) fn of(kind: Kind, n: u32, b: &Buffers, lim: &Limits) -> Sizes {
+        let n64 = n as u64;
+        let (levels, total_idx, scan_len) = scan_levels(n);
+        // The items' member counts are scanned over the buffer's capacity (the total is on
+        // the device); entries past the total do not change the offsets before it.
+        let (mlevels, _, mscan_len) = scan_levels(b.item_cap.min(member_scan_max(lim)));
+        let size_of = |bytes: usize, count: u64| count * bytes as u64;
+        let results = size_of(std::mem::size_of::<QResult>(), n64);
+        let ctl = (CTL_HEAD as u64 + 2 * b.flag_cap as u64) * 4;
+        let hist = n64 * NBINS as u64 * 4;
+        let plans = size_of(std::mem::size_of::<Plan>(), n64);
+        let members = b.member_cap as u64 * 4;
+        let fitout = match kind {
+            Kind::Extent => size_of(std::mem::size_of::<ExtentOut>(), n64),
+            _ => size_of(std::mem::size_of::<FitOut>(), n64),
+        };
+        let aux = match kind {
+            Kind::Nearest => hist,
+            Kind::Stats { cover: true, .. } => b.aux_len,
+            Kind::Stats { cover: false, .. } => 4,
+            Kind::Members | Kind::Fit | Kind::Extent => members,
+        };
+        let tail = match kind {
+            Kind::Nearest => plans,
+            Kind::Members => members,
+            Kind::Fit | Kind::Extent => fitout,
+            Kind::Stats { .. } => 0,
+        };
+        Sizes {
+            n,
+            levels,
+            total_idx,
+            scan: scan_len as u64 * 4,
+            mlevels,
+            mscan: if kind.lists() {
+                mscan_len as u64 * 4
+            } else {
+                4
+            },
+            items: size_of(std::mem::size_of::<Item>(), b.item_cap as u64),
+            partials: size_of(std::mem::size_of::<Partial>(), b.item_cap as u64),
+            results,
+            ctl,
+            hist,
+            plans,
+            members,
+            fitq: size_of(std::mem::size_of::<FitQuery>(), n64),
+            fitout,
+            aux,
+            staging: results + ctl + tail,
+        }
+    }
+}
+
+/// The buffers one try binds, each at least its size in [`Sizes`] (the reusable buffers
+/// of [`Buffers`], grown where they were smaller).
+pub struct Bound {
+    pub params: wgpu::Buffer,
+    /// The batch's queries as texels ([`super::device::QueryTexture`]): what the walk,
+    /// the evaluation and the cut read.
+    pub qtex: wgpu::TextureView,
+    pub scan: wgpu::Buffer,
+    pub items: wgpu::Buffer,
+    pub partials: wgpu::Buffer,
+    pub results: wgpu::Buffer,
+    pub ctl: wgpu::Buffer,
+    pub indirect: wgpu::Buffer,
+    /// The k-nearest histograms, the coverage mask, or (a members or fit batch) the
+    /// member list.
+    pub aux: wgpu::Buffer,
+    pub mscan: wgpu::Buffer,
+    pub plans: wgpu::Buffer,
+    /// A fit batch's query frames and ridges.
+    pub fitq: Option<wgpu::Buffer>,
+    pub fitout: Option<wgpu::Buffer>,
+    pub staging: wgpu::Buffer,
+}
+
+impl Bound {
+    /// The buffers of a try of `kind`; the first try of a sub-batch also uploads its
+    /// queries (and fit frames): a rerun finds them in place.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn take(
+        ctx: &Context,
+        b: &mut Buffers,
+        kind: Kind,
+        sz: &Sizes,
+        params_bytes: u64,
+        gq: &[GQuery],
+        fit: &[FitQuery],
+        rerun: bool,
+    ) -> Bound {
+        let fitq = kind.f64_kernel().then(|| b.fitq.get(ctx, sz.fitq).clone());
+        if !rerun {
+            b.qtex.write(ctx, gq);
+            if let Some(q) = &fitq {
+                ctx.queue.write_buffer(q, 0, bytemuck::cast_slice(fit));
+            }
+        }
+        Bound {
+            params: b.params.get(ctx, params_bytes).clone(),
+            qtex: b.qtex.view().expect("written at the first try").clone(),
+            scan: b.scan.get(ctx, sz.scan).clone(),
+            items: b.items.get(ctx, sz.items).clone(),
+            partials: b.partials.get(ctx, sz.partials).clone(),
+            results: b.results.get(ctx, sz.results).clone(),
+            ctl: b.ctl.get(ctx, sz.ctl).clone(),
+            indirect: b.indirect.get(ctx, 24).clone(),
+            aux: if kind.lists() {
+                b.members.get(ctx, sz.aux).clone()
+            } else {
+                b.aux.get(ctx, sz.aux).clone()
+            },
+            mscan: b.mscan.get(ctx, sz.mscan).clone(),
+            fitq,
+            fitout: kind
+                .f64_kernel()
+                .then(|| b.fitout.get(ctx, sz.fitout).clone()),
+            plans: b.plans.get(ctx, sz.plans.max(16)).clone(),
+            staging: b.staging.get(ctx, sz.staging).clone(),
+        }
+    }
+}
