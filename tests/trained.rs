@@ -149,8 +149,18 @@ fn the_gate_decides_alike_on_both_engines() {
         );
         assert_eq!(c.fit.fit_decisions, g.fit.fit_decisions, "{pair}");
         assert_eq!(
-            (c.fit.fit_corner, c.fit.fit_ridge, c.fit.fit_unclear, c.fit.fit_kept),
-            (g.fit.fit_corner, g.fit.fit_ridge, g.fit.fit_unclear, g.fit.fit_kept),
+            (
+                c.fit.fit_corner,
+                c.fit.fit_ridge,
+                c.fit.fit_unclear,
+                c.fit.fit_kept
+            ),
+            (
+                g.fit.fit_corner,
+                g.fit.fit_ridge,
+                g.fit.fit_unclear,
+                g.fit.fit_kept
+            ),
             "{pair}"
         );
     }
@@ -284,6 +294,7 @@ fn moved_onto(out: &Outcome, estimate: linegs_gpu::refine::fit::Estimate) -> usi
     use linegs_gpu::refine::fit::Verdict;
     let notes = out.report.refine.as_ref().unwrap();
     notes
+        .fit
         .fit_decisions
         .iter()
         .filter(|d| d.verdict == Verdict::Moved && d.estimate == Some(estimate))
@@ -312,6 +323,7 @@ fn boundary_and_colour_edges_bring_biased_lines_back_and_keep_exact_ones() {
         .refine
         .as_ref()
         .unwrap()
+        .fit
         .diagnosis
         .clone()
         .unwrap();
@@ -343,6 +355,7 @@ fn early_round_splats_are_named_round_and_move_nothing() {
         .refine
         .as_ref()
         .unwrap()
+        .fit
         .diagnosis
         .clone()
         .unwrap();

@@ -7,7 +7,7 @@
 use std::io::Read;
 use std::path::Path;
 
-use super::attributes::{opacity_of, GaussianAttributes};
+use super::attributes::{opacity_of, Attribute, GaussianAttributes};
 use super::chunked::{Chunked, CHUNK};
 use super::error::Error;
 use super::input::{open_input, Input};

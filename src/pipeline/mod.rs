@@ -28,53 +28,7 @@ use crate::engine::EngineError;
 use crate::io;
 
 pub use crate::refine::auto_radius;
-<<<<<<< HEAD
 pub use crate::report::Stage;
-=======
-
-/// One timed stage of a run.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Stage {
-    pub name: String,
-    /// Segments after the stage.
-    pub segments: usize,
-    pub seconds: f64,
-    /// GPU engine: host time of its batches in this stage (preparing queries, deciding
-    /// flagged points), excluding waits for the device.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub host_seconds: Option<f64>,
-    /// GPU engine: time waiting for the device in this stage.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub device_seconds: Option<f64>,
-    /// GPU engine: work items the device evaluated in this stage (each up to `CHUNK`
-    /// points of one query's walk).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub device_items: Option<u64>,
-    /// GPU engine: bytes the device read from the point store in this stage (16 a point
-    /// and evaluation pass).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub point_bytes: Option<u64>,
-    /// GPU engine: queries of this stage whose members the host walked
-    /// (`Counters::host_lists`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub host_lists: Option<u64>,
-}
-
-impl Stage {
-    pub(crate) fn since(name: &str, segments: usize, t: Instant) -> Stage {
-        Stage {
-            name: name.to_string(),
-            segments,
-            seconds: t.elapsed().as_secs_f64(),
-            host_seconds: None,
-            device_seconds: None,
-            device_items: None,
-            point_bytes: None,
-            host_lists: None,
-        }
-    }
-}
->>>>>>> i42
 
 #[derive(thiserror::Error, Debug)]
 pub enum RunError {
