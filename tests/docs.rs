@@ -200,14 +200,13 @@ fn the_readme_is_short_and_nothing_tells_history() {
 }
 
 /// The docs are reference, not a log: each page holds at most one date (when its numbers
-/// were measured). docs/benchmarks.md is left out of this check while its per-section
-/// tables are being consolidated by their own change.
+/// were measured).
 #[test]
 fn each_page_holds_at_most_one_date() {
     let mut bad = Vec::new();
     for e in std::fs::read_dir(root().join("docs")).unwrap() {
         let p = e.unwrap().path();
-        if p.extension().is_none_or(|x| x != "md") || p.ends_with("benchmarks.md") {
+        if p.extension().is_none_or(|x| x != "md") {
             continue;
         }
         let text = std::fs::read_to_string(&p).unwrap();
