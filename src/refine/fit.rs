@@ -600,6 +600,32 @@ fn corner_evidence(
     ))
 }
 
+/// An estimate of the edge with its systematic floor and statistical part: known to
+/// `floor (+) statistical` (added in quadrature).
+trait Known {
+    fn sigma(&self) -> f64;
+}
+
+impl Known for FaceEndEvidence {
+    fn sigma(&self) -> f64 {
+        self.floor.hypot(self.statistical)
+    }
+}
+
+impl Known for ColourEvidence {
+    fn sigma(&self) -> f64 {
+        self.floor.hypot(self.statistical)
+    }
+}
+
+/// `best` becomes `(edge, e)` where it is empty or `e` is better known (the first of
+/// equals stays).
+fn keep_surer<E: Known>(best: &mut Option<(DVec2, E)>, edge: DVec2, e: E) {
+    if best.as_ref().is_none_or(|b| e.sigma() < b.1.sigma()) {
+        *best = Some((edge, e));
+    }
+}
+
 /// The centres of a face's splats stop this many of its members before its end (the
 /// `FACE_END_RANK`-th member from the end: one stray splat does not move the end).
 pub const FACE_END_RANK: usize = 3;
@@ -772,13 +798,7 @@ fn face_end_evidence(
             floor,
             statistical,
         };
-        let sigma = floor.hypot(statistical);
-        if best
-            .as_ref()
-            .is_none_or(|b| sigma < b.1.floor.hypot(b.1.statistical))
-        {
-            best = Some((edge, e));
-        }
+        keep_surer(&mut best, edge, e);
     }
     best
 }
@@ -948,13 +968,7 @@ fn colour_evidence(
             floor,
             statistical,
         };
-        let sigma = floor.hypot(statistical);
-        if best
-            .as_ref()
-            .is_none_or(|b| sigma < b.1.floor.hypot(b.1.statistical))
-        {
-            best = Some((edge, e));
-        }
+        keep_surer(&mut best, edge, e);
     }
     best
 }
