@@ -3,7 +3,7 @@ use anyhow::Result;
 use clap::{Args, Subcommand};
 use linegs_gpu::io;
 use linegs_gpu::synth;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Args, Debug)]
 pub struct SynthArgs {
@@ -29,6 +29,24 @@ pub enum SynthKind {
         /// Number of Gaussians.
         #[arg(short = 'n', long, value_name = "N", default_value_t = 20_000)]
         num_gaussians: usize,
+        /// Seed of the random scene (same seed, same files).
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// A box scene of the authors' s200k shape for the whole-process benchmark: the toy
+    /// scene's 9 boxes and 3 quadrilaterals (120 edges), 200,000 Gaussians, and exactly 318
+    /// input segments with every defect planted (24 offset, 24 overextended, 24 edges split
+    /// into 60 pieces, 48 clean, 120 duplicates, 42 outliers).
+    S200k {
+        /// Gaussians to write (a standard 62-property 3DGS PLY).
+        #[arg(short, long, value_name = "PLY")]
+        output: PathBuf,
+        /// The noisy input segments (format from the extension).
+        #[arg(long, value_name = "FILE")]
+        lines_out: PathBuf,
+        /// The ground-truth edges.
+        #[arg(long, value_name = "FILE")]
+        gt_out: Option<PathBuf>,
         /// Seed of the random scene (same seed, same files).
         #[arg(long, default_value_t = 1)]
         seed: u64,
@@ -86,36 +104,33 @@ pub fn run(a: SynthArgs) -> Result<()> {
             num_gaussians,
             seed,
         } => {
-            let mut outs = io::OutputSet::new();
-            outs.output("-o", &output, &["ply"]).output(
-                "--lines-out",
+            write_scene(
+                "synthetic toy scene",
+                &output,
                 &lines_out,
-                &io::LINE_OUTPUTS,
-            );
-            if let Some(g) = &gt_out {
-                outs.output("--gt-out", g, &io::LINE_OUTPUTS);
-            }
-            outs.check()?;
-            let scene = synth::toy_scene(&synth::ToyParams {
-                seed,
-                n_gaussians: num_gaussians,
-                ..Default::default()
-            });
-            outs.write(&output, |p| {
-                io::write_gaussians_3dgs(p, &scene.gaussians, None)
-            })?;
-            outs.write(&lines_out, |p| io::write_lines(p, &scene.lines.segments))?;
-            if let Some(g) = &gt_out {
-                outs.write(g, |p| io::write_lines(p, &scene.gt))?;
-            }
-            outs.commit()?;
-            println!(
-                "synthetic toy scene: {} Gaussians -> {}, {} input segments -> {}",
-                scene.gaussians.len(),
-                output.display(),
-                scene.lines.len(),
-                lines_out.display()
-            );
+                gt_out.as_deref(),
+                || {
+                    synth::toy_scene(&synth::ToyParams {
+                        seed,
+                        n_gaussians: num_gaussians,
+                        ..Default::default()
+                    })
+                },
+            )?;
+        }
+        SynthKind::S200k {
+            output,
+            lines_out,
+            gt_out,
+            seed,
+        } => {
+            write_scene(
+                "synthetic s200k box scene",
+                &output,
+                &lines_out,
+                gt_out.as_deref(),
+                || synth::s200k_scene(seed),
+            )?;
         }
         SynthKind::Mesh {
             mesh,
@@ -180,5 +195,40 @@ pub fn run(a: SynthArgs) -> Result<()> {
             );
         }
     }
+    Ok(())
+}
+
+/// Checks the output paths, makes the scene, and writes its Gaussians (a standard 3DGS
+/// PLY), input segments and, when asked, ground-truth edges, all or none.
+fn write_scene(
+    what: &str,
+    output: &Path,
+    lines_out: &Path,
+    gt_out: Option<&Path>,
+    make: impl FnOnce() -> synth::SynthScene,
+) -> Result<()> {
+    let mut outs = io::OutputSet::new();
+    outs.output("-o", output, &["ply"])
+        .output("--lines-out", lines_out, &io::LINE_OUTPUTS);
+    if let Some(g) = gt_out {
+        outs.output("--gt-out", g, &io::LINE_OUTPUTS);
+    }
+    outs.check()?;
+    let scene = make();
+    outs.write(output, |p| {
+        io::write_gaussians_3dgs(p, &scene.gaussians, None)
+    })?;
+    outs.write(lines_out, |p| io::write_lines(p, &scene.lines.segments))?;
+    if let Some(g) = gt_out {
+        outs.write(g, |p| io::write_lines(p, &scene.gt))?;
+    }
+    outs.commit()?;
+    println!(
+        "{what}: {} Gaussians -> {}, {} input segments -> {}",
+        scene.gaussians.len(),
+        output.display(),
+        scene.lines.len(),
+        lines_out.display()
+    );
     Ok(())
 }

@@ -6,6 +6,8 @@
 //! LineGS paper (sec. 3.2) planted in known amounts and labelled one by one.
 //!
 //! - [`toy_scene`]: the paper's toy scene (about 20,000 Gaussians, about 300 segments).
+//! - [`s200k_scene`]: a box scene of the authors' s200k shape (200,000 Gaussians, 318
+//!   segments with every defect planted in fixed numbers), for the whole-process benchmark.
 //! - [`scaled_scene`]: the same kind of world tiled for benchmarks, 10^5 to 10^7 Gaussians.
 //! - [`mesh`]: OBJ meshes, their sharp edges and Gaussians sampled from them.
 //! - [`gaussians_around_segments`]: centres for line sets that come without a model.
@@ -14,6 +16,7 @@
 
 pub mod mesh;
 pub mod rng;
+mod s200k;
 mod sample;
 mod scaled;
 mod toy;
@@ -23,6 +26,7 @@ pub use mesh::{
     gaussians_from_mesh, read_obj_mesh, sharp_edges, sharp_lines, MeshGaussianOptions, TriMesh,
 };
 pub use rng::Rng;
+pub use s200k::{s200k_scene, S200K_GAUSSIANS, S200K_SEGMENTS};
 pub use sample::gaussians_around_segments;
 pub use scaled::{scaled_scene, SCALED_GAUSSIANS_PER_BOX, SCALED_MAX_SEGMENTS_PER_EDGE};
 pub use toy::{toy_scene, DefectAmounts, DefectSizes, ToyParams};
