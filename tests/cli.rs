@@ -828,6 +828,81 @@ fn the_gpu_benchmark_script_runs() {
     assert!(err.contains("(target <= -1 %)"), "{err}");
 }
 
+/// `bench --case ladder`: one table, a row per size (10x a row) with the growth against the
+/// row before, and beside each row a command that measures that row alone.
+#[test]
+fn the_scale_ladder_prints_its_rows_with_their_commands() {
+    let o = run(&["bench", "--case", "ladder", "--max", "1000000", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let t = &v["tables"][0];
+    assert_eq!(t["case"], "ladder");
+    assert_eq!(t["command"], "linegs-gpu bench --case ladder --max 1000000");
+    let columns: Vec<&str> = t["columns"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c.as_str().unwrap())
+        .collect();
+    let col = |name: &str| columns.iter().position(|&c| c == name).unwrap();
+    let rows = t["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{t}");
+    for (row, (n, m)) in rows.iter().zip([(100_000, 1_000), (1_000_000, 10_000)]) {
+        let cells = row["cells"].as_array().unwrap();
+        assert_eq!(cells[col("Gaussians")], n);
+        assert_eq!(cells[col("segments")], m);
+        assert_eq!(cells[col("engine")], "cpu");
+        assert!(cells[col("refine (s)")].as_f64().unwrap() > 0.0, "{row}");
+        assert!(cells[col("peak (MB)")].as_f64().unwrap() > 1.0, "{row}");
+        assert!(cells[col("segments out")].as_u64().unwrap() > 0, "{row}");
+        assert_eq!(
+            row["command"],
+            format!("linegs-gpu bench -n {n} --num-segments {m} --backend cpu")
+        );
+    }
+    // The growth is the ratio to the row before (none for the first row).
+    let (a, b) = (&rows[0]["cells"], &rows[1]["cells"]);
+    assert!(a[col("x time")].is_null() && a[col("x memory")].is_null());
+    let ratio = |c: &str| b[col(c)].as_f64().unwrap() / a[col(c)].as_f64().unwrap();
+    assert!((b[col("x time")].as_f64().unwrap() - ratio("refine (s)")).abs() < 1e-9);
+    assert!((b[col("x memory")].as_f64().unwrap() - ratio("peak (MB)")).abs() < 1e-9);
+    // A row's command runs and measures that row.
+    let cmd = rows[0]["command"].as_str().unwrap();
+    let args: Vec<&str> = cmd.split(' ').skip(1).collect();
+    let o = run(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("100000 Gaussians x 1000 segments"),
+        "{}",
+        stdout(&o)
+    );
+    // As text: the columns, the commands beside the rows, the whole table's command.
+    let o = run(&["bench", "--case", "ladder", "--max", "100000"]);
+    let out = stdout(&o);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let row = out
+        .lines()
+        .find(|l| l.trim_start().starts_with("100000 "))
+        .unwrap_or_else(|| panic!("{out}"));
+    assert!(
+        row.ends_with("linegs-gpu bench -n 100000 --num-segments 1000 --backend cpu"),
+        "{out}"
+    );
+    assert!(
+        out.contains("(all rows: linegs-gpu bench --case ladder --max 100000)"),
+        "{out}"
+    );
+    // Below the first row: an input error, nothing measured.
+    let o = run(&["bench", "--case", "ladder", "--max", "99999"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("--max 99999 is below the first row"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(o.stdout.is_empty());
+}
+
 #[test]
 fn an_input_error_while_the_device_opens_exits_2_cleanly() {
     // `--radius auto` fails on the grid's side (no Gaussian near the lines) while the GPU

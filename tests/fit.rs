@@ -316,3 +316,44 @@ fn the_gate_decides_each_distinct_segment_once_and_every_copy_alike() {
         );
     }
 }
+
+#[test]
+fn the_gate_decides_alike_in_chunks_of_any_size() {
+    use linegs_gpu::engine::Engine;
+    use linegs_gpu::refine::fit::decide_in_chunks;
+    let mut rng = TestRng::new(23);
+    let (pts, attrs) = faces(8000, 0.5 * R, 2.0 * R, &mut rng);
+    // Distinct moves the gate lets stand (off the corner) and undoes (on it already).
+    let input: Vec<Segment> = (0..10)
+        .map(|i| {
+            let o = if i % 2 == 0 {
+                (0.30 + 0.01 * i as f64) * R
+            } else {
+                (0.004 + 0.001 * i as f64) * R
+            };
+            seg([0.0, o, o], [1.0, o, o])
+        })
+        .collect();
+    let e = cpu_engine(&pts, &input, R);
+    let fitted = fit_edges(&e, &input, &attrs, R, &edge_params()).unwrap();
+    let moved = (0..input.len())
+        .filter(|&i| fitted.segments[i] != input[i])
+        .count();
+    assert!(moved >= 6, "{moved} moved");
+    let mut whole = fitted.clone();
+    let all = decide(&e, &input, &mut whole, &attrs, R, &edge_params()).unwrap();
+    assert!(whole.how.contains(&How::Corner) && whole.how.contains(&How::Kept));
+    for chunk in [1, 2, 4] {
+        let mut f = fitted.clone();
+        let before = e.counters().batches;
+        let d = decide_in_chunks(&e, &input, &mut f, &attrs, R, &edge_params(), chunk).unwrap();
+        // One engine batch of member lists per chunk.
+        assert_eq!(e.counters().batches - before, moved.div_ceil(chunk) as u64);
+        assert_eq!(d, all, "chunk {chunk}");
+        assert_eq!(
+            (&f.segments, &f.how),
+            (&whole.segments, &whole.how),
+            "chunk {chunk}"
+        );
+    }
+}

@@ -9,6 +9,8 @@ use linegs_gpu::synth;
 use serde::Serialize;
 use std::time::Instant;
 
+mod ladder;
+
 #[derive(Args, Debug)]
 pub struct BenchArgs {
     /// Gaussian counts of the synthetic scenes (a comma list; every count is run with
@@ -30,9 +32,19 @@ pub struct BenchArgs {
     )]
     pub num_segments: Vec<usize>,
     /// Engines to time (a comma list of `cpu`, `gpu`, `auto`), in one run so that their
-    /// ratio is fair on a noisy machine.
-    #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu,gpu")]
+    /// ratio is fair on a noisy machine. Default: `cpu,gpu` for the size grid; each case
+    /// says its own (the ladder: `cpu`).
+    #[arg(long, value_enum, value_delimiter = ',')]
     pub backend: Vec<BackendArg>,
+    /// Named cases instead of the size grid (a comma list; each prints one table with the
+    /// command of every row beside it): `ladder` (10^5 x 10^3 up to `--max` Gaussians,
+    /// 10x per row, time and peak memory with the growth per row).
+    #[arg(long, value_name = "CASE,...", value_delimiter = ',', value_parser = case_names())]
+    pub case: Vec<String>,
+    /// The largest Gaussian count of the ladder (a power of ten from 10^5; the segments are
+    /// a hundredth of it).
+    #[arg(long, value_name = "N", default_value_t = 10_000_000)]
+    pub max: usize,
     /// Refinement profile.
     #[arg(long, default_value_t = Profile::default().name().to_string(), value_parser = choices(Profile::CHOICES))]
     pub profile: String,
@@ -45,6 +57,122 @@ pub struct BenchArgs {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+}
+
+/// One named case: `linegs-gpu bench --case NAME` runs `run` and prints its table. A
+/// case is one function in its own file (`src/cmd/bench/NAME.rs`) and one entry here.
+struct Named {
+    name: &'static str,
+    /// The `--help` line.
+    doc: &'static str,
+    run: fn(&BenchArgs) -> Result<Table>,
+}
+
+const CASES: &[Named] = &[Named {
+    name: "ladder",
+    doc: "10^5 x 10^3 .. --max Gaussians (10x a row): seconds, peak memory, growth per row",
+    run: ladder::run,
+}];
+
+fn case_names() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(
+        CASES
+            .iter()
+            .map(|c| clap::builder::PossibleValue::new(c.name).help(c.doc)),
+    )
+}
+
+/// What a case prints: a title, columns, and rows each with the command that measures
+/// that row alone beside it; `--json` prints the same as an object.
+#[derive(Serialize, Debug, Default)]
+pub struct Table {
+    /// The case's name (`--case NAME`).
+    pub case: String,
+    pub title: String,
+    /// The command that prints the whole table.
+    pub command: String,
+    pub columns: Vec<String>,
+    pub rows: Vec<Row>,
+    /// Lines printed under the table (the machine, what a column means).
+    pub notes: Vec<String>,
+}
+
+#[derive(Serialize, Debug)]
+pub struct Row {
+    pub cells: Vec<Cell>,
+    /// The command that measures this row alone.
+    pub command: String,
+}
+
+/// One value of a table: a number shown with `digits` decimals (JSON: the number), a
+/// count, a text, or nothing (shown `-`, JSON `null`).
+#[derive(Debug, Clone)]
+pub enum Cell {
+    Num(f64, usize),
+    Count(u64),
+    Text(String),
+    None,
+}
+
+impl Serialize for Cell {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            Cell::Num(x, _) if x.is_finite() => s.serialize_f64(*x),
+            Cell::Count(n) => s.serialize_u64(*n),
+            Cell::Text(t) => s.serialize_str(t),
+            _ => s.serialize_none(),
+        }
+    }
+}
+
+impl std::fmt::Display for Cell {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Cell::Num(x, d) if x.is_finite() => write!(f, "{x:.d$}"),
+            Cell::Count(n) => write!(f, "{n}"),
+            Cell::Text(t) => f.write_str(t),
+            _ => f.write_str("-"),
+        }
+    }
+}
+
+impl Table {
+    /// The table as text: numbers right-aligned, the command last.
+    pub fn render(&self) -> String {
+        let text: Vec<Vec<String>> = self
+            .rows
+            .iter()
+            .map(|r| r.cells.iter().map(|c| c.to_string()).collect())
+            .collect();
+        let width = |i: usize| {
+            text.iter()
+                .filter_map(|r| r.get(i))
+                .map(|c| c.chars().count())
+                .chain([self.columns[i].chars().count()])
+                .max()
+                .unwrap_or(0)
+        };
+        let widths: Vec<usize> = (0..self.columns.len()).map(width).collect();
+        let mut out = format!("\n{}\n", self.title);
+        let line = |cells: &[String], command: &str| {
+            let mut l = String::new();
+            for (c, w) in cells.iter().zip(&widths) {
+                l += &format!("{c:>w$}  ");
+            }
+            l += command;
+            l.trim_end().to_string() + "\n"
+        };
+        out += &line(&self.columns, "command");
+        for (r, t) in self.rows.iter().zip(&text) {
+            out += &line(t, &r.command);
+        }
+        for n in &self.notes {
+            out += n;
+            out += "\n";
+        }
+        out += &format!("(all rows: {})\n", self.command);
+        out
+    }
 }
 
 #[derive(Serialize)]
@@ -153,7 +281,51 @@ struct RunTiming {
     peak_rss_mb: Option<f64>,
 }
 
-pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
+pub fn run(a: BenchArgs, verbose: bool) -> Result<()> {
+    if !a.case.is_empty() {
+        return run_cases(&a);
+    }
+    sizes(a, verbose)
+}
+
+/// The named cases, one table each, printed as each ends (`--json`: one object at the end).
+fn run_cases(a: &BenchArgs) -> Result<()> {
+    if a.repeat == 0 {
+        return Err(input_error("bench needs --repeat >= 1"));
+    }
+    let mut tables = Vec::new();
+    for name in &a.case {
+        let case = CASES
+            .iter()
+            .find(|c| c.name == name)
+            .unwrap_or_else(|| unreachable!("the parser accepts only the names in CASES"));
+        let t = (case.run)(a)?;
+        if !a.json {
+            print!("{}", t.render());
+        }
+        tables.push(t);
+    }
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "tool": "linegs-gpu",
+                "command": "bench",
+                "threads": rayon::current_num_threads(),
+                "tables": tables,
+            }))?
+        );
+    }
+    Ok(())
+}
+
+/// Every `-n` with every `--num-segments`, per engine, stage by stage.
+fn sizes(a: BenchArgs, _verbose: bool) -> Result<()> {
+    let backends = if a.backend.is_empty() {
+        vec![BackendArg::Cpu, BackendArg::Gpu]
+    } else {
+        a.backend.clone()
+    };
     if a.num_gaussians.is_empty() || a.num_segments.is_empty() || a.repeat == 0 {
         return Err(input_error(
             "bench needs at least one size and --repeat >= 1",
@@ -171,7 +343,7 @@ pub fn run(a: BenchArgs, _verbose: bool) -> Result<()> {
             let scene = Scene::from_arrays(synth.gaussians, synth.lines)?;
             let synth_seconds = t.elapsed().as_secs_f64();
             let mut runs = Vec::new();
-            for &b in &a.backend {
+            for &b in &backends {
                 let job = super::env::job(params.clone(), b.into())?;
                 let mut best: Option<RunTiming> = None;
                 for _ in 0..a.repeat {

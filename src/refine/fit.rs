@@ -317,6 +317,10 @@ pub struct Decision {
 /// the estimate's uncertainty.
 pub const MOVE_MARGIN: f64 = 3.5;
 
+/// The decision rule lists the members of at most this many segments at a time (each at
+/// its fitted and its input line): what it holds at once stays bounded at any scene size.
+pub const DECIDE_CHUNK: usize = 4096;
+
 /// The ridge's floor counts how far its mode moves with a kernel twice as wide this many
 /// times.
 pub const RIDGE_WIDE: f64 = 2.0;
@@ -1007,6 +1011,20 @@ pub fn decide(
     r: f64,
     p: &FitParams,
 ) -> Result<Vec<Decision>, EngineError> {
+    decide_in_chunks(engine, input, fitted, attrs, r, p, DECIDE_CHUNK)
+}
+
+/// [`decide`] listing the members of at most `chunk` distinct moved segments per engine
+/// batch (at least 1): the decisions do not depend on it.
+pub fn decide_in_chunks(
+    engine: &dyn Engine,
+    input: &[Segment],
+    fitted: &mut FitResult,
+    attrs: &Attributes,
+    r: f64,
+    p: &FitParams,
+    chunk: usize,
+) -> Result<Vec<Decision>, EngineError> {
     let moved: Vec<usize> = (0..input.len())
         .filter(|&i| {
             fitted.segments[i] != input[i]
@@ -1061,196 +1079,204 @@ pub fn decide(
             })
         })
         .collect();
-    // The fitted lines' members (corner, ridge) and the input lines' (face end), one
-    // batch.
-    let queries: Vec<Query> = moved
-        .iter()
-        .map(|&i| Query::new(fitted.segments[i], r))
-        .chain(moved.iter().map(|&i| Query::new(input[i], r)))
-        .collect();
-    let mut members = engine.members(&queries)?;
-    let at_input = members.split_off(moved.len());
+    // The fitted lines' members (corner, ridge) and the input lines' (face end), in
+    // chunks of at most `chunk` segments (of equal sizes: no chunk is small enough to
+    // count as a small batch where the whole is not): the member lists held at once stay
+    // bounded, and each segment's decision depends on its own lists only.
     let h = p.fit_bandwidth * r;
     let min_points = p.fit_min_points.max(1) as usize;
-    let decided: Vec<(Decision, Option<Segment>)> = {
-        use rayon::prelude::*;
-        moved
-            .par_iter()
-            .zip(members.par_iter().zip(&at_input))
-            .map(|(&i, (m, m_in))| {
-                let s = &fitted.segments[i];
-                let d = s.dir();
-                let (e1, e2) = basis(d);
-                let (pts, pw) = cross_section(m, (e1, e2), attrs, p);
-                let end = |q: glam::DVec3| {
-                    let v = q - s.p1;
-                    let o = v - d * v.dot(d);
-                    DVec2::new(o.dot(e1), o.dot(e2))
-                };
-                let ends = [end(input[i].p1), end(input[i].p2)];
-                let mut ridge = ridge_evidence(&pts, &pw, &ends, r, h);
-                if let (Some((c, e)), Some(ns)) = (ridge.as_mut(), attrs.normals.as_deref()) {
-                    let (share, agree, res) = face_through(&pts, m, ns, (e1, e2), *c, r);
-                    e.face_share = share;
-                    e.face_agree = agree;
-                    e.face_residual = res;
-                }
-                let corner = attrs.normals.as_deref().and_then(|ns| {
-                    let ids: Vec<u32> = m.iter().map(|m| m.id).collect();
-                    corner_evidence(
-                        &CornerInput {
-                            pts: &pts,
-                            pw: &pw,
-                            normals: ns,
-                            ids: &ids,
-                            frame: (e1, e2),
-                            ends,
-                        },
-                        r,
-                        min_points,
-                    )
-                });
-                // The face end, in the input line's own frame.
-                let g = &input[i];
-                let frame_in = basis(g.dir());
-                let face_end = attrs.normals.as_deref().and_then(|ns| {
-                    let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
-                    let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
-                    face_end_evidence(
-                        &CornerInput {
-                            pts: &pts,
-                            pw: &pw,
-                            normals: ns,
-                            ids: &ids,
-                            frame: frame_in,
-                            ends: [DVec2::ZERO; 2],
-                        },
-                        attrs.extent.as_deref(),
-                        r,
-                        min_points,
-                    )
-                });
-                let shifted = |base: &Segment, (e1, e2): (DVec3, DVec3), c: DVec2| {
-                    let shift = e1 * c.x + e2 * c.y;
-                    Segment::new(base.p1 + shift, base.p2 + shift)
-                };
-                let face_end_line = face_end.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
-                let colour = match (attrs.normals.as_deref(), attrs.colour.as_deref()) {
-                    (Some(ns), Some(cs)) => {
-                        let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
-                        let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
-                        colour_evidence(
-                            &CornerInput {
-                                pts: &pts,
-                                pw: &pw,
-                                normals: ns,
-                                ids: &ids,
-                                frame: frame_in,
-                                ends: [DVec2::ZERO; 2],
-                            },
-                            cs,
-                            attrs.extent.as_deref(),
-                            r,
-                            min_points,
-                        )
-                    }
-                    _ => None,
-                };
-                let colour_line = colour.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
-                let at = |c: DVec2| seg6(&shifted(s, (e1, e2), c));
-                let corner_line = corner.as_ref().map(|c| at(c.0));
-                let ridge_line = ridge.as_ref().map(|c| at(c.0));
-                // The corner's floor: its faces' residuals and the disagreement of the
-                // splats near it with those far off, over the share of the normals that
-                // agree with the faces.
-                let mut corner = corner;
-                if let Some((_, e)) = corner.as_mut() {
-                    e.floor = e.floor.hypot(e.near_far.max(0.0)) / (1.0 - e.off_faces).max(1e-3);
-                }
-                // The ridge's floor: how far its mode moves with a kernel twice as wide,
-                // how flat the cross-section is, and how much of it the normals name as
-                // surface (a face, or the corner's two).
-                if let Some((_, e)) = ridge.as_mut() {
-                    let agree = corner
-                        .as_ref()
-                        .map_or(e.face_agree, |c| e.face_agree.max(1.0 - c.1.off_faces));
-                    let surface = e.face_share * agree;
-                    e.floor = (RIDGE_WIDE * e.wide)
-                        .hypot(e.spread * (1.0 - e.roundness) / e.roundness.max(1e-3))
-                        .hypot(RIDGE_SURFACE * surface * e.spread);
-                }
-                let sig = |f: f64, s: f64| f.hypot(s);
-                // The better known estimate.
-                let mut best: Option<(Estimate, DVec2, f64, f64)> = None;
-                if let Some((c, e)) = &corner {
-                    best = Some((
-                        Estimate::Corner,
-                        *c,
-                        e.distance,
-                        sig(e.floor, e.statistical),
-                    ));
-                }
-                if let Some((c, e)) = &ridge {
-                    let s = sig(e.floor, e.statistical);
-                    if best.is_none_or(|b| s < b.3) {
-                        best = Some((Estimate::Ridge, *c, e.distance, s));
-                    }
-                }
-                if let Some((c, e)) = &face_end {
-                    let s = sig(e.floor, e.statistical);
-                    if best.is_none_or(|b| s < b.3) {
-                        best = Some((Estimate::FaceEnd, *c, e.distance, s));
-                    }
-                }
-                if let Some((c, e)) = &colour {
-                    let s = sig(e.floor, e.statistical);
-                    if best.is_none_or(|b| s < b.3) {
-                        best = Some((Estimate::Colour, *c, e.distance, s));
-                    }
-                }
-                let (verdict, estimate, distance, sigma, seg) = match best {
-                    None => (Verdict::TooFewMembers, None, 0.0, 0.0, None),
-                    Some((est, c, dist, sigma)) => {
-                        if dist > MOVE_MARGIN * sigma {
-                            let seg = if matches!(est, Estimate::FaceEnd | Estimate::Colour) {
-                                shifted(g, frame_in, c)
-                            } else {
-                                shifted(s, (e1, e2), c)
-                            };
-                            (Verdict::Moved, Some(est), dist, sigma, Some(seg))
-                        } else {
-                            (Verdict::ModelKnowsLess, Some(est), dist, sigma, None)
-                        }
-                    }
-                };
-                (
-                    Decision {
-                        segment: i,
-                        verdict,
-                        estimate,
-                        members: m.len(),
-                        flat_share: attrs.normals.as_deref().map(|ns| {
-                            let flat = m.iter().filter(|mm| ns[mm.id as usize] != [0.0; 3]).count();
-                            flat as f64 / m.len().max(1) as f64
-                        }),
-                        distance,
-                        sigma,
-                        corner: corner.map(|c| c.1),
-                        ridge: ridge.map(|c| c.1),
-                        face_end: face_end.map(|c| c.1),
-                        colour: colour.map(|c| c.1),
-                        input: seg6(&input[i]),
-                        fitted: seg6(s),
-                        corner_line,
-                        ridge_line,
-                        face_end_line,
-                        colour_line,
+    let fitted_ref: &FitResult = fitted;
+    let weigh = |i: usize, m: &[Member], m_in: &[Member]| -> (Decision, Option<Segment>) {
+        let s = &fitted_ref.segments[i];
+        let d = s.dir();
+        let (e1, e2) = basis(d);
+        let (pts, pw) = cross_section(m, (e1, e2), attrs, p);
+        let end = |q: glam::DVec3| {
+            let v = q - s.p1;
+            let o = v - d * v.dot(d);
+            DVec2::new(o.dot(e1), o.dot(e2))
+        };
+        let ends = [end(input[i].p1), end(input[i].p2)];
+        let mut ridge = ridge_evidence(&pts, &pw, &ends, r, h);
+        if let (Some((c, e)), Some(ns)) = (ridge.as_mut(), attrs.normals.as_deref()) {
+            let (share, agree, res) = face_through(&pts, m, ns, (e1, e2), *c, r);
+            e.face_share = share;
+            e.face_agree = agree;
+            e.face_residual = res;
+        }
+        let corner = attrs.normals.as_deref().and_then(|ns| {
+            let ids: Vec<u32> = m.iter().map(|m| m.id).collect();
+            corner_evidence(
+                &CornerInput {
+                    pts: &pts,
+                    pw: &pw,
+                    normals: ns,
+                    ids: &ids,
+                    frame: (e1, e2),
+                    ends,
+                },
+                r,
+                min_points,
+            )
+        });
+        // The face end, in the input line's own frame.
+        let g = &input[i];
+        let frame_in = basis(g.dir());
+        let face_end = attrs.normals.as_deref().and_then(|ns| {
+            let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
+            let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
+            face_end_evidence(
+                &CornerInput {
+                    pts: &pts,
+                    pw: &pw,
+                    normals: ns,
+                    ids: &ids,
+                    frame: frame_in,
+                    ends: [DVec2::ZERO; 2],
+                },
+                attrs.extent.as_deref(),
+                r,
+                min_points,
+            )
+        });
+        let shifted = |base: &Segment, (e1, e2): (DVec3, DVec3), c: DVec2| {
+            let shift = e1 * c.x + e2 * c.y;
+            Segment::new(base.p1 + shift, base.p2 + shift)
+        };
+        let face_end_line = face_end.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
+        let colour = match (attrs.normals.as_deref(), attrs.colour.as_deref()) {
+            (Some(ns), Some(cs)) => {
+                let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
+                let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
+                colour_evidence(
+                    &CornerInput {
+                        pts: &pts,
+                        pw: &pw,
+                        normals: ns,
+                        ids: &ids,
+                        frame: frame_in,
+                        ends: [DVec2::ZERO; 2],
                     },
-                    seg,
+                    cs,
+                    attrs.extent.as_deref(),
+                    r,
+                    min_points,
                 )
-            })
-            .collect()
+            }
+            _ => None,
+        };
+        let colour_line = colour.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
+        let at = |c: DVec2| seg6(&shifted(s, (e1, e2), c));
+        let corner_line = corner.as_ref().map(|c| at(c.0));
+        let ridge_line = ridge.as_ref().map(|c| at(c.0));
+        // The corner's floor: its faces' residuals and the disagreement of the
+        // splats near it with those far off, over the share of the normals that
+        // agree with the faces.
+        let mut corner = corner;
+        if let Some((_, e)) = corner.as_mut() {
+            e.floor = e.floor.hypot(e.near_far.max(0.0)) / (1.0 - e.off_faces).max(1e-3);
+        }
+        // The ridge's floor: how far its mode moves with a kernel twice as wide,
+        // how flat the cross-section is, and how much of it the normals name as
+        // surface (a face, or the corner's two).
+        if let Some((_, e)) = ridge.as_mut() {
+            let agree = corner
+                .as_ref()
+                .map_or(e.face_agree, |c| e.face_agree.max(1.0 - c.1.off_faces));
+            let surface = e.face_share * agree;
+            e.floor = (RIDGE_WIDE * e.wide)
+                .hypot(e.spread * (1.0 - e.roundness) / e.roundness.max(1e-3))
+                .hypot(RIDGE_SURFACE * surface * e.spread);
+        }
+        let sig = |f: f64, s: f64| f.hypot(s);
+        // The better known estimate.
+        let mut best: Option<(Estimate, DVec2, f64, f64)> = None;
+        if let Some((c, e)) = &corner {
+            best = Some((
+                Estimate::Corner,
+                *c,
+                e.distance,
+                sig(e.floor, e.statistical),
+            ));
+        }
+        if let Some((c, e)) = &ridge {
+            let s = sig(e.floor, e.statistical);
+            if best.is_none_or(|b| s < b.3) {
+                best = Some((Estimate::Ridge, *c, e.distance, s));
+            }
+        }
+        if let Some((c, e)) = &face_end {
+            let s = sig(e.floor, e.statistical);
+            if best.is_none_or(|b| s < b.3) {
+                best = Some((Estimate::FaceEnd, *c, e.distance, s));
+            }
+        }
+        if let Some((c, e)) = &colour {
+            let s = sig(e.floor, e.statistical);
+            if best.is_none_or(|b| s < b.3) {
+                best = Some((Estimate::Colour, *c, e.distance, s));
+            }
+        }
+        let (verdict, estimate, distance, sigma, seg) = match best {
+            None => (Verdict::TooFewMembers, None, 0.0, 0.0, None),
+            Some((est, c, dist, sigma)) => {
+                if dist > MOVE_MARGIN * sigma {
+                    let seg = if matches!(est, Estimate::FaceEnd | Estimate::Colour) {
+                        shifted(g, frame_in, c)
+                    } else {
+                        shifted(s, (e1, e2), c)
+                    };
+                    (Verdict::Moved, Some(est), dist, sigma, Some(seg))
+                } else {
+                    (Verdict::ModelKnowsLess, Some(est), dist, sigma, None)
+                }
+            }
+        };
+        (
+            Decision {
+                segment: i,
+                verdict,
+                estimate,
+                members: m.len(),
+                flat_share: attrs.normals.as_deref().map(|ns| {
+                    let flat = m.iter().filter(|mm| ns[mm.id as usize] != [0.0; 3]).count();
+                    flat as f64 / m.len().max(1) as f64
+                }),
+                distance,
+                sigma,
+                corner: corner.map(|c| c.1),
+                ridge: ridge.map(|c| c.1),
+                face_end: face_end.map(|c| c.1),
+                colour: colour.map(|c| c.1),
+                input: seg6(&input[i]),
+                fitted: seg6(s),
+                corner_line,
+                ridge_line,
+                face_end_line,
+                colour_line,
+            },
+            seg,
+        )
     };
+    let chunks = moved.len().div_ceil(chunk.max(1));
+    let size = moved.len().div_ceil(chunks);
+    let mut decided: Vec<(Decision, Option<Segment>)> = Vec::with_capacity(moved.len());
+    for chunk in moved.chunks(size) {
+        let queries: Vec<Query> = chunk
+            .iter()
+            .map(|&i| Query::new(fitted_ref.segments[i], r))
+            .chain(chunk.iter().map(|&i| Query::new(input[i], r)))
+            .collect();
+        let mut members = engine.members(&queries)?;
+        let at_input = members.split_off(chunk.len());
+        use rayon::prelude::*;
+        decided.par_extend(
+            chunk
+                .par_iter()
+                .zip(members.par_iter().zip(&at_input))
+                .map(|(&i, (m, m_in))| weigh(i, m, m_in)),
+        );
+    }
     for (&i, &d) in all.iter().zip(&of) {
         let (dec, seg) = &decided[d];
         match (dec.verdict, seg) {

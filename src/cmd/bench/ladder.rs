@@ -1,0 +1,179 @@
+//! `bench --case ladder`: the synthetic scene at 10^5 x 10^3, 10^6 x 10^4, ... up to `--max`
+//! Gaussians (a hundredth as many segments), one row per size and engine, with the growth
+//! of time and peak memory against the row 10x smaller: how the run scales.
+
+use super::{BenchArgs, Cell, Row, Table};
+use crate::cmd::input_error;
+use crate::cmd::params::{chosen, BackendArg};
+use anyhow::Result;
+use linegs_gpu::engine::select::Backend;
+use linegs_gpu::mem;
+use linegs_gpu::pipeline::Scene;
+use linegs_gpu::refine::{Params, Profile};
+use linegs_gpu::synth;
+use std::time::Instant;
+
+/// The smallest row.
+const FIRST: usize = 100_000;
+/// Gaussians per segment in every row.
+const PER_SEGMENT: usize = 100;
+
+/// The rows' sizes: `FIRST`, 10x, ... while at most `max`.
+pub fn sizes(max: usize) -> Vec<(usize, usize)> {
+    std::iter::successors(Some(FIRST), |&n| n.checked_mul(10))
+        .take_while(|&n| n <= max)
+        .map(|n| (n, n / PER_SEGMENT))
+        .collect()
+}
+
+pub fn run(a: &BenchArgs) -> Result<Table> {
+    let sizes = sizes(a.max);
+    if sizes.is_empty() {
+        return Err(input_error(format!(
+            "bench --case ladder: --max {} is below the first row ({FIRST} Gaussians)",
+            a.max
+        )));
+    }
+    let backends = if a.backend.is_empty() {
+        vec![BackendArg::Cpu]
+    } else {
+        a.backend.clone()
+    };
+    let params = Params {
+        profile: chosen(&a.profile),
+        ..Params::default()
+    };
+    // The options beside the sizes and the engine, as the rows' commands repeat them.
+    let mut flags = String::new();
+    if params.profile != Profile::default() {
+        flags += &format!(" --profile {}", a.profile);
+    }
+    if a.seed != 7 {
+        flags += &format!(" --seed {}", a.seed);
+    }
+    if a.repeat > 1 {
+        flags += &format!(" --repeat {}", a.repeat);
+    }
+    let mut table = Table {
+        case: "ladder".into(),
+        title: format!(
+            "Scale ladder: the synthetic scene from {FIRST} Gaussians to {} (10x a row, a \
+             hundredth as many segments), {} threads",
+            sizes.last().map_or(0, |s| s.0),
+            rayon::current_num_threads()
+        ),
+        command: format!(
+            "linegs-gpu bench --case ladder --max {}{}{flags}",
+            a.max,
+            if backends == [BackendArg::Cpu] {
+                String::new()
+            } else {
+                let names: Vec<&str> = backends
+                    .iter()
+                    .map(|&b| Backend::from(b).as_str())
+                    .collect();
+                format!(" --backend {}", names.join(","))
+            }
+        ),
+        columns: [
+            "Gaussians",
+            "segments",
+            "engine",
+            "build (s)",
+            "refine (s)",
+            "x time",
+            "peak (MB)",
+            "x memory",
+            "slowest stage (s)",
+            "segments out",
+        ]
+        .map(String::from)
+        .to_vec(),
+        rows: Vec::new(),
+        notes: vec![
+            "build: making the synthetic scene (not in refine); refine: the whole refinement, \
+             the fastest of --repeat; peak: the process's resident peak over building and \
+             refining the row (reset per row); x: against the row 10x smaller"
+                .into(),
+        ],
+    };
+    // Per engine, the previous row's refine seconds and peak MB.
+    let mut previous: Vec<Option<(f64, f64)>> = vec![None; backends.len()];
+    for (n, m) in sizes {
+        mem::reset_peak_rss();
+        let t = Instant::now();
+        let scene = {
+            let s = synth::scaled_scene(n, m, a.seed);
+            Scene::from_arrays(s.gaussians, s.lines)?
+        };
+        let build_seconds = t.elapsed().as_secs_f64();
+        let build_peak = peak_mb();
+        for (k, &b) in backends.iter().enumerate() {
+            let job = crate::cmd::env::job(params.clone(), b.into())?;
+            let mut best: Option<(f64, Option<f64>, String, usize)> = None;
+            for _ in 0..a.repeat {
+                mem::reset_peak_rss();
+                let out = job.refine(&scene, |_| {})?;
+                let r = out.report;
+                let peak = match (peak_mb(), build_peak) {
+                    (Some(x), Some(y)) => Some(x.max(y)),
+                    (x, y) => x.or(y),
+                };
+                let slowest = r
+                    .stages
+                    .iter()
+                    .max_by(|x, y| x.seconds.total_cmp(&y.seconds))
+                    .map_or(String::new(), |s| format!("{} {:.2}", s.name, s.seconds));
+                if best.as_ref().is_none_or(|x| r.total_seconds < x.0) {
+                    best = Some((r.total_seconds, peak, slowest, out.lines.len()));
+                }
+            }
+            let (seconds, peak, slowest, out) = best.expect("repeat >= 1");
+            let growth = |now: Option<f64>, before: Option<f64>| match (now, before) {
+                (Some(x), Some(y)) if y > 0.0 => Cell::Num(x / y, 2),
+                _ => Cell::None,
+            };
+            let before = previous[k];
+            table.rows.push(Row {
+                cells: vec![
+                    Cell::Count(n as u64),
+                    Cell::Count(m as u64),
+                    Cell::Text(Backend::from(b).as_str().into()),
+                    Cell::Num(build_seconds, 2),
+                    Cell::Num(seconds, 2),
+                    growth(Some(seconds), before.map(|p| p.0)),
+                    peak.map_or(Cell::None, |p| Cell::Num(p, 0)),
+                    growth(peak, before.map(|p| p.1)),
+                    Cell::Text(slowest),
+                    Cell::Count(out as u64),
+                ],
+                command: format!(
+                    "linegs-gpu bench -n {n} --num-segments {m} --backend {}{flags}",
+                    Backend::from(b).as_str(),
+                ),
+            });
+            previous[k] = Some((seconds, peak.unwrap_or(f64::NAN)));
+        }
+    }
+    Ok(table)
+}
+
+fn peak_mb() -> Option<f64> {
+    mem::peak_rss_bytes().map(|b| b as f64 / 1048576.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::sizes;
+
+    #[test]
+    fn the_rows_go_10x_up_to_max() {
+        assert_eq!(sizes(99_999), vec![]);
+        assert_eq!(sizes(100_000), vec![(100_000, 1_000)]);
+        assert_eq!(
+            sizes(50_000_000),
+            vec![(100_000, 1_000), (1_000_000, 10_000), (10_000_000, 100_000)]
+        );
+        assert_eq!(sizes(usize::MAX).len(), 15);
+    }
+}
