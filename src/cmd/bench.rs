@@ -10,6 +10,7 @@ use serde::Serialize;
 use std::time::Instant;
 
 mod ladder;
+mod s200k;
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -38,7 +39,9 @@ pub struct BenchArgs {
     pub backend: Vec<BackendArg>,
     /// Named cases instead of the size grid (a comma list; each prints one table with the
     /// command of every row beside it): `ladder` (10^5 x 10^3 up to `--max` Gaussians,
-    /// 10x per row, time and peak memory with the growth per row).
+    /// 10x per row, time and peak memory with the growth per row), `s200k` (the box scene
+    /// of the authors' s200k shape, the whole `refine --report` process as a new process
+    /// each run, median of `--repeat` runs, 7 unless given).
     #[arg(long, value_name = "CASE,...", value_delimiter = ',', value_parser = case_names())]
     pub case: Vec<String>,
     /// The largest Gaussian count of the ladder (a power of ten from 10^5; the segments are
@@ -68,11 +71,18 @@ struct Named {
     run: fn(&BenchArgs) -> Result<Table>,
 }
 
-const CASES: &[Named] = &[Named {
-    name: "ladder",
-    doc: "10^5 x 10^3 .. --max Gaussians (10x a row): seconds, peak memory, growth per row",
-    run: ladder::run,
-}];
+const CASES: &[Named] = &[
+    Named {
+        name: "ladder",
+        doc: "10^5 x 10^3 .. --max Gaussians (10x a row): seconds, peak memory, growth per row",
+        run: ladder::run,
+    },
+    Named {
+        name: "s200k",
+        doc: "the authors' s200k shape (synth s200k): the whole refine --report process, median",
+        run: s200k::run,
+    },
+];
 
 fn case_names() -> clap::builder::PossibleValuesParser {
     clap::builder::PossibleValuesParser::new(
