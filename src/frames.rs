@@ -10,7 +10,7 @@
 //! ([`FrameVerdict::Different`]), and warns when they are doubtful; `eval` warns in both
 //! cases.
 
-use crate::engine::{Engine, EngineError, Query, Want};
+use crate::engine::{Engine, EngineError, Query};
 use crate::geom::{p64, Aabb, Segment};
 use glam::DVec3;
 
@@ -149,7 +149,7 @@ pub fn check_frames(
     centers: &[[f32; 3]],
 ) -> Result<FrameCheck, EngineError> {
     let queries: Vec<Query> = segments.iter().map(|s| Query::new(*s, radius)).collect();
-    let stats = engine.stats(&queries, Want::COUNT)?;
+    let occupied = engine.occupied(&queries)?;
     let mut gaussians_box = Aabb::empty();
     for c in centers {
         gaussians_box.extend(p64(*c));
@@ -165,7 +165,7 @@ pub fn check_frames(
         .sum();
     Ok(FrameCheck {
         segments: segments.len(),
-        near: stats.iter().filter(|s| s.count > 0).count(),
+        near: occupied.iter().filter(|&&o| o).count(),
         radius,
         lines_box: Aabb::of_segments(segments),
         gaussians_box,

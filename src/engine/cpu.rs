@@ -3,7 +3,7 @@
 //! order, so results do not depend on the thread count or the order of work.
 
 use super::order::SpatialOrder;
-use super::walk::{for_each_member, members_into};
+use super::walk::{any_member, for_each_member, members_into};
 use super::{
     Answers, Ask, Counters, Coverage, CylStats, Engine, EngineError, FitJob, Member, Nearest,
     NearestSum, Query,
@@ -209,6 +209,19 @@ impl Engine for CpuEngine {
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
         self.count_batch(queries.len());
         Ok(members_of(&self.grid, queries))
+    }
+
+    /// The walks stop at their first member.
+    fn occupied(&self, queries: &[Query]) -> Result<Vec<bool>, EngineError> {
+        self.count_batch(queries.len());
+        let order = SpatialOrder::new(&self.grid, queries);
+        Ok(order.restore(
+            (0..queries.len())
+                .into_par_iter()
+                .with_min_len(8)
+                .map(|j| any_member(&self.grid, &queries[order.index(j)]))
+                .collect(),
+        ))
     }
 
     /// Only the axial positions, straight from the walk: no member records, no sort by

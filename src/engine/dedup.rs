@@ -206,6 +206,10 @@ impl Engine for Dedup {
         self.per_distinct(queries, |e, q| e.members(q))
     }
 
+    fn occupied(&self, queries: &[Query]) -> Result<Vec<bool>, EngineError> {
+        self.per_distinct(queries, |e, q| e.occupied(q))
+    }
+
     fn extent(&self, queries: &[Query]) -> Result<Vec<super::Extent>, EngineError> {
         self.per_distinct(queries, |e, q| e.extent(q))
     }

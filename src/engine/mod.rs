@@ -427,6 +427,16 @@ pub trait Engine: Send + Sync {
         };
         Ok(self.query(queries, &ask)?.stats)
     }
+    /// Whether each query has at least one member (`count > 0`), counted as a batch of
+    /// counts: by default from [`Self::stats`]; the CPU engine stops each walk at the first
+    /// member.
+    fn occupied(&self, queries: &[Query]) -> Result<Vec<bool>, EngineError> {
+        Ok(self
+            .stats(queries, Want::COUNT)?
+            .iter()
+            .map(|s| s.count > 0)
+            .collect())
+    }
     /// For query `i`, sums over its `k[i]` members nearest to the line.
     fn nearest(&self, queries: &[Query], k: &[u64]) -> Result<Vec<NearestSum>, EngineError> {
         let ask = Ask {

@@ -150,14 +150,14 @@ impl Refiner {
     ) -> bool {
         let n = self.n_box();
         let normals = match normals {
-            Some(v) => match refine::fit::cut_to_working_set(gaussians, v, segments) {
+            Some(v) => match self.cut(gaussians, v, segments) {
                 Some(w) if w.len() == n => Some(w),
                 _ => return false,
             },
             None => None,
         };
         let opacity = match opacity {
-            Some(v) => match refine::fit::cut_to_working_set(gaussians, v, segments) {
+            Some(v) => match self.cut(gaussians, v, segments) {
                 Some(w) if w.len() == n => Some(w),
                 _ => return false,
             },
@@ -173,6 +173,26 @@ impl Refiner {
         true
     }
 
+    /// `values` (one per center of `gaussians`, the centers this refiner was built from
+    /// with `segments`) cut to the working set, as [`refine::fit::cut_to_working_set`]
+    /// does. When every center is in the working set the cut keeps everything: a copy,
+    /// without testing each center against the box again (four passes over the model
+    /// otherwise, for the normals, opacities, extents and colours).
+    fn cut<T: Copy>(
+        &self,
+        gaussians: &[[f32; 3]],
+        values: &[T],
+        segments: &[Segment],
+    ) -> Option<Vec<T>> {
+        if values.len() != gaussians.len() {
+            return None;
+        }
+        if gaussians.len() == self.n_box() {
+            return Some(values.to_vec());
+        }
+        refine::fit::cut_to_working_set(gaussians, values, segments)
+    }
+
     /// Gives the decision rule each Gaussian's extent (largest standard deviation, in the
     /// order of `gaussians`); `false` (and nothing set) when the count differs.
     pub fn set_extent(
@@ -181,7 +201,7 @@ impl Refiner {
         extent: &[f32],
         segments: &[Segment],
     ) -> bool {
-        match refine::fit::cut_to_working_set(gaussians, extent, segments) {
+        match self.cut(gaussians, extent, segments) {
             Some(w) if w.len() == self.n_box() => {
                 self.attrs.extent = Some(w);
                 true
@@ -198,7 +218,7 @@ impl Refiner {
         colour: &[[f32; 3]],
         segments: &[Segment],
     ) -> bool {
-        match refine::fit::cut_to_working_set(gaussians, colour, segments) {
+        match self.cut(gaussians, colour, segments) {
             Some(w) if w.len() == self.n_box() => {
                 self.attrs.colour = Some(w);
                 true
@@ -686,6 +706,41 @@ mod tests {
         let eval = job().evaluate(&scene, None).unwrap();
         assert_eq!(eval.before, r.before);
         assert!(eval.after.is_none());
+    }
+
+    #[test]
+    fn attributes_are_cut_to_the_working_set_whether_or_not_it_holds_every_center() {
+        // Centers along x from -1.995 to 1.995 and a segment from 0 to 1: the working box
+        // (grown by 0.1 of its longest edge) keeps x in [-0.1, 1.1] only; with the segment
+        // from -2 to 2 it keeps them all. Each attribute is its center's x.
+        let centers: Vec<[f32; 3]> = (0..400)
+            .map(|i| [i as f32 / 100.0 - 1.995, 0.0, 0.0])
+            .collect();
+        let xs: Vec<f32> = centers.iter().map(|c| c[0]).collect();
+        let normals: Vec<[f32; 3]> = xs.iter().map(|&x| [x, 1.0, 0.0]).collect();
+        let colour: Vec<[f32; 3]> = xs.iter().map(|&x| [0.0, 0.0, x]).collect();
+        for (a, b, n) in [(0.0, 1.0, 120), (-2.0, 2.0, 400)] {
+            let segs = [Segment::from_arrays([a, 0.0, 0.0], [b, 0.0, 0.0])];
+            let mut r = Refiner::new(&centers, &segs, &Params::default(), Backend::Cpu).unwrap();
+            assert_eq!(r.n_box(), n);
+            assert!(r.set_attributes(&centers, Some(&normals), Some(&xs), &segs));
+            assert!(r.set_extent(&centers, &xs, &segs));
+            assert!(r.set_colour(&centers, &colour, &segs));
+            let kept: Vec<f32> = xs
+                .iter()
+                .copied()
+                .filter(|&x| f64::from(x) >= a - 0.1 * (b - a) && f64::from(x) <= b + 0.1 * (b - a))
+                .collect();
+            assert_eq!(kept.len(), n);
+            let at = &r.attrs;
+            assert_eq!(at.opacity.as_deref(), Some(&kept[..]));
+            assert_eq!(at.extent.as_deref(), Some(&kept[..]));
+            let nx: Vec<f32> = at.normals.as_ref().unwrap().iter().map(|v| v[0]).collect();
+            let cz: Vec<f32> = at.colour.as_ref().unwrap().iter().map(|v| v[2]).collect();
+            assert_eq!((nx, cz), (kept.clone(), kept));
+            // A count that is not the model's is refused, in both cases.
+            assert!(!r.set_extent(&centers, &xs[1..], &segs));
+        }
     }
 
     #[test]

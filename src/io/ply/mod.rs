@@ -453,29 +453,48 @@ fn read_fast_le<R: Read>(
         let base = ch.offset();
         let bytes = &ch.available()[..n * stride];
         kept_recs.clear();
-        for (k, rec) in bytes.chunks_exact(stride).enumerate() {
-            let c = [f32_le(rec, ox), f32_le(rec, oy), f32_le(rec, oz)];
-            let op = match oo {
-                Some(o) => f32_le(rec, o),
-                None => 0.0,
-            };
-            let kept = col.centers.len();
-            col.push(c, op, || {
-                Position::record("vertex", index + k, Some(base + (k * stride) as u64))
-            })?;
-            if attrs.is_some() && col.centers.len() > kept {
-                kept_recs.push(k as u32);
+        let want = attrs.is_some();
+        let mut centers = || -> Result<(), Error> {
+            for (k, rec) in bytes.chunks_exact(stride).enumerate() {
+                let c = [f32_le(rec, ox), f32_le(rec, oy), f32_le(rec, oz)];
+                let op = match oo {
+                    Some(o) => f32_le(rec, o),
+                    None => 0.0,
+                };
+                let kept = col.centers.len();
+                col.push(c, op, || {
+                    Position::record("vertex", index + k, Some(base + (k * stride) as u64))
+                })?;
+                if want && col.centers.len() > kept {
+                    kept_recs.push(k as u32);
+                }
             }
-        }
+            Ok(())
+        };
         if let Some((plan, out)) = attrs.as_mut() {
-            let computed: Vec<Attribute> = kept_recs
-                .par_iter()
-                .with_min_len(512)
-                .map(|&k| plan.attribute(&bytes[k as usize * stride..][..stride]))
-                .collect();
-            for a in computed {
-                out.push_one(a);
+            // The centers on this thread while the other threads compute every record's
+            // attributes (the records a center test drops are computed for nothing, and
+            // are rare); then the kept records' attributes in order.
+            let plan = &**plan;
+            let (walked, computed) = rayon::join(&mut centers, || {
+                bytes
+                    .par_chunks_exact(stride)
+                    .with_min_len(512)
+                    .map(|rec| plan.attribute(rec))
+                    .collect::<Vec<Attribute>>()
+            });
+            walked?;
+            if kept_recs.len() == computed.len() {
+                for a in computed {
+                    out.push_one(a);
+                }
+            } else {
+                for &k in &kept_recs {
+                    out.push_one(computed[k as usize]);
+                }
             }
+        } else {
+            centers()?;
         }
         ch.consume(n * stride);
         index += n;
