@@ -66,8 +66,11 @@ pub(crate) fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
     });
 }
 
+/// Sort keys (working-set id above the place of a measurement) and the measurements
+/// (axial position, offset) they point into.
+type Keyed = (Vec<u64>, Vec<(f64, DVec3)>);
+
 thread_local! {
     /// [`members_into`]'s keys and measurements, reused from query to query.
-    static ORDER: std::cell::RefCell<(Vec<u64>, Vec<(f64, DVec3)>)> =
-        const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+    static ORDER: std::cell::RefCell<Keyed> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }

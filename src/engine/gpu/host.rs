@@ -228,10 +228,13 @@ pub fn members(grid: &Grid, q: &Query, sure: &[u32], flags: &[(u32, u32)]) -> Op
     })
 }
 
+/// Sort keys (working-set id above the place of a measurement) and the measurements
+/// (axial position, offset) they point into.
+type Keyed = (Vec<u64>, Vec<(f64, DVec3)>);
+
 thread_local! {
     /// [`members`]' keys and measurements, reused from query to query on each thread.
-    static KEYS: std::cell::RefCell<(Vec<u64>, Vec<(f64, DVec3)>)> =
-        const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+    static KEYS: std::cell::RefCell<Keyed> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
 /// One query's extent ([`crate::engine::Engine::extent`]) from the device's: `sure` sure
