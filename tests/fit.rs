@@ -357,3 +357,29 @@ fn the_gate_decides_alike_in_chunks_of_any_size() {
         );
     }
 }
+
+#[test]
+fn without_normals_the_gate_lists_only_the_fitted_lines() {
+    use linegs_gpu::engine::Engine;
+    let mut rng = TestRng::new(25);
+    let (pts, _) = faces(8000, 0.5 * R, 2.0 * R, &mut rng);
+    let input: Vec<Segment> = (0..6)
+        .map(|i| {
+            let o = (0.30 + 0.01 * i as f64) * R;
+            seg([0.0, o, o], [1.0, o, o])
+        })
+        .collect();
+    let e = cpu_engine(&pts, &input, R);
+    let attrs = Attributes::default();
+    let mut f = fit_edges(&e, &input, &attrs, R, &edge_params()).unwrap();
+    let moved = (0..input.len())
+        .filter(|&i| f.segments[i] != input[i])
+        .count();
+    assert!(moved >= 3, "{moved} moved");
+    let before = e.counters().queries;
+    let d = decide(&e, &input, &mut f, &attrs, R, &edge_params()).unwrap();
+    // The face end and the colour change need normals: no lists about the input lines.
+    assert_eq!(e.counters().queries - before, moved as u64);
+    assert!(d.iter().all(|d| d.face_end.is_none() && d.colour.is_none()));
+    assert!(d.iter().filter(|d| d.ridge.is_some()).count() >= 3, "{d:?}");
+}

@@ -62,17 +62,37 @@ pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
 /// [`member_list`] into `out` (cleared first).
 pub(crate) fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
     out.clear();
-    for_each_member(grid, q, |j, t, offset| {
-        out.push(Member {
-            id: grid.ids[j],
-            t,
-            offset,
-        })
-    });
     // Working-set order, not grid order: the grid's layout follows the working
     // box, so a far segment would otherwise reorder the members (and the fit's
-    // sums) of every other segment in the last bits.
-    out.sort_unstable_by_key(|m| m.id);
+    // sums) of every other segment in the last bits. Measured in grid order, then
+    // ordered by 8-byte keys (`id` above the place of the measurement; ids are unique)
+    // and copied out: sorting the 40-byte members themselves cost more.
+    ORDER.with_borrow_mut(|(keys, found)| {
+        keys.clear();
+        found.clear();
+        for_each_member(grid, q, |j, t, offset| {
+            keys.push((grid.ids[j] as u64) << 32 | found.len() as u64);
+            found.push((t, offset));
+        });
+        keys.sort_unstable();
+        out.extend(keys.iter().map(|&k| {
+            let (t, offset) = found[k as u32 as usize];
+            Member {
+                id: (k >> 32) as u32,
+                t,
+                offset,
+            }
+        }));
+    });
+}
+
+/// Sort keys (working-set id above the place of a measurement) and the measurements
+/// (axial position, offset) they point into.
+type Keyed = (Vec<u64>, Vec<(f64, DVec3)>);
+
+thread_local! {
+    /// [`members_into`]'s keys and measurements, reused from query to query.
+    static ORDER: std::cell::RefCell<Keyed> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
 #[cfg(test)]

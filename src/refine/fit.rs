@@ -1122,47 +1122,30 @@ pub fn decide_in_chunks(
         // The face end, in the input line's own frame.
         let g = &input[i];
         let frame_in = basis(g.dir());
-        let face_end = attrs.normals.as_deref().and_then(|ns| {
+        // One cross-section of the input line's members serves both estimates.
+        let section_in = attrs.normals.as_deref().map(|ns| {
             let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
             let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
-            face_end_evidence(
-                &CornerInput {
-                    pts: &pts,
-                    pw: &pw,
-                    normals: ns,
-                    ids: &ids,
-                    frame: frame_in,
-                    ends: [DVec2::ZERO; 2],
-                },
-                attrs.extent.as_deref(),
-                r,
-                min_points,
-            )
+            (pts, pw, ids, ns)
         });
+        let at_in = section_in.as_ref().map(|(pts, pw, ids, ns)| CornerInput {
+            pts,
+            pw,
+            normals: ns,
+            ids,
+            frame: frame_in,
+            ends: [DVec2::ZERO; 2],
+        });
+        let face_end = at_in
+            .as_ref()
+            .and_then(|c| face_end_evidence(c, attrs.extent.as_deref(), r, min_points));
         let shifted = |base: &Segment, (e1, e2): (DVec3, DVec3), c: DVec2| {
             let shift = e1 * c.x + e2 * c.y;
             Segment::new(base.p1 + shift, base.p2 + shift)
         };
         let face_end_line = face_end.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
-        let colour = match (attrs.normals.as_deref(), attrs.colour.as_deref()) {
-            (Some(ns), Some(cs)) => {
-                let (pts, pw) = cross_section(m_in, frame_in, attrs, p);
-                let ids: Vec<u32> = m_in.iter().map(|m| m.id).collect();
-                colour_evidence(
-                    &CornerInput {
-                        pts: &pts,
-                        pw: &pw,
-                        normals: ns,
-                        ids: &ids,
-                        frame: frame_in,
-                        ends: [DVec2::ZERO; 2],
-                    },
-                    cs,
-                    attrs.extent.as_deref(),
-                    r,
-                    min_points,
-                )
-            }
+        let colour = match (at_in.as_ref(), attrs.colour.as_deref()) {
+            (Some(c), Some(cs)) => colour_evidence(c, cs, attrs.extent.as_deref(), r, min_points),
             _ => None,
         };
         let colour_line = colour.as_ref().map(|c| seg6(&shifted(g, frame_in, c.0)));
@@ -1262,13 +1245,22 @@ pub fn decide_in_chunks(
     let size = moved.len().div_ceil(chunks);
     let mut decided: Vec<(Decision, Option<Segment>)> = Vec::with_capacity(moved.len());
     for chunk in moved.chunks(size) {
+        // The input lines' members serve the face end and the colour change only, both
+        // read off normals: a model without normals lists the fitted lines alone.
+        let at_input_too = attrs.normals.is_some();
         let queries: Vec<Query> = chunk
             .iter()
             .map(|&i| Query::new(fitted_ref.segments[i], r))
-            .chain(chunk.iter().map(|&i| Query::new(input[i], r)))
+            .chain(
+                chunk
+                    .iter()
+                    .filter(|_| at_input_too)
+                    .map(|&i| Query::new(input[i], r)),
+            )
             .collect();
         let mut members = engine.members(&queries)?;
-        let at_input = members.split_off(chunk.len());
+        let mut at_input = members.split_off(chunk.len());
+        at_input.resize_with(chunk.len(), Vec::new);
         use rayon::prelude::*;
         decided.par_extend(
             chunk

@@ -186,10 +186,13 @@ pub fn exact_nearest(grid: &Grid, q: &Query, k: u64) -> (NearestSum, u64) {
 /// and sorted by working-set id: the CPU engine's list, bit for bit. `None` when the
 /// device named a point that is not in the grid (the caller then answers on the host).
 ///
-/// The points are put in working-set order first, as 8-byte keys (`id` above the sorted
-/// index: ids are unique, so the order is the CPU engine's), and then measured in that
-/// order straight into the list: sorting the 40-byte members instead took a third of the
-/// host's time for the edge-fit gate's lists.
+/// The points are measured in the order the device names them (sure members by sorted
+/// index: the grid's memory order, read front to back), and the accepted ones then put in
+/// working-set order by 8-byte keys (`id` above the place of the measurement: ids are
+/// unique, so the order is the CPU engine's) and copied out in that order. Measuring in
+/// working-set order instead read the grid's points at random (a cache miss a member at
+/// 10^7 points); sorting the 40-byte members instead of keys took a third of the host's
+/// time for the edge-fit gate's lists.
 pub fn members(grid: &Grid, q: &Query, sure: &[u32], flags: &[(u32, u32)]) -> Option<Vec<Member>> {
     if !q.seg.is_valid() {
         return Some(Vec::new());
@@ -199,31 +202,39 @@ pub fn members(grid: &Grid, q: &Query, sure: &[u32], flags: &[(u32, u32)]) -> Op
         .iter()
         .filter(|f| f.0 & FLAG_CANDIDATE == 0)
         .map(|f| f.1);
-    KEYS.with_borrow_mut(|keys| {
+    KEYS.with_borrow_mut(|(keys, measured)| {
         keys.clear();
+        measured.clear();
         for i in sure.iter().copied().chain(flagged) {
             let id = *grid.ids.get(i as usize)?;
-            keys.push((id as u64) << 32 | i as u64);
-        }
-        keys.sort_unstable();
-        let mut out = Vec::with_capacity(keys.len());
-        for &k in keys.iter() {
-            let i = k as u32 as usize;
-            if let Some((t, offset)) = cyl.test(p64(grid.points[i])) {
-                out.push(Member {
-                    id: (k >> 32) as u32,
-                    t,
-                    offset,
-                });
+            if let Some(m) = cyl.test(p64(grid.points[i as usize])) {
+                keys.push((id as u64) << 32 | measured.len() as u64);
+                measured.push(m);
             }
         }
-        Some(out)
+        keys.sort_unstable();
+        Some(
+            keys.iter()
+                .map(|&k| {
+                    let (t, offset) = measured[k as u32 as usize];
+                    Member {
+                        id: (k >> 32) as u32,
+                        t,
+                        offset,
+                    }
+                })
+                .collect(),
+        )
     })
 }
 
+/// Sort keys (working-set id above the place of a measurement) and the measurements
+/// (axial position, offset) they point into.
+type Keyed = (Vec<u64>, Vec<(f64, DVec3)>);
+
 thread_local! {
-    /// [`members`]' keys, reused from query to query on each thread.
-    static KEYS: std::cell::RefCell<Vec<u64>> = const { std::cell::RefCell::new(Vec::new()) };
+    /// [`members`]' keys and measurements, reused from query to query on each thread.
+    static KEYS: std::cell::RefCell<Keyed> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
 /// One query's extent ([`crate::engine::Engine::extent`]) from the device's: `sure` sure
