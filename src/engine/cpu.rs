@@ -85,7 +85,12 @@ impl CpuEngine {
                 s.side_pos += 1;
             }
             if let Some(mask) = mask {
-                mask[j / 64].fetch_or(1u64 << (j % 64), Ordering::Relaxed);
+                // A plain load first: a point inside several cylinders (copies and
+                // pieces of one edge) pays the locked read-modify-write once.
+                let (word, bit) = (&mask[j / 64], 1u64 << (j % 64));
+                if word.load(Ordering::Relaxed) & bit == 0 {
+                    word.fetch_or(bit, Ordering::Relaxed);
+                }
             }
             if near {
                 members.push((v.length_squared(), j, v));
