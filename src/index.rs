@@ -19,9 +19,21 @@ const MAX_CELLS: f64 = (1u64 << 24) as f64;
 const CELLS_PER_POINT: f64 = 8.0;
 const MIN_CELLS: f64 = 4096.0;
 
-/// Most cells for `n` points.
-fn max_cells(n: usize) -> f64 {
-    (n as f64 * CELLS_PER_POINT).clamp(MIN_CELLS, MAX_CELLS)
+/// Cells per point a grid that only the host reads may have beyond `MAX_CELLS` (from
+/// about 1.1 x 10^7 points up): a 10^8-point scene then gets the cells of a 10^7 one, not
+/// cells twice as wide, each holding 8x the points (`MAX_CELLS` holds the cell table
+/// within a device's binding limit, which the host does not have).
+const HOST_CELLS_PER_POINT: f64 = 1.5;
+
+/// Most cells for `n` points; `host`: for a grid only the CPU engine reads.
+fn max_cells(n: usize, host: bool) -> f64 {
+    let cap = if host {
+        MAX_CELLS.max(n as f64 * HOST_CELLS_PER_POINT)
+    } else {
+        MAX_CELLS
+    };
+    // Cells are numbered in a u32 (the radix sort's key), with room to spare.
+    (n as f64 * CELLS_PER_POINT).clamp(MIN_CELLS, cap.min((1u64 << 31) as f64))
 }
 
 /// Gaussian centers inside the box of all segment endpoints grown by 0.1x its longest edge.
@@ -116,6 +128,17 @@ impl Grid {
     /// open-ended: they hold every point beyond them, and queries beyond the grid visit
     /// them, so the answer stays exact while the core keeps fine cells.
     pub fn build(points: &[[f32; 3]], bounds: Aabb, cell_hint: f64) -> Grid {
+        Grid::build_capped(points, bounds, cell_hint, false)
+    }
+
+    /// [`Grid::build`] for a grid that only the CPU engine reads: above about 1.1 x 10^7
+    /// points it may have more than 2^24 cells (1.5 per point), so cells stay as fine as
+    /// at 10^7 points. Below that, the very grid of [`Grid::build`].
+    pub fn build_for_host(points: &[[f32; 3]], bounds: Aabb, cell_hint: f64) -> Grid {
+        Grid::build_capped(points, bounds, cell_hint, true)
+    }
+
+    fn build_capped(points: &[[f32; 3]], bounds: Aabb, cell_hint: f64, host: bool) -> Grid {
         // The working box as before when it gives cells near the hint (normal scenes get
         // the very same grid); otherwise the points' box, then the quantile box below.
         let mut pts_box = Aabb::empty();
@@ -137,7 +160,7 @@ impl Grid {
         } else {
             None
         };
-        let most = max_cells(points.len());
+        let most = max_cells(points.len(), host);
         let mut cell = cell_size(&b, hint, most);
         let mut open = false;
         if let Some(h) = hint {
@@ -624,6 +647,43 @@ mod tests {
         let g = Grid::build(&pts, b, 0.03);
         assert!(g.n_cells() as f64 <= MAX_CELLS);
         assert!(g.cell > 0.03);
+    }
+
+    #[test]
+    fn a_host_grid_may_pass_the_cap_from_about_ten_million_points() {
+        // The cell table's cap: 2^24 for any grid; 1.5 cells a point for a host grid once
+        // that is more (from 1.1 x 10^7 points), so 10^8 points get 10^7's cells.
+        assert_eq!(max_cells(10_000_000, true), MAX_CELLS);
+        assert_eq!(max_cells(10_000_000, false), MAX_CELLS);
+        assert_eq!(max_cells(100_000_000, false), MAX_CELLS);
+        assert_eq!(max_cells(100_000_000, true), 1.5e8);
+        assert_eq!(max_cells(1_000, true), 8_000.0);
+        assert_eq!(max_cells(10, true), MIN_CELLS);
+        assert_eq!(max_cells(usize::MAX / 4, true), (1u64 << 31) as f64);
+        // Below that, the very grid of `build`.
+        let mut s = Rng::new(9);
+        let pts: Vec<[f32; 3]> = (0..5000)
+            .map(|_| {
+                [
+                    uni(&mut s) as f32 * 50.0,
+                    uni(&mut s) as f32,
+                    uni(&mut s) as f32,
+                ]
+            })
+            .collect();
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::new(50.0, 1.0, 1.0),
+        };
+        let (g, h) = (
+            Grid::build(&pts, b, 0.01),
+            Grid::build_for_host(&pts, b, 0.01),
+        );
+        assert_eq!((g.cell, g.dims, g.open), (h.cell, h.dims, h.open));
+        assert_eq!(
+            (&g.cell_start, &g.points, &g.ids),
+            (&h.cell_start, &h.points, &h.ids)
+        );
     }
 
     /// Points visited by the queries of `segs` and the exact counts they find.

@@ -866,6 +866,15 @@ fn the_scale_ladder_prints_its_rows_with_their_commands() {
     let ratio = |c: &str| b[col(c)].as_f64().unwrap() / a[col(c)].as_f64().unwrap();
     assert!((b[col("x time")].as_f64().unwrap() - ratio("refine (s)")).abs() < 1e-9);
     assert!((b[col("x memory")].as_f64().unwrap() - ratio("peak (MB)")).abs() < 1e-9);
+    assert!((b[col("x cpu")].as_f64().unwrap() - ratio("cpu (s)")).abs() < 1e-9);
+    // The refinement's CPU seconds: at least some, and at most its wall time on all threads.
+    let cpu = b[col("cpu (s)")].as_f64().unwrap();
+    let wall = b[col("refine (s)")].as_f64().unwrap();
+    let threads = v["threads"].as_f64().unwrap();
+    assert!(
+        cpu > 0.0 && cpu <= wall * threads + 0.05,
+        "{cpu} {wall} {threads}"
+    );
     // A row's command runs and measures that row.
     let cmd = rows[0]["command"].as_str().unwrap();
     let args: Vec<&str> = cmd.split(' ').skip(1).collect();

@@ -38,14 +38,11 @@ pub struct BenchArgs {
     #[arg(long, value_enum, value_delimiter = ',')]
     pub backend: Vec<BackendArg>,
     /// Named cases instead of the size grid (a comma list; each prints one table with the
-    /// command of every row beside it): `ladder` (10^5 x 10^3 up to `--max` Gaussians,
-    /// 10x per row, time and peak memory with the growth per row), `s200k` (the box scene
-    /// of the authors' s200k shape, the whole `refine --report` process as a new process
-    /// each run, median of `--repeat` runs, 7 unless given).
+    /// command of every row beside it).
     #[arg(long, value_name = "CASE,...", value_delimiter = ',', value_parser = case_names())]
     pub case: Vec<String>,
-    /// The largest Gaussian count of the ladder (a power of ten from 10^5; the segments are
-    /// a hundredth of it).
+    /// The ladder's largest Gaussian count: its rows are 10^5, 10^6, ... up to this, each
+    /// with a hundredth as many segments.
     #[arg(long, value_name = "N", default_value_t = 10_000_000)]
     pub max: usize,
     /// Refinement profile.

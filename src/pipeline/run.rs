@@ -58,7 +58,12 @@ impl Refiner {
     ) -> Result<Refiner, RunError> {
         // The device opens (and its kernels compile) while the grid is built.
         let pending = prepare(backend, gpu);
-        Refiner::with_engine(gaussians, segments, params, |grid| pending.finish(grid))
+        // Only the CPU engine will read the grid: it may have the finer cells of
+        // `Grid::build_for_host` (scenes above 10^7 Gaussians).
+        let host = backend == Backend::Cpu;
+        Refiner::build(gaussians, segments, params, host, |grid| {
+            pending.finish(grid)
+        })
     }
 
     /// [`Refiner::new`] with an engine of the caller's making (tests: a GPU engine with
@@ -71,11 +76,27 @@ impl Refiner {
         params: &Params,
         make: impl FnOnce(Arc<Grid>) -> Result<(Box<dyn Engine>, Vec<String>), EngineError>,
     ) -> Result<Refiner, RunError> {
+        Refiner::build(gaussians, segments, params, false, make)
+    }
+
+    /// [`Refiner::with_engine`]; `host`: the grid is for the CPU engine alone.
+    fn build(
+        gaussians: &[[f32; 3]],
+        segments: &[Segment],
+        params: &Params,
+        host: bool,
+        make: impl FnOnce(Arc<Grid>) -> Result<(Box<dyn Engine>, Vec<String>), EngineError>,
+    ) -> Result<Refiner, RunError> {
         let t = Instant::now();
         let ws = WorkingSet::new(gaussians, segments);
         let settings = Settings::resolve(params.clone(), &ws.points)
             .map_err(|e| RunError::Input(e.to_string()))?;
-        let grid = Arc::new(Grid::build(&ws.points, ws.bounds, grid_cell(&settings)));
+        let cell = grid_cell(&settings);
+        let grid = Arc::new(if host {
+            Grid::build_for_host(&ws.points, ws.bounds, cell)
+        } else {
+            Grid::build(&ws.points, ws.bounds, cell)
+        });
         drop(ws);
         let mut stages = vec![Stage::since("index", segments.len(), t)];
         let t = Instant::now();

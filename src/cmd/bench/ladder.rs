@@ -82,6 +82,8 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
             "build (s)",
             "refine (s)",
             "x time",
+            "cpu (s)",
+            "x cpu",
             "peak (MB)",
             "x memory",
             "slowest stage (s)",
@@ -92,13 +94,14 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
         rows: Vec::new(),
         notes: vec![
             "build: making the synthetic scene (not in refine); refine: the whole refinement, \
-             the fastest of --repeat; peak: the process's resident peak over building and \
+             the fastest of --repeat; cpu: the process's CPU seconds in it (user and system, \
+             all threads: less sensitive than wall time to other programs on the machine); peak: the process's resident peak over building and \
              refining the row (reset per row); x: against the row 10x smaller"
                 .into(),
         ],
     };
-    // Per engine, the previous row's refine seconds and peak MB.
-    let mut previous: Vec<Option<(f64, f64)>> = vec![None; backends.len()];
+    // Per engine, the previous row.
+    let mut previous: Vec<Option<Measured>> = vec![None; backends.len()];
     for (n, m) in sizes {
         mem::reset_peak_rss();
         let t = Instant::now();
@@ -110,10 +113,12 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
         let build_peak = peak_mb();
         for (k, &b) in backends.iter().enumerate() {
             let job = crate::cmd::env::job(params.clone(), b.into())?;
-            let mut best: Option<(f64, Option<f64>, String, usize)> = None;
+            let mut best: Option<Measured> = None;
             for _ in 0..a.repeat {
                 mem::reset_peak_rss();
+                let cpu0 = cpu_seconds();
                 let out = job.refine(&scene, |_| {})?;
+                let cpu = cpu_seconds().zip(cpu0).map(|(b, a)| b - a);
                 let r = out.report;
                 let peak = match (peak_mb(), build_peak) {
                     (Some(x), Some(y)) => Some(x.max(y)),
@@ -124,38 +129,77 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
                     .iter()
                     .max_by(|x, y| x.seconds.total_cmp(&y.seconds))
                     .map_or(String::new(), |s| format!("{} {:.2}", s.name, s.seconds));
-                if best.as_ref().is_none_or(|x| r.total_seconds < x.0) {
-                    best = Some((r.total_seconds, peak, slowest, out.lines.len()));
+                if best.as_ref().is_none_or(|x| r.total_seconds < x.seconds) {
+                    best = Some(Measured {
+                        seconds: r.total_seconds,
+                        cpu,
+                        peak,
+                        slowest,
+                        out: out.lines.len(),
+                    });
                 }
             }
-            let (seconds, peak, slowest, out) = best.expect("repeat >= 1");
+            let now = best.expect("repeat >= 1");
             let growth = |now: Option<f64>, before: Option<f64>| match (now, before) {
                 (Some(x), Some(y)) if y > 0.0 => Cell::Num(x / y, 2),
                 _ => Cell::None,
             };
-            let before = previous[k];
+            let before = previous[k].as_ref();
             table.rows.push(Row {
                 cells: vec![
                     Cell::Count(n as u64),
                     Cell::Count(m as u64),
                     Cell::Text(Backend::from(b).as_str().into()),
                     Cell::Num(build_seconds, 2),
-                    Cell::Num(seconds, 2),
-                    growth(Some(seconds), before.map(|p| p.0)),
-                    peak.map_or(Cell::None, |p| Cell::Num(p, 0)),
-                    growth(peak, before.map(|p| p.1)),
-                    Cell::Text(slowest),
-                    Cell::Count(out as u64),
+                    Cell::Num(now.seconds, 2),
+                    growth(Some(now.seconds), before.map(|p| p.seconds)),
+                    now.cpu.map_or(Cell::None, |c| Cell::Num(c, 2)),
+                    growth(now.cpu, before.and_then(|p| p.cpu)),
+                    now.peak.map_or(Cell::None, |p| Cell::Num(p, 0)),
+                    growth(now.peak, before.and_then(|p| p.peak)),
+                    Cell::Text(now.slowest.clone()),
+                    Cell::Count(now.out as u64),
                 ],
                 command: format!(
                     "linegs-gpu bench -n {n} --num-segments {m} --backend {}{flags}",
                     Backend::from(b).as_str(),
                 ),
             });
-            previous[k] = Some((seconds, peak.unwrap_or(f64::NAN)));
+            previous[k] = Some(now);
         }
     }
     Ok(table)
+}
+
+/// One row's numbers (the fastest of `--repeat`).
+#[derive(Clone)]
+struct Measured {
+    /// The refinement's wall seconds and CPU seconds.
+    seconds: f64,
+    cpu: Option<f64>,
+    /// MB, over building the scene and refining it.
+    peak: Option<f64>,
+    /// The slowest stage and its seconds.
+    slowest: String,
+    /// Segments out.
+    out: usize,
+}
+
+/// The process's CPU seconds so far (user and system, all threads); `None` off Unix.
+fn cpu_seconds() -> Option<f64> {
+    #[cfg(unix)]
+    {
+        // SAFETY: `rusage` is plain integers (all zeros is a valid value), and getrusage
+        // writes only the struct it is given.
+        let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
+            return None;
+        }
+        let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+        Some(s(u.ru_utime) + s(u.ru_stime))
+    }
+    #[cfg(not(unix))]
+    None
 }
 
 fn peak_mb() -> Option<f64> {
