@@ -681,17 +681,20 @@ pub(super) fn run(
 ) -> Result<(), EngineError> {
     let bound = PairBound::new(machines.iter().map(|m| m.items.len()).sum())?;
     while machines.iter().any(|m| !m.done()) {
-        let listings: Vec<Option<Listing>> = machines
+        // Each unfinished group's listing and the entries it holds with it (a finished
+        // group holds none).
+        let (listings, held): (Vec<Option<Listing>>, Vec<usize>) = machines
             .par_iter_mut()
-            .map(|m| (!m.done()).then(|| m.list(cx)))
-            .collect();
-        let held = machines.iter().map(Machine::held).sum::<usize>()
-            + listings
-                .iter()
-                .flatten()
-                .map(|l| l.cands.len())
-                .sum::<usize>();
-        bound.check(held, &cx)?;
+            .map(|m| match m.done() {
+                true => (None, 0),
+                false => {
+                    let l = m.list(cx);
+                    let held = m.held() + l.cands.len();
+                    (Some(l), held)
+                }
+            })
+            .unzip();
+        bound.check(held.iter().sum(), &cx)?;
         let mut queries = Vec::new();
         let mut offsets = Vec::with_capacity(listings.len());
         for l in listings.iter().flatten() {
