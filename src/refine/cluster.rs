@@ -420,6 +420,95 @@ struct Packed {
     orig: u32,
 }
 
+/// The most similar edges of one segment `G` to the shorter segments (at most `most`,
+/// highest `w` first, ties to the lower other index), kept while its candidates are read,
+/// and what that set prunes: once it is full, a candidate whose `w` cannot reach its
+/// weakest member (`w_min`, strictly below it) cannot enter it. `w = dist_w x len_w`
+/// with `dist_w <= 1` and `len_w = tanh(ratio^2 cos) <= tanh(ratio^2)`, so a candidate
+/// is left out when `tanh((L_G / L_S)^2) < w_min` (its length) or when a lower bound of
+/// its `dist` gives `dist_w < w_min` (its place); both tests keep a margin for rounding.
+struct Kept {
+    most: usize,
+    min_w: f64,
+    r_c: f64,
+    /// Min-heap of `(w bits, u32::MAX - other)`: the weakest member on top.
+    heap: std::collections::BinaryHeap<std::cmp::Reverse<(u64, u32)>>,
+    /// When full: `atanh(w_min)` (a length ratio whose square is below it fails) and the
+    /// `dist` above which `dist_w < w_min`.
+    ratio2_cut: f64,
+    dist_cut: f64,
+}
+
+impl Kept {
+    fn new(most: usize, min_w: f64, r_c: f64) -> Self {
+        Kept {
+            most,
+            min_w,
+            r_c,
+            heap: Default::default(),
+            ratio2_cut: 0.0,
+            dist_cut: f64::INFINITY,
+        }
+    }
+
+    fn clear(&mut self) {
+        self.heap.clear();
+        (self.ratio2_cut, self.dist_cut) = (0.0, f64::INFINITY);
+    }
+
+    /// Takes the edge to `other` of weight `w >= min_w` if it is among the most similar.
+    fn offer(&mut self, w: f64, other: u32) {
+        let key = (w.to_bits(), u32::MAX - other);
+        if self.heap.len() < self.most {
+            self.heap.push(std::cmp::Reverse(key));
+        } else if self.heap.peek().is_some_and(|t| key > t.0) {
+            self.heap.pop();
+            self.heap.push(std::cmp::Reverse(key));
+        } else {
+            return;
+        }
+        if self.heap.len() == self.most {
+            let weakest = f64::from_bits(self.heap.peek().expect("full").0 .0);
+            // Only weights below 1 prune (`tanh` and the product can round to 1).
+            if weakest > self.min_w && weakest < 1.0 {
+                self.ratio2_cut = weakest.atanh() * (1.0 - 1e-9);
+                self.dist_cut = self.r_c * ((1.0 / weakest - 1.0) / 2.0).sqrt() * (1.0 + 1e-9);
+            }
+        }
+    }
+
+    /// The shorter segment (length `l_s <= l_g`) is too long for any later candidate
+    /// of its cell to enter: `tanh((l_g / l_s)^2) < w_min`.
+    fn too_long(&self, l_g: f64, l_s: f64) -> bool {
+        let ratio = l_g / l_s;
+        ratio * ratio < self.ratio2_cut
+    }
+
+    /// A lower bound of `dist` (the 3D distance, or the line distance of an endpoint when
+    /// they overlap) puts `dist_w` below `w_min`. From `S`'s midpoint `m`: an endpoint is
+    /// within `L_S / 2` of it, so with `m` at `t` along `G`'s axis and `lat` off it, an
+    /// overlap has `|t - clamp(t, 0, L_G)| <= L_S / 2` and `dist >= lat - L_S / 2`, and
+    /// otherwise `dist >= |m - G| - L_S / 2`. Only where `similarity` takes `G` as the
+    /// longer (on equal lengths it takes the lower index, and `S`'s axis would count).
+    fn too_far(&self, g: &Packed, s: &Packed, slack: f64) -> bool {
+        if self.dist_cut == f64::INFINITY || (s.len >= g.len && s.orig < g.orig) {
+            return false;
+        }
+        let m = (s.seg.p1 + s.seg.p2) * 0.5;
+        let v = m - g.seg.p1;
+        let t = v.dot(g.dir);
+        let along = (-t).max(t - g.len).max(0.0);
+        let lat = v.cross(g.dir).length();
+        let half = 0.5 * s.len;
+        let d = if along > half {
+            (lat * lat + along * along).sqrt()
+        } else {
+            lat
+        };
+        d - half - slack > self.dist_cut
+    }
+}
+
 /// Candidate pairs from a spatial hash, then the exact test.
 ///
 /// Why it finds every edge: let `G` be the longer of an edge (the one `similarity` calls
@@ -545,12 +634,15 @@ fn edges_hashed(
 
     // Chunks of segments share one scratch mark array (n entries) for deduplication.
     let chunk = (n / (8 * rayon::current_num_threads())).clamp(256, 1 << 14);
+    // Rounding slack of the pruning bounds (see `Kept`), in the scene's units.
+    let slack = 1e-9 * (1.0 + lo.abs().max_element().max(hi.abs().max_element()));
     let parts: Vec<Vec<Edge>> = (0..n.div_ceil(chunk))
         .into_par_iter()
         .map(|c| {
             let mut seen = vec![u32::MAX; n];
-            let (mut cells, mut cands) = (Vec::new(), Vec::new());
-            let mut mine: Vec<(f64, u32)> = Vec::new();
+            let mut cells = Vec::new();
+            let mut near: Vec<(f64, u32)> = Vec::new();
+            let mut kept = Kept::new(max_neighbours, min_w, r_c);
             let mut out = Vec::new();
             for g in c * chunk..((c + 1) * chunk).min(n) {
                 let pg = &pk[g];
@@ -560,54 +652,64 @@ fn edges_hashed(
                     continue;
                 };
                 grid.cells(a, b, bound, &mut cells);
-                cands.clear();
+                // The nearest cells first, so that the kept set's weakest weight rises
+                // early and prunes the rest.
+                near.clear();
+                near.extend(cells.iter().map(|&cell| {
+                    let k = cell as i64;
+                    let (x, y, z) = (
+                        k % grid.dims[0],
+                        (k / grid.dims[0]) % grid.dims[1],
+                        k / (grid.dims[0] * grid.dims[1]),
+                    );
+                    let ctr = grid.origin
+                        + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * grid.h;
+                    (point_segment_distance(ctr, (s.p1, s.p2)), cell)
+                }));
+                near.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                kept.clear();
                 let below = u64::from(rank[g]) << 32;
-                for &cell in &cells {
+                for &(_, cell) in &near {
                     let range = start[cell as usize] as usize..start[cell as usize + 1] as usize;
                     for &m in &members[range] {
                         if m >= below {
                             break; // the rest are longer: `g` is not their pair's long one
                         }
                         let o = m as u32;
-                        if seen[o as usize] != g as u32 {
-                            seen[o as usize] = g as u32;
-                            cands.push(o);
+                        if seen[o as usize] == g as u32 {
+                            continue;
+                        }
+                        seen[o as usize] = g as u32;
+                        let po = &pk[o as usize];
+                        // The cell lists its segments shortest first: once the length
+                        // alone cannot reach the kept set, no later one in it can.
+                        if kept.too_long(pg.len, po.len) {
+                            break;
+                        }
+                        if po.group == pg.group || kept.too_far(pg, po, slack) {
+                            continue;
+                        }
+                        let (pi, pj) = if pg.orig < po.orig {
+                            (pg, po)
+                        } else {
+                            (po, pg)
+                        };
+                        let w = similarity_of(
+                            [(&pi.seg, pi.len, pi.dir), (&pj.seg, pj.len, pj.dir)],
+                            r_c,
+                            true,
+                            min_cos,
+                            min_w,
+                        );
+                        if w >= min_w {
+                            kept.offer(w, po.orig);
                         }
                     }
                 }
-                mine.clear();
-                for &o in &cands {
-                    let po = &pk[o as usize];
-                    if po.group == pg.group {
-                        continue;
-                    }
-                    let (pi, pj) = if pg.orig < po.orig {
-                        (pg, po)
-                    } else {
-                        (po, pg)
-                    };
-                    let w = similarity_of(
-                        [(&pi.seg, pi.len, pi.dir), (&pj.seg, pj.len, pj.dir)],
-                        r_c,
-                        true,
-                        min_cos,
-                        min_w,
-                    );
-                    if w >= min_w {
-                        mine.push((w, po.orig));
-                    }
-                }
-                // The most similar first (ties: the lower other index), the rest dropped.
-                if mine.len() > max_neighbours {
-                    mine.select_nth_unstable_by(max_neighbours, |a, b| {
-                        b.0.total_cmp(&a.0).then(a.1.cmp(&b.1))
-                    });
-                    mine.truncate(max_neighbours);
-                }
                 let me = pg.orig as usize;
-                out.extend(mine.iter().map(|&(w, o)| {
-                    let o = o as usize;
-                    Edge::new(me.min(o), me.max(o), w)
+                out.extend(kept.heap.iter().map(|&std::cmp::Reverse((w, o))| {
+                    let o = (u32::MAX - o) as usize;
+                    Edge::new(me.min(o), me.max(o), f64::from_bits(w))
                 }));
             }
             out

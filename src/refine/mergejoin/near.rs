@@ -64,6 +64,8 @@ pub(super) struct Sweep {
     /// Per item, the last query that met it (to list it once).
     seen: Vec<u32>,
     query: u32,
+    /// Entries in `buckets` in all (they are never taken out).
+    entries: usize,
 }
 
 /// `k` of the module comment for the rules `mode` runs; `None` without a bound.
@@ -154,6 +156,7 @@ impl Near {
             filed: vec![(1, 0); m],
             seen: vec![0; m],
             query: 0,
+            entries: 0,
         };
         for (i, it) in items.iter().enumerate() {
             (s.lo[i], s.hi[i]) = s.interval(it);
@@ -185,6 +188,14 @@ impl Near {
             s.file(i);
         }
         Near::Swept(Box::new(s))
+    }
+
+    /// Entries in the sweep's buckets (what it holds beyond a few per item).
+    pub(super) fn entries(&self) -> usize {
+        match self {
+            Near::All { .. } => 0,
+            Near::Swept(s) => s.entries,
+        }
     }
 
     /// Item `i`'s segment is now `it.seg`.
@@ -252,6 +263,7 @@ impl Sweep {
         for b in u0..=u1 {
             if f0 > f1 || b < f0 || b > f1 {
                 self.buckets[b as usize].push(i as u32);
+                self.entries += 1;
             }
         }
         self.filed[i] = (u0, u1);

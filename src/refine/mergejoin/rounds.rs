@@ -35,7 +35,45 @@ use super::{Ctx, Item, Mode};
 use crate::engine::{CylStats, Engine, EngineError, Query, Want};
 use crate::geom::Segment;
 use rayon::prelude::*;
-use std::collections::{BTreeSet, HashMap, HashSet};
+use std::collections::BTreeSet;
+use std::hash::{BuildHasherDefault, Hasher};
+
+/// A multiply-rotate hasher for the memo's keys (identities, phases) and the listing's
+/// segment bits: these maps are only looked up, never iterated into a result, so the
+/// hash function changes no decision, and SipHash took a sixth of the step's time on
+/// dense clusters.
+#[derive(Default, Clone, Copy)]
+struct WordHasher(u64);
+
+impl Hasher for WordHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for chunk in bytes.chunks(8) {
+            let mut w = [0u8; 8];
+            w[..chunk.len()].copy_from_slice(chunk);
+            self.write_u64(u64::from_le_bytes(w));
+        }
+    }
+
+    fn write_u64(&mut self, w: u64) {
+        self.0 = (self.0.rotate_left(5) ^ w).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+
+    fn write_u8(&mut self, w: u8) {
+        self.write_u64(u64::from(w));
+    }
+
+    fn write_usize(&mut self, w: usize) {
+        self.write_u64(w as u64);
+    }
+
+    fn finish(&self) -> u64 {
+        // The high bits mixed down: the table indexes by the low ones.
+        self.0 ^ (self.0 >> 29)
+    }
+}
+
+type HashMap<K, V> = std::collections::HashMap<K, V, BuildHasherDefault<WordHasher>>;
+type HashSet<K> = std::collections::HashSet<K, BuildHasherDefault<WordHasher>>;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub(super) enum Phase {
@@ -103,6 +141,8 @@ struct Open {
     /// The rows that may hold an open pair (the others have `from[a] == m` and nothing
     /// pending), so that a round does not walk every row of a large group.
     rows: BTreeSet<usize>,
+    /// Entries of `pending` in all, for the step's bound ([`PairBound`]).
+    held: usize,
 }
 
 impl Open {
@@ -111,6 +151,7 @@ impl Open {
             from: (1..=m).collect(),
             pending: vec![Vec::new(); m],
             rows: (0..m).collect(),
+            held: 0,
         }
     }
 
@@ -118,6 +159,7 @@ impl Open {
     /// rows whose pair with `h` can pass a rule).
     fn reopen(&mut self, h: usize, alive: &[bool], near: &mut Near, buf: &mut Vec<usize>) {
         self.from[h] = h + 1;
+        self.held -= self.pending[h].len();
         self.pending[h].clear();
         self.rows.insert(h);
         near.rows(h, alive, buf);
@@ -126,6 +168,7 @@ impl Open {
                 let pending = &mut self.pending[a];
                 if let Err(at) = pending.binary_search(&h) {
                     pending.insert(at, h);
+                    self.held += 1;
                 }
                 self.rows.insert(a);
             }
@@ -291,6 +334,7 @@ impl Machine {
                 continue;
             }
             let pending = std::mem::take(&mut open.pending[a]);
+            open.held -= pending.len();
             let mut keep = Vec::new();
             let mut rest = pending.into_iter();
             let mut stopped = false;
@@ -309,6 +353,7 @@ impl Machine {
                 }
             }
             keep.extend(rest);
+            open.held += keep.len();
             open.pending[a] = keep;
             if stopped {
                 return false;
@@ -501,6 +546,17 @@ impl Machine {
 const MEMO_FIRST_LIMIT: usize = if cfg!(test) { 8 } else { 1 << 12 };
 
 impl Machine {
+    /// The pair entries the group holds: its memo, its open sets' pending columns and its
+    /// sweep's bucket entries (what grows with the pairs, not with the items).
+    fn held(&self) -> usize {
+        let open = |o: &Option<Open>| o.as_ref().map_or(0, |o| o.held);
+        self.failed.len()
+            + self.won.len()
+            + open(&self.open_merge)
+            + open(&self.open_join)
+            + self.near.as_ref().map_or(0, Near::entries)
+    }
+
     /// Whether `uid` is the content of an alive item.
     fn live(&self, uid: u64) -> bool {
         let i = self.item_of[uid as usize] as usize;
@@ -542,17 +598,103 @@ fn input(it: &Item) -> (&Segment, CylStats) {
     (&it.seg, it.stats.expect("stats asked in the listing"))
 }
 
+/// Most pair entries (memo, open pairs, sweep entries and the round's listed pairs) a
+/// merge/join step holds, on average a segment of its input; each takes 8 to about 64
+/// bytes (a memo entry in its hash set), so at most 64 KiB a segment, and never less
+/// than [`PairBound::FLOOR`] entries in all. The dense box scenes of the benches hold
+/// at most about 3 a segment (`cargo bench --bench mergejoin -- dense`, 10^5 and
+/// 3 x 10^5 pieces). `LINEGS_MAX_PAIRS_PER_SEGMENT` sets another value (then without
+/// the floor).
+pub const MAX_PAIRS_PER_SEGMENT: usize = 1024;
+
+/// The bound of a merge/join step on the pair entries it holds, checked after each
+/// round's listing (before the round's batch is asked): past it the step ends with
+/// [`EngineError::Limit`] (exit code 1) and a message that says which bound and how to
+/// raise it.
+pub(super) struct PairBound {
+    per_segment: usize,
+    /// From `LINEGS_MAX_PAIRS_PER_SEGMENT` (the message says so) or the default.
+    from_env: bool,
+    limit: usize,
+    segments: usize,
+}
+
+impl PairBound {
+    /// Fewest entries the bound allows, whatever the input's size.
+    pub const FLOOR: usize = 1 << 20;
+
+    /// The bound for `segments` input segments; an unreadable
+    /// `LINEGS_MAX_PAIRS_PER_SEGMENT` is [`EngineError::Limit`] too, naming it.
+    pub(super) fn new(segments: usize) -> Result<Self, EngineError> {
+        let (per_segment, from_env) = match std::env::var("LINEGS_MAX_PAIRS_PER_SEGMENT") {
+            Ok(v) => match v.trim().parse::<usize>() {
+                Ok(n) if n > 0 => (n, true),
+                _ => {
+                    return Err(EngineError::Limit(format!(
+                        "LINEGS_MAX_PAIRS_PER_SEGMENT={v:?} is not a positive whole number"
+                    )))
+                }
+            },
+            Err(_) => (MAX_PAIRS_PER_SEGMENT, false),
+        };
+        let floor = if from_env { 0 } else { Self::FLOOR };
+        Ok(PairBound {
+            per_segment,
+            from_env,
+            limit: segments.saturating_mul(per_segment).max(floor),
+            segments,
+        })
+    }
+
+    fn check(&self, held: usize, cx: &Ctx) -> Result<(), EngineError> {
+        if held <= self.limit {
+            return Ok(());
+        }
+        let step = match cx.mode {
+            Mode::Cluster => "step 8 (merge_join)",
+            Mode::Collinear => "step 6 (collinear_merge)",
+        };
+        Err(EngineError::Limit(format!(
+            "{step} holds more than {} pair entries for {} segments, and it holds at most \
+             {} a segment{} (up to 64 bytes each, so at most {:.1} MB here): the segments \
+             are too dense for the rules' reach; try a smaller --radius (fewer segments a \
+             cluster), or raise the bound with LINEGS_MAX_PAIRS_PER_SEGMENT=N where the \
+             machine has the memory",
+            self.limit,
+            self.segments,
+            self.per_segment,
+            if self.from_env {
+                " (LINEGS_MAX_PAIRS_PER_SEGMENT)"
+            } else {
+                ""
+            },
+            (self.limit as f64 * 64.0) / 1e6,
+        )))
+    }
+}
+
 /// Runs every group to its end, one engine batch per round.
 pub(super) fn run(
     engine: &dyn Engine,
     machines: &mut [Machine],
     cx: Ctx,
 ) -> Result<(), EngineError> {
+    let bound = PairBound::new(machines.iter().map(|m| m.items.len()).sum())?;
     while machines.iter().any(|m| !m.done()) {
-        let listings: Vec<Option<Listing>> = machines
+        // Each unfinished group's listing and the entries it holds with it (a finished
+        // group holds none).
+        let (listings, held): (Vec<Option<Listing>>, Vec<usize>) = machines
             .par_iter_mut()
-            .map(|m| (!m.done()).then(|| m.list(cx)))
-            .collect();
+            .map(|m| match m.done() {
+                true => (None, 0),
+                false => {
+                    let l = m.list(cx);
+                    let held = m.held() + l.cands.len();
+                    (Some(l), held)
+                }
+            })
+            .unzip();
+        bound.check(held.iter().sum(), &cx)?;
         let mut queries = Vec::new();
         let mut offsets = Vec::with_capacity(listings.len());
         for l in listings.iter().flatten() {
