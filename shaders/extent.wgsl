@@ -11,12 +11,7 @@
 // Loop bound: MAX_EXTENT_MEMBERS / FIT_WG member steps and log2(FIT_WG) reduction steps
 // (16,390), below lavapipe's 65,535; a query with more members is the host's.
 
-@group(0) @binding(1) var<storage, read> fitq: array<FitQuery>;
-@group(0) @binding(2) var<storage, read> scan: array<u32>;
-@group(0) @binding(3) var<storage, read> partials: array<Partial>;
-@group(0) @binding(4) var<storage, read> results: array<QResult>;
-@group(0) @binding(5) var<storage, read> mlist: array<u32>;
-@group(0) @binding(6) var<storage, read> world: array<f32>;
+// Bindings 1 to 6 and the list helpers: lists.wgsl.
 @group(0) @binding(7) var<storage, read_write> extout: array<ExtentOut>;
 
 // Per lane: (smallest t, runner-up, smallest -t, runner-up) and the members holding the
@@ -37,42 +32,26 @@ fn merge(b: f64, s: f64, a: u32, b2: f64, s2: f64, a2: u32) -> vec3<f64> {
 }
 
 @compute @workgroup_size(FIT_WG)
-fn main(
-    @builtin(workgroup_id) wg: vec3<u32>,
-    @builtin(num_workgroups) n_wg: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let qi = wg.y * n_wg.x + wg.x;
-    if qi >= params.n {
-        return;
-    }
-    let res = results[qi];
-    let n = res.count;
+fn main(ids: ListIds) {
+    let qi = list_query(ids);
+    let lane = ids.lane;
+    let state = list_state(qi, MAX_EXTENT_MEMBERS);
     var out: ExtentOut;
-    if (res.status & STATUS_HOST) != 0u || n > MAX_EXTENT_MEMBERS {
-        out.status = EXTENT_HOST;
-        if lane == 0u {
+    if state != LIST_RUN {
+        if state != LIST_PAST && lane == 0u {
+            out.status = select(EXTENT_NONE, EXTENT_HOST, state == LIST_HOST);
             extout[qi] = out;
         }
         return;
     }
-    if n == 0u {
-        out.status = EXTENT_NONE;
-        if lane == 0u {
-            extout[qi] = out;
-        }
-        return;
-    }
-    let fq = fitq[qi];
-    let first = partials[scan[qi]].first;
-    let p1 = vec3<f64>(fq.p1x, fq.p1y, fq.p1z);
-    let d = vec3<f64>(fq.dx, fq.dy, fq.dz);
+    let l = list_of(qi);
+    let n = l.n;
+    let d = l.d;
     var e = vec4<f64>(FAR, FAR, FAR, FAR);
     var a = vec2<u32>(0xFFFFFFFFu, 0xFFFFFFFFu);
     for (var k = lane; k < n; k += FIT_WG) {
-        let g = mlist[first + k];
-        let p = vec3<f64>(f64(world[3u * g]), f64(world[3u * g + 1u]), f64(world[3u * g + 2u]));
-        let t = dot(p - p1, d);
+        let g = mlist[l.first + k];
+        let t = dot(world_at(g) - l.p1, d);
         let lo = merge(e.x, e.y, a.x, t, FAR, g);
         let hi = merge(e.z, e.w, a.y, -t, FAR, g);
         e = vec4<f64>(lo.x, lo.y, hi.x, hi.y);

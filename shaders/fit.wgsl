@@ -21,12 +21,7 @@
 // log2(FIT_WG) reduction steps: 26,724 iterations, below lavapipe's 65,535 (`exp64` has
 // no loop).
 
-@group(0) @binding(1) var<storage, read> fitq: array<FitQuery>;
-@group(0) @binding(2) var<storage, read> scan: array<u32>;
-@group(0) @binding(3) var<storage, read> partials: array<Partial>;
-@group(0) @binding(4) var<storage, read> results: array<QResult>;
-@group(0) @binding(5) var<storage, read> mlist: array<u32>;
-@group(0) @binding(6) var<storage, read> world: array<f32>;
+// Bindings 1 to 6 and the list helpers: lists.wgsl.
 @group(0) @binding(7) var<storage, read_write> fitout: array<FitOut>;
 
 var<workgroup> red: array<vec4<f64>, FIT_WG>;
@@ -99,8 +94,7 @@ struct Pt {
 
 fn member(at: u32, p1: vec3<f64>, d: vec3<f64>, e1: vec3<f64>, e2: vec3<f64>) -> Pt {
     let g = mlist[at];
-    let p = vec3<f64>(f64(world[3u * g]), f64(world[3u * g + 1u]), f64(world[3u * g + 2u]));
-    let w = p - p1;
+    let w = world_at(g) - p1;
     let t = dot(w, d);
     let v = w - d * t;
     return Pt(t, vec2<f64>(dot(v, e1), dot(v, e2)));
@@ -114,36 +108,24 @@ fn weight(m: Pt, c: vec2<f64>, k2: f64) -> f64 {
 }
 
 @compute @workgroup_size(FIT_WG)
-fn main(
-    @builtin(workgroup_id) wg: vec3<u32>,
-    @builtin(num_workgroups) n_wg: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let qi = wg.y * n_wg.x + wg.x;
-    if qi >= params.n {
-        return;
-    }
-    let res = results[qi];
-    let fq = fitq[qi];
-    let n = res.count;
+fn main(ids: ListIds) {
+    let qi = list_query(ids);
+    let lane = ids.lane;
     var out: FitOut;
-    if (res.status & STATUS_HOST) != 0u || n > MAX_FIT_MEMBERS {
-        out.status = FIT_HOST;
-        if lane == 0u {
+    let state = list_state(qi, MAX_FIT_MEMBERS);
+    if state != LIST_RUN {
+        if state != LIST_PAST && lane == 0u {
+            out.status = select(FIT_NONE, FIT_HOST, state == LIST_HOST);
             fitout[qi] = out;
         }
         return;
     }
-    if n == 0u {
-        out.status = FIT_NONE;
-        if lane == 0u {
-            fitout[qi] = out;
-        }
-        return;
-    }
-    let first = partials[scan[qi]].first;
-    let p1 = vec3<f64>(fq.p1x, fq.p1y, fq.p1z);
-    let d = vec3<f64>(fq.dx, fq.dy, fq.dz);
+    let fq = fitq[qi];
+    let l = list_of(qi);
+    let n = l.n;
+    let first = l.first;
+    let p1 = l.p1;
+    let d = l.d;
     let e1 = vec3<f64>(fq.e1x, fq.e1y, fq.e1z);
     let e2 = vec3<f64>(fq.e2x, fq.e2y, fq.e2z);
     let r = fq.r;

@@ -811,3 +811,37 @@ fn the_help_lists_the_registry() {
     let info = stdout(&run(&["info", "--help"]));
     assert!(info.contains(&io::gaussian_family_words(false)), "{info}");
 }
+
+/// The unknown-format hint names every format that has a hint once, in the registry's
+/// order: the Gaussian formats, then the line formats as `LINE_FORMATS` lists them.
+#[test]
+fn the_unknown_format_hint_follows_the_registry_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("x.unknownext");
+    std::fs::write(&path, "hi\n").unwrap();
+    let o = run(&["info", path.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    let err = stderr(&o);
+    let list = err
+        .split("expected one of: ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("{err}"))
+        .trim_end();
+    let hints: Vec<&str> = io::GAUSSIAN_FORMATS
+        .iter()
+        .filter_map(|f| f.hint)
+        .chain(io::LINE_FORMATS.iter().filter_map(|f| f.hint))
+        .collect();
+    assert!(hints.len() >= 8, "{hints:?}");
+    let at: Vec<usize> = hints
+        .iter()
+        .map(|h| {
+            assert_eq!(list.matches(h).count(), 1, "{h} in {list}");
+            list.find(h).unwrap()
+        })
+        .collect();
+    assert!(
+        at.windows(2).all(|w| w[0] < w[1]),
+        "{list}\nnot in the order {hints:?}"
+    );
+}

@@ -2,26 +2,38 @@
 //! not in a user's run. And every struct the host and the kernels share has, in naga's
 //! reflection of each kernel, the offsets and size of the Rust struct the host writes.
 
-use linegs_gpu::engine::gpu::{common_wgsl, f64_kernel_source, kernel_source, layout};
+use linegs_gpu::engine::gpu::{
+    common_wgsl, kernel_source, kernel_specs, layout, list_kernel_source, KernelSpec, When,
+};
 use std::path::Path;
 
-/// A kernel as the engine loads it: the generated prelude and `common.wgsl` first.
+/// The first registered pipeline of the shader at `path`.
+fn spec_of(path: &Path) -> Option<&'static KernelSpec> {
+    let name = path.file_name()?.to_str()?;
+    kernel_specs().find(|k| k.shader == name)
+}
+
+/// A kernel as the engine loads it (its registered source: the generated prelude and
+/// `common.wgsl` first); the shared parts alone; any other file as a plain kernel.
 fn source(path: &Path) -> Result<String, String> {
+    if let Some(k) = spec_of(path) {
+        return Ok((k.source)());
+    }
     let src = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(if path.file_name().is_some_and(|n| n == "common.wgsl") {
         common_wgsl()
-    } else if is_fit(path) {
-        f64_kernel_source(&src)
+    } else if path.file_name().is_some_and(|n| n == "lists.wgsl") {
+        list_kernel_source("")
     } else {
         kernel_source(&src)
     })
 }
 
-/// The fit and extent kernels run in f64: the kernels that need a capability
-/// (`SHADER_F64`), and those with the f64 shared structs.
+/// The kernels over the member lists run in f64 (with `lists.wgsl`, their shared part):
+/// the kernels that need a capability (`SHADER_F64`), and those with the list frame.
 fn is_fit(path: &Path) -> bool {
-    path.file_name()
-        .is_some_and(|n| n == "fit.wgsl" || n == "extent.wgsl")
+    path.file_name().is_some_and(|n| n == "lists.wgsl")
+        || spec_of(path).is_some_and(|k| k.when == When::F64)
 }
 
 fn parse(src: &str, path: &Path) -> Result<naga::Module, String> {
@@ -77,6 +89,7 @@ fn every_shader_is_valid_wgsl() {
             "eval.wgsl",
             "extent.wgsl",
             "fit.wgsl",
+            "lists.wgsl",
             "members.wgsl",
             "reduce.wgsl",
             "scan.wgsl",
@@ -162,14 +175,20 @@ fn reflect(module: &naga::Module, name: &str) -> Option<(usize, Vec<(String, usi
     }
 }
 
-/// Compares every shared struct in `module` with the Rust layout (with `fit`, the fit
-/// kernel's too); returns the mismatches.
+/// Compares every shared struct in `module` with the Rust layout (with `fit`, the list
+/// kernels' frame too); returns the mismatches.
 fn layout_mismatches(module: &naga::Module, fit: bool) -> Vec<String> {
+    layout_mismatches_of(module, fit, &[])
+}
+
+/// [`layout_mismatches`] and the kernel's own structs (`own`).
+fn layout_mismatches_of(module: &naga::Module, fit: bool, own: &[layout::Layout]) -> Vec<String> {
     let mut bad = Vec::new();
     let mut all = layout::layouts();
     if fit {
-        all.extend(layout::fit_layouts());
+        all.extend(layout::list_layouts());
     }
+    all.extend_from_slice(own);
     for (name, size, fields) in all {
         let want: Vec<(String, usize)> = fields.iter().map(|(f, o)| (f.to_string(), *o)).collect();
         match reflect(module, name) {
@@ -190,6 +209,16 @@ fn every_kernel_lays_out_the_shared_structs_as_the_host_writes_them() {
         let bad = layout_mismatches(&module, is_fit(&path));
         assert!(bad.is_empty(), "{}: {bad:#?}", path.display());
     }
+    // Each registered pipeline, its launcher's own structs included (the fit's `FitOut`,
+    // the extent's `ExtentOut`).
+    let mut own = 0;
+    for k in kernel_specs() {
+        let module = parse(&(k.source)(), Path::new(k.shader)).unwrap();
+        let bad = layout_mismatches_of(&module, k.when == When::F64, k.structs);
+        assert!(bad.is_empty(), "{} {}: {bad:#?}", k.name, k.entry);
+        own += k.structs.len();
+    }
+    assert_eq!(own, 2, "FitOut and ExtentOut");
 }
 
 #[test]
@@ -267,4 +296,106 @@ fn the_walk_writes_items_in_their_field_order() {
     assert_eq!(std::mem::size_of::<Item>(), 16);
     let walk = std::fs::read_to_string(shader_dir().join("walk.wgsl")).unwrap();
     assert!(walk.contains("items[at] = vec4<u32>(qi, c, s, end - s);"));
+}
+
+/// Every pipeline of the kernel registry, as the engine compiles it, validates (with f64
+/// exactly where the registry compiles it only on an f64 device); every shader under
+/// `shaders/` but the shared parts is some kernel's; no two pipelines share a name and
+/// entry point.
+#[test]
+fn every_registered_kernel_validates_and_every_shader_is_registered() {
+    use linegs_gpu::engine::gpu::{kernel_specs, When};
+    let mut seen = std::collections::BTreeSet::new();
+    let mut shaders = std::collections::BTreeSet::new();
+    for k in kernel_specs() {
+        assert!(
+            seen.insert((k.name, k.entry)),
+            "{} {} twice",
+            k.name,
+            k.entry
+        );
+        shaders.insert(k.shader.to_string());
+        let src = (k.source)();
+        let path = Path::new(k.shader);
+        let module = parse(&src, path).unwrap_or_else(|e| panic!("{e}"));
+        let caps = if k.when == When::F64 {
+            naga::valid::Capabilities::FLOAT64
+        } else {
+            naga::valid::Capabilities::empty()
+        };
+        naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps)
+            .validate(&module)
+            .unwrap_or_else(|e| panic!("{} {}: {e:?}", k.name, k.entry));
+        assert!(
+            module.entry_points.iter().any(|e| e.name == k.entry),
+            "{}: no entry point {}",
+            k.shader,
+            k.entry
+        );
+    }
+    let files: std::collections::BTreeSet<String> = kernels()
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .filter(|n| n != "common.wgsl" && n != "lists.wgsl")
+        .collect();
+    assert_eq!(files, shaders);
+}
+
+/// A kernel is a unit: its shader is loaded by its own launcher alone
+/// (`src/engine/gpu/kernels/<name>.rs`, named after it), and the launcher's pipelines are
+/// in the registry, which is the only other file of `src/` that names the launcher.
+#[test]
+fn each_shader_is_loaded_by_its_own_launcher_only() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut sources = Vec::new();
+    let mut stack = vec![root.join("src")];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                let text = std::fs::read_to_string(&p).unwrap();
+                let rel = p
+                    .strip_prefix(root)
+                    .unwrap()
+                    .to_string_lossy()
+                    .replace('\\', "/");
+                sources.push((rel, text));
+            }
+        }
+    }
+    let registry = "src/engine/gpu/kernels/mod.rs";
+    let reg = &sources.iter().find(|(p, _)| p == registry).unwrap().1;
+    for path in kernels() {
+        let name = path.file_stem().unwrap().to_string_lossy().into_owned();
+        let file = format!("{name}.wgsl");
+        let loads: Vec<&str> = sources
+            .iter()
+            .filter(|(_, t)| t.contains(&format!("shaders/{file}\")")))
+            .map(|(p, _)| p.as_str())
+            .collect();
+        let want = match name.as_str() {
+            // The shared parts: assembled into every kernel's source by the registry.
+            "common" | "lists" => registry.to_string(),
+            _ => format!("src/engine/gpu/kernels/{name}.rs"),
+        };
+        assert_eq!(loads, [want.as_str()], "{file} is loaded by");
+        if !matches!(name.as_str(), "common" | "lists") {
+            assert!(
+                reg.contains(&format!("mod {name};"))
+                    && reg.contains(&format!("&{name}::KERNELS,")),
+                "{name}: one `mod` and one registry line in {registry}"
+            );
+            let naming: Vec<&str> = sources
+                .iter()
+                .filter(|(_, t)| {
+                    t.contains(&format!("kernels::{name}::")) || t.contains(&format!("mod {name};"))
+                })
+                .map(|(p, _)| p.as_str())
+                .filter(|p| p.starts_with("src/engine/gpu/"))
+                .collect();
+            assert_eq!(naming, [registry], "{name}: the launcher is named by");
+        }
+    }
 }

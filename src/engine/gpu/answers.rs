@@ -7,7 +7,7 @@ use super::batch::{self, Kind, Output};
 use super::query::stats_of;
 use super::resources::{self, Buffers};
 use super::{host, layout, GpuEngine};
-use crate::engine::{Coverage, CylStats, EngineError, Extent, Member, NearestSum, Query, Want};
+use crate::engine::{Coverage, CylStats, EngineError, Member, NearestSum, Query, Want};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::sync::atomic::Ordering;
@@ -29,6 +29,13 @@ pub(super) fn per_query<T: Send>(
 }
 
 impl GpuEngine {
+    /// Counts a query the device left to the host, which the host answers from its own
+    /// walk (`host_fallbacks`, `host_lists`).
+    pub(super) fn to_host(&self) {
+        self.fallbacks.fetch_add(1, Ordering::Relaxed);
+        self.host_lists.fetch_add(1, Ordering::Relaxed);
+    }
+
     /// Runs `kind` over `queries` in sub-batches, calling `each(first query, output)` for
     /// every sub-batch in order; a sub-batch too large for the buffers is split, and a
     /// single query that still does not fit is marked for the host.
@@ -121,7 +128,6 @@ impl GpuEngine {
         }
         let mut out = vec![CylStats::default(); queries.len()];
         let grid = &*self.grid;
-        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         // Members the device left to the host (flagged points, host-answered queries).
         let mut extra: Vec<u32> = Vec::new();
         let kind = Kind::Stats {
@@ -134,8 +140,7 @@ impl GpuEngine {
             per_query(&mut out[first..first + n], &o, 64, |i, flags, s| {
                 let r = &o.results[i];
                 if r.status & layout::STATUS_HOST != 0 {
-                    fallbacks.fetch_add(1, Ordering::Relaxed);
-                    host_lists.fetch_add(1, Ordering::Relaxed);
+                    self.to_host();
                     *s = host::stats(grid, &qs[i]);
                     return;
                 }
@@ -194,7 +199,6 @@ impl GpuEngine {
     ) -> Result<(Vec<NearestSum>, Vec<u64>), EngineError> {
         let mut out = vec![(NearestSum::default(), 0u64); queries.len()];
         let grid = &*self.grid;
-        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         self.run(b, Kind::Nearest, queries, k, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -204,8 +208,7 @@ impl GpuEngine {
                 match host::nearest(grid, q, k, &o.results[i], plan, flags) {
                     Some(x) => *s = x,
                     None => {
-                        fallbacks.fetch_add(1, Ordering::Relaxed);
-                        host_lists.fetch_add(1, Ordering::Relaxed);
+                        self.to_host();
                         *s = host::exact_nearest(grid, q, k);
                     }
                 }
@@ -225,7 +228,6 @@ impl GpuEngine {
     ) -> Result<Vec<Vec<Member>>, EngineError> {
         let mut out: Vec<Vec<Member>> = vec![Vec::new(); queries.len()];
         let grid = &*self.grid;
-        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
         self.run(b, Kind::Members, queries, &[], &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -255,61 +257,8 @@ impl GpuEngine {
                     .then(|| host::members(grid, q, &o.members[lists[i].clone()], flags))
                     .flatten();
                 *m = list.unwrap_or_else(|| {
-                    fallbacks.fetch_add(1, Ordering::Relaxed);
-                    host_lists.fetch_add(1, Ordering::Relaxed);
+                    self.to_host();
                     self.cpu_members(q)
-                });
-            });
-            Ok(())
-        })?;
-        Ok(out)
-    }
-
-    /// Every query's extent (see [`crate::engine::Engine::extent`]) from device batches:
-    /// the count and the ends of the sure members from the device (`extent.wgsl`), each
-    /// end taken from its member's own f64 position; the flagged points decided and added
-    /// on the host. A query whose end the device cannot tell apart from its runner-up
-    /// (within 1e-9 of the coordinates' scale, beyond any f64 rounding of the kernel's),
-    /// or that the device leaves to the host, is walked on the host (`host_fallbacks`).
-    pub(super) fn extent_batch(
-        &self,
-        b: &mut Buffers,
-        queries: &[Query],
-    ) -> Result<Vec<Extent>, EngineError> {
-        let frames: Vec<layout::FitQuery> = queries
-            .iter()
-            .map(|q| {
-                let (p1, d) = (q.seg.p1, q.seg.dir());
-                layout::FitQuery {
-                    p1x: p1.x,
-                    p1y: p1.y,
-                    p1z: p1.z,
-                    dx: d.x,
-                    dy: d.y,
-                    dz: d.z,
-                    r: q.r,
-                    ..Default::default()
-                }
-            })
-            .collect();
-        let mut out = vec![Extent::default(); queries.len()];
-        let grid = &*self.grid;
-        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
-        self.run_with(b, Kind::Extent, queries, &[], &frames, &mut |first, o| {
-            let n = o.results.len();
-            let qs = &queries[first..first + n];
-            per_query(&mut out[first..first + n], &o, 64, |i, flags, e| {
-                let q = &qs[i];
-                let device = o.results[i].status & layout::STATUS_HOST == 0 && !o.bad;
-                let got = o
-                    .extents
-                    .get(i)
-                    .filter(|_| device)
-                    .and_then(|x| host::extent(grid, q, o.results[i].count, x, flags));
-                *e = got.unwrap_or_else(|| {
-                    fallbacks.fetch_add(1, Ordering::Relaxed);
-                    host_lists.fetch_add(1, Ordering::Relaxed);
-                    self.cpu_extent(q)
                 });
             });
             Ok(())

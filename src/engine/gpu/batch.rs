@@ -4,8 +4,8 @@
 //! and reruns.
 
 use super::device::{self, Context};
-use super::kernels::Kernels;
 use super::layout::*;
+use super::pipelines::Kernels;
 use super::query::gquery;
 use super::resources::{Buffers, Limits, Statics};
 pub use super::sizes::Kind;
@@ -26,10 +26,9 @@ pub struct Output {
     pub flags: Vec<(u32, u32)>,
     pub members: Vec<u32>,
     pub bad: bool,
-    /// A fit batch's ridges, one per query.
-    pub fits: Vec<FitOut>,
-    /// An extent batch's extents, one per query.
-    pub extents: Vec<ExtentOut>,
+    /// A list kernel's output ([`Kind::List`]), one [`super::pipelines::ListKernel::out`]
+    /// a query, as bytes (its launcher reads them: `ListOut::list_out`).
+    pub list: Vec<u8>,
     /// Work items the device evaluated and points it read from the point store, over
     /// every try of the sub-batch.
     pub items_run: u64,
@@ -230,9 +229,7 @@ fn attempt(
         s.size_items(&mut rec);
         s.emit(&mut rec);
         let mode = match kind {
-            Kind::Stats { sides: false, .. } | Kind::Members | Kind::Fit | Kind::Extent => {
-                MODE_STATS
-            }
+            Kind::Stats { sides: false, .. } | Kind::Members | Kind::List(_) => MODE_STATS,
             Kind::Stats { sides: true, .. } => MODE_STATS_SIDES,
             Kind::Nearest => MODE_HIST,
         };
@@ -244,11 +241,8 @@ fn attempt(
             s.nearest(&mut rec, ctx)?;
         }
         s.reduce(&mut rec);
-        if kind == Kind::Fit {
-            s.fit(&mut rec);
-        }
-        if kind == Kind::Extent {
-            s.extent(&mut rec);
+        if let Kind::List(l) = kind {
+            s.list(&mut rec, l);
         }
         rec.finish()
     };
@@ -262,7 +256,7 @@ fn attempt(
     match (kind, &bd.fitout) {
         (Kind::Nearest, _) => enc.copy_buffer_to_buffer(&bd.plans, 0, &bd.staging, after, sz.plans),
         (Kind::Members, _) => enc.copy_buffer_to_buffer(&bd.aux, 0, &bd.staging, after, sz.members),
-        (Kind::Fit | Kind::Extent, Some(out)) => {
+        (Kind::List(_), Some(out)) => {
             enc.copy_buffer_to_buffer(out, 0, &bd.staging, after, sz.fitout)
         }
         _ => {}
@@ -292,8 +286,7 @@ fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32, member_cap: u32) ->
     let mut members = 0u64;
     match kind {
         Kind::Nearest => out.plans = bytemuck::pod_collect_to_vec(&tail[..sz.plans as usize]),
-        Kind::Fit => out.fits = bytemuck::pod_collect_to_vec(&tail[..sz.fitout as usize]),
-        Kind::Extent => out.extents = bytemuck::pod_collect_to_vec(&tail[..sz.fitout as usize]),
+        Kind::List(_) => out.list = tail[..sz.fitout as usize].to_vec(),
         _ => {}
     }
     if kind.lists() {

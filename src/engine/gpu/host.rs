@@ -27,7 +27,7 @@ pub fn spans(flags: &[(u32, u32)], n: usize) -> Vec<std::ops::Range<usize>> {
     spans
 }
 
-fn valid(q: &Query) -> bool {
+pub(in crate::engine::gpu) fn valid(q: &Query) -> bool {
     q.seg.is_valid() && q.r.is_finite() && q.r >= 0.0
 }
 
@@ -235,56 +235,4 @@ type Keyed = (Vec<u64>, Vec<(f64, DVec3)>);
 thread_local! {
     /// [`members`]' keys and measurements, reused from query to query on each thread.
     static KEYS: std::cell::RefCell<Keyed> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
-}
-
-/// One query's extent ([`crate::engine::Engine::extent`]) from the device's: `sure` sure
-/// members (the stats pass's count), the members holding the smallest and largest axial
-/// position among them with each end's runner-up (`x`, f64 on the device), and the
-/// flagged points (`flags`), decided with the CPU engine's own f64 test. Each end is its
-/// member's own f64 position from that test, so the answer is the CPU engine's bit for
-/// bit whenever the device's choice of member is: where the runner-up lies within 1e-9 of
-/// the coordinates' scale of the end (far above the kernel's f64 rounding), a tie the
-/// rounding could turn, `None` (as for a point outside the grid, a member the test
-/// rejects, or a status the host must answer): the caller walks the query on the host.
-pub fn extent(
-    grid: &Grid,
-    q: &Query,
-    sure: u32,
-    x: &super::layout::ExtentOut,
-    flags: &[(u32, u32)],
-) -> Option<crate::engine::Extent> {
-    use super::layout::{EXTENT_NONE, EXTENT_OK};
-    let mut e = crate::engine::Extent::default();
-    if !valid(q) {
-        return None;
-    }
-    let cyl = Cylinder::new(&q.seg, q.r);
-    let l = q.seg.length();
-    let t_of = |i: u32| -> Option<f64> {
-        let p = grid.points.get(i as usize)?;
-        cyl.test(p64(*p)).map(|(t, _)| t)
-    };
-    match x.status {
-        EXTENT_NONE if sure == 0 => {}
-        EXTENT_OK if sure > 0 => {
-            let (a, b) = (q.seg.p1.abs().max_element(), q.seg.p2.abs().max_element());
-            let tol = 1e-9 * (a.max(b) + l + q.r.abs());
-            if !(x.lo2 - x.lo > tol && x.hi - x.hi2 > tol) && sure > 1 {
-                return None;
-            }
-            let (lo, hi) = (t_of(x.ilo)?, t_of(x.ihi)?);
-            e = crate::engine::Extent {
-                count: sure as u64,
-                lo: lo.clamp(0.0, l),
-                hi: hi.clamp(0.0, l),
-            };
-        }
-        _ => return None,
-    }
-    for f in flags.iter().filter(|f| f.0 & FLAG_CANDIDATE == 0) {
-        if let Some(t) = t_of(f.1) {
-            e.add(t.clamp(0.0, l));
-        }
-    }
-    Some(e)
 }

@@ -5,8 +5,6 @@
 //! Every struct has only 4-byte scalar fields (no vec3: its 16-byte alignment differs
 //! between Rust and WGSL); `tests/shaders.rs` checks naga's offsets against Rust's.
 
-use bytemuck::{Pod, Zeroable};
-
 /// Most points per work item: the bound of the evaluation kernel's loop.
 pub const CHUNK: u32 = 256;
 /// Most cells of a row in one work item (a run of contiguous points). The evaluation moves
@@ -64,30 +62,9 @@ pub const MODE_MEMBERS: u32 = 7;
 /// `ctl[2]` after a members batch: nonzero when an item found a different number of
 /// members than its stats pass counted (the host then answers the sub-batch itself).
 pub const CTL_MEMBERS_BAD: u32 = 2;
-/// Lanes of the fit kernel's workgroup (one workgroup per query).
+/// Lanes of the workgroup of a kernel over the member lists (one workgroup per query:
+/// `kernels/lists.rs`).
 pub const FIT_WG: u32 = 64;
-/// Most mean-shift steps of the ridge (`ridge()`'s schedule in src/geom/fit.rs).
-pub const FIT_STEPS: u32 = 100;
-/// Most members of a query the fit kernel takes; a query with more is fitted on the host.
-/// The kernel's loops then stay below FIT_STEPS + 1 passes of
-/// `MAX_FIT_MEMBERS / FIT_WG + log2(FIT_WG)` iterations (26,724), far below lavapipe's
-/// 65,535.
-pub const MAX_FIT_MEMBERS: u32 = 16_384;
-/// `FitOut::status`: the ridge found (`t0`, `a`, `b`, `weight`); no weight left (no
-/// members, or the kernel lost them all: "unclear"); or a decision too close to its
-/// threshold for rounding to be sure of (or a query too large) for the device: the host
-/// fits the query.
-pub const FIT_OK: u32 = 0;
-pub const FIT_NONE: u32 = 1;
-pub const FIT_HOST: u32 = 2;
-/// Most members of a query the extent kernel takes (its loop runs
-/// `MAX_EXTENT_MEMBERS / FIT_WG + log2(FIT_WG)` iterations: 16,390); a query with more is
-/// the host's.
-pub const MAX_EXTENT_MEMBERS: u32 = 1 << 20;
-/// `ExtentOut::status`: the ends found; no sure member; the host answers the query.
-pub const EXTENT_OK: u32 = 0;
-pub const EXTENT_NONE: u32 = 1;
-pub const EXTENT_HOST: u32 = 2;
 /// Defines a `#[repr(C)]` Pod struct of 4-byte fields and its WGSL text (`Name::WGSL`),
 /// with `Name::FIELDS` (name, byte offset) for the layout test and `Name::TYPES` (each
 /// field's WGSL type, in the same order) for generated accessors.
@@ -95,7 +72,7 @@ macro_rules! shared {
     ($(#[$m:meta])* struct $name:ident { $($(#[$fm:meta])* $field:ident : $rty:ty => $wty:literal),* $(,)? }) => {
         $(#[$m])*
         #[repr(C)]
-        #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+        #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
         pub struct $name { $($(#[$fm])* pub $field: $rty),* }
         impl $name {
             pub const WGSL: &'static str = concat!(
@@ -105,10 +82,14 @@ macro_rules! shared {
             );
             pub const FIELDS: &'static [(&'static str, usize)] =
                 &[$((stringify!($field), std::mem::offset_of!($name, $field))),*];
+            #[allow(dead_code)]
             pub const TYPES: &'static [&'static str] = &[$($wty),*];
         }
     };
 }
+
+/// For the launchers' own shared structs (`kernels/<name>.rs`).
+pub(crate) use shared;
 
 shared! {
     /// One cylinder query as the kernels see it, in cell units relative to the grid's
@@ -257,36 +238,6 @@ shared! {
     }
 }
 
-shared! {
-    /// One query's ridge from the fit kernel, in scene units and f64: the line
-    /// `a + b (t - t0)` (`t` from `P1`) and the weight under the final kernel.
-    struct FitOut {
-        status: u32 => "u32",
-        /// Mean-shift steps run.
-        steps: u32 => "u32",
-        weight: f64 => "f64",
-        t0: f64 => "f64",
-        ax: f64 => "f64", ay: f64 => "f64",
-        bx: f64 => "f64", by: f64 => "f64",
-    }
-}
-
-shared! {
-    /// One query's extent from the extent kernel (`extent.wgsl`, f64): the smallest and
-    /// largest axial position of its sure members (from `P1`, unclamped), the members
-    /// (sorted indices) holding them, and each end's runner-up (`±1e300`: none).
-    struct ExtentOut {
-        status: u32 => "u32",
-        ilo: u32 => "u32",
-        ihi: u32 => "u32",
-        pad0: u32 => "u32",
-        lo: f64 => "f64",
-        lo2: f64 => "f64",
-        hi: f64 => "f64",
-        hi2: f64 => "f64",
-    }
-}
-
 /// Bytes between the uniform slots of consecutive dispatches.
 pub const PARAMS_SLOT: u64 = 256;
 
@@ -317,21 +268,10 @@ pub fn prelude() -> String {
         ("MODE_MEMBERS", MODE_MEMBERS),
         ("CTL_MEMBERS_BAD", CTL_MEMBERS_BAD),
         ("CTL_POINTS", CTL_POINTS),
-        ("MAX_EXTENT_MEMBERS", MAX_EXTENT_MEMBERS),
-        ("EXTENT_OK", EXTENT_OK),
-        ("EXTENT_NONE", EXTENT_NONE),
-        ("EXTENT_HOST", EXTENT_HOST),
         ("FIT_WG", FIT_WG),
-        ("FIT_STEPS", FIT_STEPS),
-        ("MAX_FIT_MEMBERS", MAX_FIT_MEMBERS),
-        ("FIT_OK", FIT_OK),
-        ("FIT_NONE", FIT_NONE),
-        ("FIT_HOST", FIT_HOST),
     ];
     let mut s = String::from("// Generated from src/engine/gpu/layout.rs: do not edit here.\n");
-    for (name, v) in consts {
-        s += &format!("const {name}: u32 = {v}u;\n");
-    }
+    s += &wgsl_consts(&consts);
     for st in [
         GQuery::WGSL,
         Item::WGSL,
@@ -343,6 +283,14 @@ pub fn prelude() -> String {
         s += st;
     }
     s
+}
+
+/// `const NAME: u32 = Vu;` for each constant, as the WGSL preludes declare them.
+pub fn wgsl_consts(consts: &[(&str, u32)]) -> String {
+    consts
+        .iter()
+        .map(|(name, v)| format!("const {name}: u32 = {v}u;\n"))
+        .collect()
 }
 
 /// `query_of(t, qi)`: query `qi` read from the query texture `t` (`QUERY_TEXELS` texels a
@@ -368,21 +316,14 @@ pub fn query_of_wgsl() -> String {
     s + "    return q;\n}\n"
 }
 
-/// The f64 kernels' own prelude (the fit's and the extent's), after the common one: its f64 structs and constants
-/// (a module that declares an f64 type needs `SHADER_F64`, so the other kernels do not
-/// carry them).
-pub fn fit_prelude() -> String {
+/// The prelude of the kernels over the member lists (`kernels/lists.rs`), after the
+/// common one: their f64 frame (a module that declares an f64 type needs `SHADER_F64`,
+/// so the other kernels do not carry it). Each list kernel's launcher adds its own
+/// structs and constants.
+pub fn list_prelude() -> String {
     format!(
-        "// Generated from src/engine/gpu/layout.rs: do not edit here.\n\
-         const MIN_ELONGATION: f64 = {:?}lf;\n\
-         const RIDGE_SHRINK: f64 = {:?}lf;\n\
-         const RIDGE_STOP: f64 = {:?}lf;\n{}{}{}",
-        crate::geom::fit::MIN_ELONGATION,
-        crate::geom::fit::RIDGE_SHRINK,
-        crate::geom::fit::RIDGE_STOP,
-        FitQuery::WGSL,
-        FitOut::WGSL,
-        ExtentOut::WGSL
+        "// Generated from src/engine/gpu/layout.rs: do not edit here.\n{}",
+        FitQuery::WGSL
     )
 }
 
@@ -401,19 +342,11 @@ pub fn layouts() -> Vec<Layout> {
     ]
 }
 
-/// The f64 kernels' shared structs (in [`fit_prelude`]), for the layout test.
-pub fn fit_layouts() -> Vec<Layout> {
-    vec![
-        (
-            "FitQuery",
-            std::mem::size_of::<FitQuery>(),
-            FitQuery::FIELDS,
-        ),
-        ("FitOut", std::mem::size_of::<FitOut>(), FitOut::FIELDS),
-        (
-            "ExtentOut",
-            std::mem::size_of::<ExtentOut>(),
-            ExtentOut::FIELDS,
-        ),
-    ]
+/// The list kernels' shared frame (in [`list_prelude`]), for the layout test.
+pub fn list_layouts() -> Vec<Layout> {
+    vec![(
+        "FitQuery",
+        std::mem::size_of::<FitQuery>(),
+        FitQuery::FIELDS,
+    )]
 }

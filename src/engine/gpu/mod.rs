@@ -11,7 +11,8 @@
 //! different address per lane is a loop over the lanes (the evaluation kernel 2.3x faster
 //! there). Per batch the host uploads only the queries (96 bytes each, in the Morton
 //! order of their midpoints' cells: `order.rs`), as a texture whose texels the kernels
-//! fetch, and one submit runs the stages of `stages.rs`:
+//! fetch, and one submit runs the stages (each recorded by its kernel's launcher,
+//! `kernels/`):
 //! 1. `walk.wgsl` (count): per query, the work items its capped cylinder needs (cells it
 //!    can touch, each cell cut into chunks of at most [`CHUNK`] points);
 //! 2. `scan.wgsl`: exclusive prefix sum of those counts (multi-level workgroup scan);
@@ -31,11 +32,13 @@
 //! what makes membership exact (`answers.rs`). When the items or flags outgrow their
 //! buffers the batch is rerun with larger ones (the sizes are kept for later batches).
 //!
-//! The files: `options.rs` (what callers choose), `kernels.rs` (shader assembly and
-//! pipelines), `resources.rs` (limits, what is uploaded once, per-batch buffers),
-//! `query.rs` (a query as the kernels read it), `order.rs` (the queries' order),
-//! `batch.rs` (one sub-batch: sizes, buffers, submit, readback), `stages.rs` (one
-//! function per stage), `answers.rs` (outputs into answers), `host.rs` (the host's f64
+//! The files: `options.rs` (what callers choose), `kernels/` (one launcher a kernel,
+//! and the one list of them that the device opening compiles), `pipelines.rs` (a
+//! kernel's description and the compiled pipelines), `resources.rs` (limits,
+//! what is uploaded once, per-batch buffers), `query.rs` (a query as the kernels read
+//! it), `order.rs` (the queries' order), `batch.rs` (one sub-batch: sizes, buffers, the
+//! stages in order, submit, readback), `stages.rs` (the recorder of a compute pass),
+//! `answers.rs` (outputs into answers), `host.rs` (the host's f64
 //! decisions), `device.rs` (wgpu), `layout.rs` (the structs shared with WGSL).
 //!
 //! What keeps the device within its limits: every kernel loop is bounded (see each
@@ -51,6 +54,7 @@ mod host;
 mod kernels;
 pub mod layout;
 mod options;
+mod pipelines;
 mod query;
 mod resources;
 mod sizes;
@@ -61,10 +65,12 @@ pub use device::{
     PciBusError,
 };
 pub use kernels::{
-    common_wgsl, eval_source, f64_kernel_source, fit_source, kernel_source, walk_source,
+    common_wgsl, eval_source, f64_kernel_source, fit_source, kernel_source, kernel_specs,
+    list_kernel_source, walk_source,
 };
 pub use layout::CHUNK;
 pub use options::{FitOn, GpuOptions, GpuSetup, GpuSetupError, MembersOn, SMALL_BATCH};
+pub use pipelines::{KernelSpec, When};
 pub use resources::PointStore;
 
 use super::{
@@ -74,10 +80,8 @@ use super::{
 use crate::engine::order::SpatialOrder;
 use crate::geom::fit::{FitPoints, FitResult, FitSpec};
 use crate::index::Grid;
-use batch::Kind;
 use device::Context;
 use glam::DVec3;
-use rayon::prelude::*;
 use resources::Buffers;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -101,7 +105,7 @@ impl Clock {
 pub struct GpuEngine {
     grid: Arc<Grid>,
     ctx: Context,
-    kernels: kernels::Kernels,
+    kernels: pipelines::Kernels,
     statics: resources::Statics,
     opts: resources::Limits,
     /// One batch at a time: the buffers and the error scopes are per batch.
@@ -141,7 +145,7 @@ pub struct GpuEngine {
 /// (`select::prepare`). [`GpuDevice::engine`] uploads a grid and gives the engine.
 pub struct GpuDevice {
     ctx: Context,
-    kernels: kernels::Kernels,
+    kernels: pipelines::Kernels,
     opts: GpuOptions,
     fit_wanted: bool,
     software: bool,
@@ -174,7 +178,7 @@ impl GpuDevice {
                 FitOn::Auto => !software,
             };
         let kernels = ctx.scoped("compiling the kernels", || {
-            kernels::Kernels::new(&ctx, fit_wanted)
+            pipelines::Kernels::new(&ctx, kernels::kernel_specs(), fit_wanted)
         })?;
         // Where the ridge runs on the device, every refinement sends member batches (the
         // fit's, the end gaps'): their kernels compile here, on the opening thread while
@@ -266,8 +270,10 @@ impl GpuDevice {
         let limits = resources::Limits::new(&ctx, &opts, grid.len());
         let statics = resources::Statics::upload(&ctx, &grid, store, &limits, fit_wanted)?;
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
-        let device_fit = fit_wanted && kernels.fit.is_some() && statics.world.is_some();
-        let device_extent = fit_wanted && kernels.extent.is_some() && statics.world.is_some();
+        let on_device = |l: &pipelines::ListKernel| {
+            fit_wanted && kernels.compiled(l.spec).is_some() && statics.world.is_some()
+        };
+        let (device_fit, device_extent) = (on_device(&kernels::FIT), on_device(&kernels::EXTENT));
         Ok(GpuEngine {
             cpu: Box::new(super::cpu::CpuEngine::new(grid.clone())),
             small_batch: opts.small_batch,
@@ -383,125 +389,6 @@ impl GpuEngine {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Buffers> {
         self.buffers.lock().unwrap_or_else(|p| p.into_inner())
-    }
-}
-
-impl GpuEngine {
-    /// The edge fit's step of every query: the ridge on the device (`fit.wgsl`, f64) over
-    /// the members the batch lists there. A query whose members include a flagged
-    /// boundary point, whose ridge the kernel left to the host, whose weight lies within
-    /// 1e-9 (relative) of `fit_min_points`, or that the device could not take, is fitted
-    /// on the host from its exact members (`host_fallbacks` counts them).
-    fn fit_batch(
-        &self,
-        b: &mut Buffers,
-        queries: &[Query],
-        ask: &FitAsk<'_>,
-    ) -> Result<Vec<FitAnswer>, EngineError> {
-        use crate::geom::fit::{How, LineFit};
-        let grid = &*self.grid;
-        let p = ask.spec;
-        // The host's own values (`Cylinder::new`, `basis`, `ridge`'s widths).
-        let frames: Vec<layout::FitQuery> = queries
-            .iter()
-            .enumerate()
-            .map(|(i, q)| {
-                let d = q.seg.dir();
-                let (e1, e2) = crate::geom::fit::basis(d);
-                let p1 = q.seg.p1;
-                layout::FitQuery {
-                    p1x: p1.x,
-                    p1y: p1.y,
-                    p1z: p1.z,
-                    dx: d.x,
-                    dy: d.y,
-                    dz: d.z,
-                    e1x: e1.x,
-                    e1y: e1.y,
-                    e1z: e1.z,
-                    e2x: e2.x,
-                    e2y: e2.y,
-                    e2z: e2.z,
-                    r: q.r,
-                    h_min: p.bandwidth * q.r,
-                    h_start: crate::geom::fit::ridge_start(
-                        q.r,
-                        p.bandwidth,
-                        ask.warm.get(i).copied().unwrap_or(false),
-                    ),
-                }
-            })
-            .collect();
-        let min_points = p.min_points as f64;
-        let mut out: Vec<FitAnswer> = vec![(None, How::Unclear); queries.len()];
-        let (fallbacks, host_lists) = (&self.fallbacks, &self.host_lists);
-        let (device_fits, refitted) = (&self.device_fits, &self.device_fits_refitted);
-        self.run_with(b, Kind::Fit, queries, &[], &frames, &mut |first, o| {
-            let n = o.results.len();
-            let qs = &queries[first..first + n];
-            let spans = host::spans(&o.flags, n);
-            out[first..first + n]
-                .par_iter_mut()
-                .enumerate()
-                .with_min_len(8)
-                .for_each(|(i, a)| {
-                    let q = &qs[i];
-                    let device = o.results[i].status & layout::STATUS_HOST == 0
-                        && !o.bad
-                        && q.r.is_finite()
-                        && q.r > 0.0
-                        && !o.flags[spans[i].clone()].iter().any(|f| {
-                            f.0 & layout::FLAG_CANDIDATE == 0 && host::is_member(grid, q, f.1)
-                        });
-                    let answer = o
-                        .fits
-                        .get(i)
-                        .filter(|_| device)
-                        .and_then(|f| match f.status {
-                            layout::FIT_NONE => Some((None, How::Unclear)),
-                            layout::FIT_OK => {
-                                let w = f.weight;
-                                // Within rounding of the threshold: the host decides.
-                                if (w - min_points).abs() <= 1e-9 * min_points.max(1.0) {
-                                    return None;
-                                }
-                                if w < min_points {
-                                    return Some((None, How::Unclear));
-                                }
-                                let line = LineFit {
-                                    t0: f.t0,
-                                    a: glam::DVec2::new(f.ax, f.ay),
-                                    b: glam::DVec2::new(f.bx, f.by),
-                                };
-                                // A decision of the caller's close to its threshold: exact.
-                                if ask.sensitive.is_some_and(|s| s(first + i, &line)) {
-                                    return None;
-                                }
-                                Some((Some(line), How::Ridge))
-                            }
-                            _ => None,
-                        });
-                    *a = match answer {
-                        Some(a) => {
-                            device_fits.fetch_add(1, Ordering::Relaxed);
-                            a
-                        }
-                        None => {
-                            fallbacks.fetch_add(1, Ordering::Relaxed);
-                            refitted.fetch_add(1, Ordering::Relaxed);
-                            host_lists.fetch_add(1, Ordering::Relaxed);
-                            let m = self.cpu_members(q);
-                            let one = FitAsk {
-                                warm: ask.warm.get(first + i..=first + i).unwrap_or(&[]),
-                                ..*ask
-                            };
-                            super::fit::steps(std::slice::from_ref(q), &[m], &one)[0]
-                        }
-                    };
-                });
-            Ok(())
-        })?;
-        Ok(out)
     }
 }
 

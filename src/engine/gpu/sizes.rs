@@ -5,6 +5,7 @@
 
 use super::device::Context;
 use super::layout::*;
+use super::pipelines::ListKernel;
 use super::resources::{Buffers, Limits};
 
 /// What a batch asks of the evaluation kernel.
@@ -18,24 +19,22 @@ pub enum Kind {
     Nearest,
     /// The members: each query's sure members' sorted indices (and the flagged points).
     Members,
-    /// The edge fit's ridge of each query (`fit.wgsl`) over its sure members, left on the
-    /// device (and the flagged points).
-    Fit,
-    /// Each query's extent (`extent.wgsl`) over its sure members, left on the device (and
-    /// the flagged points).
-    Extent,
+    /// A list kernel's output of each query (the ridge of `fit.wgsl`, the extent of
+    /// `extent.wgsl`: [`ListKernel`]) over its sure members, left on the device (and the
+    /// flagged points).
+    List(&'static ListKernel),
 }
 
 impl Kind {
     /// Whether the batch lists each query's members on the device.
     pub fn lists(self) -> bool {
-        matches!(self, Kind::Members | Kind::Fit | Kind::Extent)
+        matches!(self, Kind::Members | Kind::List(_))
     }
 
-    /// Whether the batch uploads per-query frames (`FitQuery`) for an f64 kernel and
+    /// Whether the batch uploads per-query frames (`FitQuery`) for a list kernel and
     /// reads back its per-query output.
     pub fn f64_kernel(self) -> bool {
-        matches!(self, Kind::Fit | Kind::Extent)
+        matches!(self, Kind::List(_))
     }
 }
 
@@ -115,19 +114,19 @@ impl Sizes {
         let plans = size_of(std::mem::size_of::<Plan>(), n64);
         let members = b.member_cap as u64 * 4;
         let fitout = match kind {
-            Kind::Extent => size_of(std::mem::size_of::<ExtentOut>(), n64),
-            _ => size_of(std::mem::size_of::<FitOut>(), n64),
+            Kind::List(l) => l.out * n64,
+            _ => 0,
         };
         let aux = match kind {
             Kind::Nearest => hist,
             Kind::Stats { cover: true, .. } => b.aux_len,
             Kind::Stats { cover: false, .. } => 4,
-            Kind::Members | Kind::Fit | Kind::Extent => members,
+            Kind::Members | Kind::List(_) => members,
         };
         let tail = match kind {
             Kind::Nearest => plans,
             Kind::Members => members,
-            Kind::Fit | Kind::Extent => fitout,
+            Kind::List(_) => fitout,
             Kind::Stats { .. } => 0,
         };
         Sizes {

@@ -1,8 +1,9 @@
-//! The stages of one device batch, each a small function that declares its uniform slot
-//! and its bindings right where it dispatches, in the order [`super::batch`] records them:
+//! How the stages of one device batch are recorded: the [`Recorder`] of one compute pass
+//! and the [`Stage`] every kernel's launcher (`kernels/`) records its dispatch from, in
+//! the order [`super::batch`] calls them:
 //!
 //! ```text
-//! count ─ scan ─ size_items ─ emit ─ evaluate ─┬─────────────────────────┬─ reduce ─ (fit | extent)
+//! count ─ scan ─ size_items ─ emit ─ evaluate ─┬─────────────────────────┬─ reduce ─ list kernel
 //!  walk    scan     args       walk     eval    ├ members: gather, scan,  │   reduce    fit, extent
 //!                                               │   scatter, eval members │
 //!                                               └ nearest: cut, eval below┘
@@ -13,11 +14,10 @@
 //! the submit.
 
 use super::device::{self, Context};
-use super::kernels::Kernels;
 use super::layout::*;
+use super::pipelines::Kernels;
 use super::resources::{Limits, Statics};
-use super::sizes::{Bound, Level, Sizes};
-use crate::engine::EngineError;
+use super::sizes::{Bound, Sizes};
 
 /// Most uniform slots a try records: the walk's two passes, the args, the members'
 /// gather and scatter, the cut, the reduction and the fit (8); two slots per scan level
@@ -68,7 +68,7 @@ impl<'a> Recorder<'a> {
     }
 
     /// Sets `pipeline` with a new slot holding `p` at binding 0 and `bind` after it.
-    fn bind(
+    pub(in crate::engine::gpu) fn bind(
         &mut self,
         pipeline: &wgpu::ComputePipeline,
         p: Params,
@@ -87,12 +87,12 @@ impl<'a> Recorder<'a> {
         self
     }
 
-    fn dispatch(&mut self, (x, y): (u32, u32)) {
+    pub(in crate::engine::gpu) fn dispatch(&mut self, (x, y): (u32, u32)) {
         self.pass.dispatch_workgroups(x, y, 1);
     }
 
     /// A dispatch sized by `args.wgsl`: the per-item grid at 0, the emit pass's at 12.
-    fn indirect(&mut self, buf: &wgpu::Buffer, offset: u64) {
+    pub(in crate::engine::gpu) fn indirect(&mut self, buf: &wgpu::Buffer, offset: u64) {
         self.pass.dispatch_workgroups_indirect(buf, offset);
     }
 
@@ -120,196 +120,7 @@ pub struct Stage<'a> {
 
 impl Stage<'_> {
     /// A workgroup per [`WG`] queries (tiled past `max_x`).
-    fn per_query(&self) -> (u32, u32) {
+    pub(in crate::engine::gpu) fn per_query(&self) -> (u32, u32) {
         device::tiles(self.sz.n as u64, WG as u64, self.lim.max_x)
-    }
-
-    /// The walk's bindings: the queries, the cell table, the counts' scan, the items and
-    /// the per-query results.
-    fn walk(&self, rec: &mut Recorder<'_>, pipeline: &wgpu::ComputePipeline, mode: u32) {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let p = Params { mode, ..rec.base };
-        rec.bind(
-            pipeline,
-            p,
-            &[
-                wgpu::BindingResource::TextureView(&bd.qtex),
-                h(&self.st.cell_start, self.st.cell_bytes),
-                h(&bd.scan, sz.scan),
-                h(&bd.items, sz.items),
-                h(&bd.results, sz.results),
-            ],
-        );
-    }
-
-    /// `walk.wgsl`, count pass: each query's work items.
-    pub fn count(&self, rec: &mut Recorder<'_>) {
-        self.walk(rec, &self.k.walk_count, MODE_COUNT);
-        rec.dispatch(self.per_query());
-    }
-
-    /// `scan.wgsl`: the exclusive prefix sum of `buf` over `levels`, up the levels (each
-    /// level's block sums into the next), then the scanned block sums added back down.
-    pub fn scan(&self, rec: &mut Recorder<'_>, buf: &wgpu::Buffer, bytes: u64, levels: &[Level]) {
-        let base = rec.base;
-        let p = |l: &Level| Params {
-            n: l.len,
-            base: l.base,
-            sums: l.sums,
-            ..base
-        };
-        for l in levels {
-            rec.bind(&self.k.scan, p(l), &[device::head(buf, bytes)]);
-            rec.dispatch((l.groups(), 1));
-        }
-        for l in levels.iter().rev().skip(1) {
-            rec.bind(&self.k.scan_add, p(l), &[device::head(buf, bytes)]);
-            rec.dispatch((l.groups(), 1));
-        }
-    }
-
-    /// `args.wgsl`: the items' total and the indirect dispatch sizes (empty grids when the
-    /// items do not fit).
-    pub fn size_items(&self, rec: &mut Recorder<'_>) {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let bind = [
-            h(&bd.scan, sz.scan),
-            h(&bd.ctl, sz.ctl),
-            h(&bd.indirect, 24),
-        ];
-        let base = rec.base;
-        rec.bind(&self.k.args, base, &bind);
-        rec.dispatch((1, 1));
-    }
-
-    /// `walk.wgsl`, emit pass: the items, contiguous per query.
-    pub fn emit(&self, rec: &mut Recorder<'_>) {
-        self.walk(rec, &self.k.walk_emit, MODE_EMIT);
-        rec.indirect(&self.bd.indirect, 12);
-    }
-
-    /// `eval.wgsl` compiled for `mode`, once per part of the point store: every point of
-    /// every item of that part.
-    pub fn evaluate(&self, rec: &mut Recorder<'_>, eval: &wgpu::ComputePipeline, mode: u32) {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        for (part, points) in self.st.parts.iter().enumerate() {
-            let p = Params {
-                mode,
-                part: part as u32,
-                part_base: part as u32 * self.lim.part_len,
-                ..rec.base
-            };
-            let bind = [
-                wgpu::BindingResource::TextureView(&bd.qtex),
-                h(&bd.items, sz.items),
-                wgpu::BindingResource::TextureView(points),
-                h(&bd.partials, sz.partials),
-                h(&bd.ctl, sz.ctl),
-                h(&bd.aux, sz.aux),
-                h(&bd.plans, sz.plans.max(16)),
-            ];
-            rec.bind(eval, p, &bind);
-            rec.indirect(&bd.indirect, 0);
-        }
-    }
-
-    /// `members.wgsl` and a member pass of `eval.wgsl`: each item's sure-member count
-    /// gathered, scanned into offsets and scattered back, then each query's members
-    /// written contiguously.
-    pub fn members(&self, rec: &mut Recorder<'_>, ctx: &Context) -> Result<(), EngineError> {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let (gather, scatter) = self.k.members(ctx)?;
-        let bind = [
-            h(&bd.ctl, sz.ctl),
-            h(&bd.partials, sz.partials),
-            h(&bd.mscan, sz.mscan),
-        ];
-        let base = rec.base;
-        rec.bind(gather, base, &bind);
-        rec.indirect(&bd.indirect, 0);
-        self.scan(rec, &bd.mscan, sz.mscan, &sz.mlevels);
-        rec.bind(scatter, base, &bind);
-        rec.indirect(&bd.indirect, 0);
-        self.evaluate(rec, self.k.eval(ctx, MODE_MEMBERS, false)?, MODE_MEMBERS);
-        Ok(())
-    }
-
-    /// `cut.wgsl` and a below-the-cut pass of `eval.wgsl`: each query's cut bin from its
-    /// histogram, then the sums of the points below it.
-    pub fn nearest(&self, rec: &mut Recorder<'_>, ctx: &Context) -> Result<(), EngineError> {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let bind = [
-            wgpu::BindingResource::TextureView(&bd.qtex),
-            h(&bd.aux, sz.hist),
-            h(&bd.plans, sz.plans),
-        ];
-        let base = rec.base;
-        rec.bind(self.k.cut(ctx)?, base, &bind);
-        rec.dispatch(self.per_query());
-        self.evaluate(rec, self.k.eval(ctx, MODE_BELOW, false)?, MODE_BELOW);
-        Ok(())
-    }
-
-    /// `reduce.wgsl`: each query's item slots summed in grid order.
-    pub fn reduce(&self, rec: &mut Recorder<'_>) {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let bind = [
-            h(&bd.scan, sz.scan),
-            h(&bd.partials, sz.partials),
-            h(&bd.results, sz.results),
-        ];
-        let base = rec.base;
-        rec.bind(&self.k.reduce, base, &bind);
-        rec.dispatch(self.per_query());
-    }
-
-    /// `fit.wgsl`: the edge fit's ridge over each query's member list, one workgroup per
-    /// query, after the reduction has counted its members. Nothing without the kernel or
-    /// the centers' coordinates on the device.
-    pub fn fit(&self, rec: &mut Recorder<'_>) {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let (Some(fitq), Some(fitout), Some(fit), Some((world, world_bytes))) =
-            (&bd.fitq, &bd.fitout, &self.k.fit, &self.st.world)
-        else {
-            return;
-        };
-        let bind = [
-            h(fitq, sz.fitq),
-            h(&bd.scan, sz.scan),
-            h(&bd.partials, sz.partials),
-            h(&bd.results, sz.results),
-            h(&bd.aux, sz.members),
-            h(world, *world_bytes),
-            h(fitout, sz.fitout),
-        ];
-        let base = rec.base;
-        rec.bind(fit, base, &bind);
-        let n = sz.n as u64 * FIT_WG as u64;
-        rec.dispatch(device::tiles(n, FIT_WG as u64, self.lim.max_x));
-    }
-
-    /// `extent.wgsl`: each query's extent over its member list, one workgroup per query,
-    /// after the reduction has counted its members. Nothing without the kernel or the
-    /// centers' coordinates on the device.
-    pub fn extent(&self, rec: &mut Recorder<'_>) {
-        let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let (Some(fitq), Some(out), Some(extent), Some((world, world_bytes))) =
-            (&bd.fitq, &bd.fitout, &self.k.extent, &self.st.world)
-        else {
-            return;
-        };
-        let bind = [
-            h(fitq, sz.fitq),
-            h(&bd.scan, sz.scan),
-            h(&bd.partials, sz.partials),
-            h(&bd.results, sz.results),
-            h(&bd.aux, sz.members),
-            h(world, *world_bytes),
-            h(out, sz.fitout),
-        ];
-        let base = rec.base;
-        rec.bind(extent, base, &bind);
-        let n = sz.n as u64 * FIT_WG as u64;
-        rec.dispatch(device::tiles(n, FIT_WG as u64, self.lim.max_x));
     }
 }

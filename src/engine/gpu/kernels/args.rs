@@ -1,0 +1,33 @@
+//! `args.wgsl`: the items' total and the indirect dispatch sizes of the per-item kernels
+//! (empty grids when the items do not fit).
+
+use super::super::device;
+use super::super::pipelines::{KernelSpec, When};
+use super::super::stages::{Recorder, Stage};
+use super::kernel_source;
+
+pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
+    name: "args",
+    shader: "args.wgsl",
+    source: || kernel_source(include_str!("../../../../shaders/args.wgsl")),
+    entry: "main",
+    when: When::Open,
+    structs: &[],
+}];
+
+impl Stage<'_> {
+    /// Sizes the emit pass (at byte 12 of the indirect buffer) and the per-item passes
+    /// (at 0).
+    pub fn size_items(&self, rec: &mut Recorder<'_>) {
+        let (sz, bd, h) = (self.sz, self.bd, device::head);
+        let bind = [
+            h(&bd.scan, sz.scan),
+            h(&bd.ctl, sz.ctl),
+            h(&bd.indirect, 24),
+        ];
+        let base = rec.base;
+        let pipeline = self.k.compiled(&KERNELS[0]).expect("compiled at open");
+        rec.bind(pipeline, base, &bind);
+        rec.dispatch((1, 1));
+    }
+}
