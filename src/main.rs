@@ -201,6 +201,10 @@ pub fn run(args: impl IntoIterator<Item = std::ffi::OsString>) -> u8 {
     // leave the folder behind.
     let cli = Cli::parse_from(args);
     oom::command(command_name(&cli.command));
+    // The library reads no environment: the pair bound of steps 6 and 8 comes from here.
+    linegs_gpu::refine::mergejoin::set_max_pairs_per_segment(
+        std::env::var("LINEGS_MAX_PAIRS_PER_SEGMENT").ok(),
+    );
     if let Err(e) = start_threads() {
         eprintln!("error: {e}");
         return 1;

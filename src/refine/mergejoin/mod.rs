@@ -20,6 +20,7 @@
 
 mod near;
 mod rounds;
+pub use rounds::set_max_pairs_per_segment;
 pub mod rules;
 pub mod sequential;
 

@@ -619,6 +619,19 @@ pub(super) struct PairBound {
     segments: usize,
 }
 
+/// The process's `LINEGS_MAX_PAIRS_PER_SEGMENT` as the command line read it (the library
+/// reads no environment): `None` keeps the default bound.
+static PAIRS_SETTING: std::sync::RwLock<Option<String>> = std::sync::RwLock::new(None);
+
+/// Sets the pair-entry bound a segment of steps 6 and 8 (the text of
+/// `LINEGS_MAX_PAIRS_PER_SEGMENT`, checked when a step starts; `None`: the default, with its
+/// floor of [`PairBound::FLOOR`] entries in all).
+pub fn set_max_pairs_per_segment(v: Option<String>) {
+    if let Ok(mut s) = PAIRS_SETTING.write() {
+        *s = v;
+    }
+}
+
 impl PairBound {
     /// Fewest entries the bound allows, whatever the input's size.
     pub const FLOOR: usize = 1 << 20;
@@ -626,8 +639,9 @@ impl PairBound {
     /// The bound for `segments` input segments; an unreadable
     /// `LINEGS_MAX_PAIRS_PER_SEGMENT` is [`EngineError::Limit`] too, naming it.
     pub(super) fn new(segments: usize) -> Result<Self, EngineError> {
-        let (per_segment, from_env) = match std::env::var("LINEGS_MAX_PAIRS_PER_SEGMENT") {
-            Ok(v) => match v.trim().parse::<usize>() {
+        let setting = PAIRS_SETTING.read().map(|s| s.clone()).unwrap_or(None);
+        let (per_segment, from_env) = match setting {
+            Some(v) => match v.trim().parse::<usize>() {
                 Ok(n) if n > 0 => (n, true),
                 _ => {
                     return Err(EngineError::Limit(format!(
@@ -635,7 +649,7 @@ impl PairBound {
                     )))
                 }
             },
-            Err(_) => (MAX_PAIRS_PER_SEGMENT, false),
+            None => (MAX_PAIRS_PER_SEGMENT, false),
         };
         let floor = if from_env { 0 } else { Self::FLOOR };
         Ok(PairBound {
