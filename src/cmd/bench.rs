@@ -521,3 +521,17 @@ fn print_host_share(h: &HostShare) {
         h.gpu_setup_seconds, h.cpu_index_seconds
     );
 }
+
+/// The `--backend` option that reproduces `backends` in a printed command (none for the
+/// CPU engine alone, the cases' default).
+fn backend_flag(backends: &[BackendArg]) -> String {
+    if backends == [BackendArg::Cpu] {
+        String::new()
+    } else {
+        let names: Vec<&str> = backends
+            .iter()
+            .map(|&b| linegs_gpu::engine::select::Backend::from(b).as_str())
+            .collect();
+        format!(" --backend {}", names.join(","))
+    }
+}

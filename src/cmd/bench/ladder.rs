@@ -65,15 +65,7 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
         command: format!(
             "linegs-gpu bench --case ladder --max {}{}{flags}",
             a.max,
-            if backends == [BackendArg::Cpu] {
-                String::new()
-            } else {
-                let names: Vec<&str> = backends
-                    .iter()
-                    .map(|&b| Backend::from(b).as_str())
-                    .collect();
-                format!(" --backend {}", names.join(","))
-            }
+            super::backend_flag(&backends)
         ),
         columns: [
             "Gaussians",

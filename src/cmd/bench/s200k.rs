@@ -100,15 +100,7 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
         ),
         command: format!(
             "linegs-gpu bench --case s200k{}{}{}{profile_flag}",
-            if backends == [BackendArg::Cpu] {
-                String::new()
-            } else {
-                let names: Vec<&str> = backends
-                    .iter()
-                    .map(|&b| Backend::from(b).as_str())
-                    .collect();
-                format!(" --backend {}", names.join(","))
-            },
+            super::backend_flag(&backends),
             if a.seed != 7 {
                 format!(" --seed {}", a.seed)
             } else {
