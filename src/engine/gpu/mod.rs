@@ -116,9 +116,6 @@ pub struct GpuEngine {
     /// Queries answered wholly on the host (walks too long, or k-nearest sets with a
     /// boundary member); rare by design.
     fallbacks: AtomicU64,
-    /// [`GpuOptions::fit`] resolved for this adapter (and the kernel compiled, the
-    /// coordinates uploaded).
-    device_fit: bool,
     clock: Clock,
     /// The CPU engine over the same grid, used only through the [`Engine`] interface:
     /// the batches of at most `small_batch` queries, member lists on the host, and the
@@ -135,9 +132,6 @@ pub struct GpuEngine {
     device_items: AtomicU64,
     point_bytes: AtomicU64,
     host_lists: AtomicU64,
-    /// Whether [`Engine::extent`] runs on the device (`extent.wgsl`: f64 and the
-    /// coordinates there, as for the device fit).
-    device_extent: bool,
 }
 
 /// An opened device with the kernels compiled, before any Gaussians: what does not depend
@@ -270,10 +264,6 @@ impl GpuDevice {
         let limits = resources::Limits::new(&ctx, &opts, grid.len());
         let statics = resources::Statics::upload(&ctx, &grid, store, &limits, fit_wanted)?;
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
-        let on_device = |l: &pipelines::ListKernel| {
-            fit_wanted && kernels.compiled(l.spec).is_some() && statics.world.is_some()
-        };
-        let (device_fit, device_extent) = (on_device(&kernels::FIT), on_device(&kernels::EXTENT));
         Ok(GpuEngine {
             cpu: Box::new(super::cpu::CpuEngine::new(grid.clone())),
             small_batch: opts.small_batch,
@@ -289,7 +279,6 @@ impl GpuDevice {
             device_items: AtomicU64::new(0),
             point_bytes: AtomicU64::new(0),
             host_lists: AtomicU64::new(0),
-            device_extent,
             grid,
             ctx,
             kernels,
@@ -300,7 +289,6 @@ impl GpuDevice {
             batches: AtomicU64::new(0),
             queries: AtomicU64::new(0),
             fallbacks: AtomicU64::new(0),
-            device_fit,
             clock: Clock::default(),
         })
     }
@@ -335,7 +323,9 @@ impl GpuEngine {
     /// Whether `--fit edge`'s ridge runs on this device ([`GpuOptions::fit`], resolved:
     /// f64 in shaders, the coordinates within one binding).
     pub fn fits_on_device(&self) -> bool {
-        self.device_fit
+        kernels::ROUTES
+            .fit_lines
+            .is_some_and(|r| self.answers(r.route.kernel))
     }
 
     /// The kernels this engine has compiled on first use (those of the side counts, the k
@@ -433,8 +423,9 @@ impl Engine for GpuEngine {
     }
 
     /// Where member lists are the host's (a small batch, or [`GpuOptions::members`] on
-    /// the host), the CPU engine's positions straight from the walk; otherwise the
-    /// device's member lists.
+    /// the host), the CPU engine's positions straight from the walk; otherwise the kernel
+    /// of `kernels::ROUTES.axial` where there is one on this device, or the device's
+    /// member lists.
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {
         if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
             self.count_batch(queries.len());
@@ -442,16 +433,23 @@ impl Engine for GpuEngine {
                 .fetch_add(queries.len() as u64, Ordering::Relaxed);
             return self.on_cpu(queries.len(), || self.cpu.axial(queries));
         }
+        if let Some(r) = kernels::ROUTES.axial.filter(|r| self.answers(r.kernel)) {
+            self.count_batch(queries.len());
+            let (order, sent) = self.in_order(queries);
+            let axial = (r.answer)(self, &mut self.lock(), &sent)?;
+            return Ok(self.on_host(|| order.restore(axial)));
+        }
         let members = self.members(queries)?;
         Ok(self.on_host(|| super::axial_of_members(&members, queries)))
     }
 
-    /// Where the extent kernel runs (f64 and the coordinates on the device, as for the
-    /// device fit) and the batch is not small, one device batch: the walk, the stats pass
-    /// and the member pass, then each query's ends over its list on the device; the host
-    /// reads one extent a query (and decides the flagged points). Where member lists are
-    /// the host's ([`GpuOptions::members`]; its member pass is the extent's), the CPU
-    /// engine's walk; without the kernel, the device's member lists.
+    /// Where the kernel of `kernels::ROUTES.extent` runs (the extent kernel: f64 and the
+    /// coordinates on the device, as for the device fit) and the batch is not small, one
+    /// device batch: the walk, the stats pass and the member pass, then each query's ends
+    /// over its list on the device; the host reads one extent a query (and decides the
+    /// flagged points). Where member lists are the host's ([`GpuOptions::members`]; its
+    /// member pass is the extent's), the CPU engine's walk; without the kernel, the
+    /// device's member lists.
     fn extent(&self, queries: &[Query]) -> Result<Vec<super::Extent>, EngineError> {
         if !queries.is_empty() && (queries.len() <= self.small_batch || self.members_on_host) {
             self.count_batch(queries.len());
@@ -459,7 +457,7 @@ impl Engine for GpuEngine {
                 .fetch_add(queries.len() as u64, Ordering::Relaxed);
             return self.on_cpu(queries.len(), || self.cpu.extent(queries));
         }
-        if !self.device_extent {
+        let Some(route) = kernels::ROUTES.extent.filter(|r| self.answers(r.kernel)) else {
             let members = self.members(queries)?;
             return Ok(self.on_host(|| {
                 members
@@ -468,10 +466,10 @@ impl Engine for GpuEngine {
                     .map(|(m, q)| super::Extent::of(m.iter().map(|m| m.t), q.seg.length()))
                     .collect()
             }));
-        }
+        };
         self.count_batch(queries.len());
         let (order, sent) = self.in_order(queries);
-        let ext = self.extent_batch(&mut self.lock(), &sent)?;
+        let ext = (route.answer)(self, &mut self.lock(), &sent)?;
         Ok(self.on_host(|| order.restore(ext)))
     }
 
@@ -493,18 +491,18 @@ impl Engine for GpuEngine {
         Ok(self.on_host(|| order.restore(lists)))
     }
 
-    /// With [`GpuOptions::fit`] on the device, the ridge there where the fit is the plain
-    /// ridge: no normals (the two-face fit stays on the host), no opacity weights, more
-    /// than `small_batch` queries; otherwise [`Engine::members`] and the host's step.
+    /// With [`GpuOptions::fit`] on the device, the kernel of `kernels::ROUTES.fit_lines`
+    /// where it takes the fit (the ridge: no normals, no opacity weights) and the batch has
+    /// more than `small_batch` queries; otherwise [`Engine::members`] and the host's step.
     fn fit_lines(
         &self,
         queries: &[Query],
         ask: &FitAsk<'_>,
     ) -> Result<Vec<FitAnswer>, EngineError> {
-        let device = self.device_fit
-            && queries.len() > self.small_batch
-            && self.ridge_on_device(ask.spec, &ask.points);
-        if !device {
+        let route = self
+            .fit_route(ask.spec, &ask.points)
+            .filter(|_| queries.len() > self.small_batch);
+        let Some(route) = route else {
             // The steps are the host's: counted as host walks wherever the device listed
             // the members (the host's own lists count themselves).
             let listed_on_host = queries.len() <= self.small_batch || self.members_on_host;
@@ -517,7 +515,7 @@ impl Engine for GpuEngine {
             let out = super::fit::steps(queries, &members, ask);
             self.clock.add(t.elapsed().as_secs_f64(), 0.0);
             return Ok(out);
-        }
+        };
         self.count_batch(queries.len());
         let (order, sent) = self.on_host(|| {
             let order = SpatialOrder::new(&self.grid, queries);
@@ -538,16 +536,16 @@ impl Engine for GpuEngine {
             warm: &warm,
             ..*ask
         };
-        let answers = self.fit_batch(&mut self.lock(), &sent, &ask)?;
+        let answers = (route.answer)(self, &mut self.lock(), &sent, &ask)?;
         Ok(self.on_host(|| order.restore(answers)))
     }
 
-    /// With the ridge on the device ([`GpuOptions::fit`], the plain ridge), one batch
-    /// per iteration ([`super::fit::by_batches`]: each batch's ridge on the device);
+    /// With the ridge on the device ([`GpuOptions::fit`], a fit that
+    /// `kernels::ROUTES.fit_lines` takes), one batch per iteration ([`super::fit::by_batches`]: each batch's ridge on the device);
     /// otherwise the CPU engine's [`Engine::fit_edges`] over the same grid (each
     /// neighbourhood gathered once), as one host batch.
     fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
-        if self.device_fit && self.ridge_on_device(job.spec, &job.points) {
+        if self.fit_route(job.spec, &job.points).is_some() {
             return super::fit::by_batches(self, job);
         }
         self.count_batch(0);
@@ -581,11 +579,23 @@ impl Engine for GpuEngine {
 }
 
 impl GpuEngine {
-    /// Whether the fit of `spec` over `points` is the plain ridge, which the device can
-    /// fit: no normals (the two-face fit stays on the host), no opacity weights, and
-    /// points to fit.
-    fn ridge_on_device(&self, spec: &FitSpec, points: &FitPoints<'_>) -> bool {
-        points.normals.is_none() && !spec.opacity_weight && !self.grid.is_empty()
+    /// Whether list kernel `l` answers on this device: compiled (f64 in shaders, the
+    /// device fit wanted) and the centers' coordinates uploaded.
+    fn answers(&self, l: &pipelines::ListKernel) -> bool {
+        self.kernels.compiled(l.spec).is_some() && self.statics.world.is_some()
+    }
+
+    /// The route of the edge fit's ridge where its kernel answers on this device and
+    /// takes the fit of `spec` over `points`.
+    fn fit_route(
+        &self,
+        spec: &FitSpec,
+        points: &FitPoints<'_>,
+    ) -> Option<&'static pipelines::Route<pipelines::FitLinesFn>> {
+        kernels::ROUTES
+            .fit_lines
+            .filter(|r| self.answers(r.route.kernel) && (r.takes)(self, spec, points))
+            .map(|r| &r.route)
     }
 
     /// The CPU engine's members of `q` (the host's walk), for a query the device leaves

@@ -1,12 +1,16 @@
 //! What the engine knows of a kernel without knowing which kernels there are: its
 //! pipelines' description ([`KernelSpec`]), a kernel over the member lists
-//! ([`ListKernel`]) and the compiled pipelines ([`Kernels`]), made from the registry of
-//! `kernels/mod.rs` when the device opens. The launchers (`kernels/`) sit above this and
-//! the batch machinery; nothing here names them.
+//! ([`ListKernel`]), which launcher answers which query ([`Routes`]) and the compiled
+//! pipelines ([`Kernels`]), made from the registry of `kernels/mod.rs` when the device
+//! opens. The launchers (`kernels/`) sit above this and the batch machinery; nothing here
+//! names them.
 
 use super::device::Context;
 use super::layout;
-use crate::engine::EngineError;
+use super::resources::Buffers;
+use super::GpuEngine;
+use crate::engine::{EngineError, Extent, FitAnswer, FitAsk, Query};
+use crate::geom::fit::{FitPoints, FitSpec};
 use std::sync::OnceLock;
 
 /// When a kernel's pipeline is compiled.
@@ -68,6 +72,40 @@ impl PartialEq for ListKernel {
 }
 
 impl Eq for ListKernel {}
+
+/// A list kernel that answers one of the engine's queries in place of the member lists:
+/// the kernel, and its launcher's function that answers a batch of that query (the
+/// queries in the order the device gets them). It answers where the kernel is compiled
+/// and the centers' coordinates are on the device.
+pub struct Route<F> {
+    pub kernel: &'static ListKernel,
+    pub answer: F,
+}
+
+/// [`crate::engine::Engine::axial`] of a batch on the device.
+pub type AxialFn = fn(&GpuEngine, &mut Buffers, &[Query]) -> Result<Vec<Vec<f64>>, EngineError>;
+/// [`crate::engine::Engine::extent`] of a batch on the device.
+pub type ExtentFn = fn(&GpuEngine, &mut Buffers, &[Query]) -> Result<Vec<Extent>, EngineError>;
+/// [`crate::engine::Engine::fit_lines`] of a batch on the device.
+pub type FitLinesFn =
+    fn(&GpuEngine, &mut Buffers, &[Query], &FitAsk<'_>) -> Result<Vec<FitAnswer>, EngineError>;
+
+/// The edge fit's route: a [`Route`] that answers only the fits it `takes` (a kernel for
+/// the plain ridge leaves the two-face and weighted fits to the host).
+pub struct FitRoute {
+    pub route: Route<FitLinesFn>,
+    pub takes: fn(&GpuEngine, &FitSpec, &FitPoints<'_>) -> bool,
+}
+
+/// Which launcher answers each query that the GPU engine otherwise answers from its
+/// member lists (`None`: the member lists, measured on the host): the GPU engine's
+/// `Engine` methods ask this, so a kernel that takes over a query is its shader, its
+/// launcher and its line in `kernels::ROUTES`.
+pub struct Routes {
+    pub axial: Option<&'static Route<AxialFn>>,
+    pub extent: Option<&'static Route<ExtentFn>>,
+    pub fit_lines: Option<&'static FitRoute>,
+}
 
 /// The compiled pipelines, one slot per entry of the registry they were made from.
 pub struct Kernels {

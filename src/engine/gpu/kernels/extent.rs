@@ -5,7 +5,7 @@
 use super::super::answers::per_query;
 use super::super::host;
 use super::super::layout::{self, shared, FitQuery, FLAG_CANDIDATE, STATUS_HOST};
-use super::super::pipelines::{KernelSpec, ListKernel, When};
+use super::super::pipelines::{ExtentFn, KernelSpec, ListKernel, Route, When};
 use super::super::resources::Buffers;
 use super::super::GpuEngine;
 use super::list_kernel_source;
@@ -68,9 +68,15 @@ shared! {
 }
 
 /// The extent of each query: an [`ExtentOut`] a query.
-pub static EXTENT: ListKernel = ListKernel {
+static EXTENT: ListKernel = ListKernel {
     spec: &KERNELS[0],
     out: std::mem::size_of::<ExtentOut>() as u64,
+};
+
+/// [`crate::engine::Engine::extent`] on the device (`kernels::ROUTES`).
+pub static ROUTE: Route<ExtentFn> = Route {
+    kernel: &EXTENT,
+    answer: GpuEngine::extent_batch,
 };
 
 impl GpuEngine {
@@ -80,11 +86,7 @@ impl GpuEngine {
     /// on the host. A query whose end the device cannot tell apart from its runner-up
     /// (within 1e-9 of the coordinates' scale, beyond any f64 rounding of the kernel's),
     /// or that the device leaves to the host, is walked on the host (`host_fallbacks`).
-    pub(in crate::engine::gpu) fn extent_batch(
-        &self,
-        b: &mut Buffers,
-        queries: &[Query],
-    ) -> Result<Vec<Extent>, EngineError> {
+    fn extent_batch(&self, b: &mut Buffers, queries: &[Query]) -> Result<Vec<Extent>, EngineError> {
         let frames: Vec<FitQuery> = queries.iter().map(lists::frame).collect();
         let mut out = vec![Extent::default(); queries.len()];
         let grid = &*self.grid;

@@ -3,7 +3,7 @@
 
 use super::super::host;
 use super::super::layout::{self, shared, FitQuery, FLAG_CANDIDATE, STATUS_HOST};
-use super::super::pipelines::{KernelSpec, ListKernel, When};
+use super::super::pipelines::{FitRoute, KernelSpec, ListKernel, Route, When};
 use super::super::resources::Buffers;
 use super::super::GpuEngine;
 use super::list_kernel_source;
@@ -77,9 +77,22 @@ pub fn fit_source() -> String {
 }
 
 /// The ridge of each query: a [`FitOut`] a query.
-pub static FIT: ListKernel = ListKernel {
+static FIT: ListKernel = ListKernel {
     spec: &KERNELS[0],
     out: std::mem::size_of::<FitOut>() as u64,
+};
+
+/// [`crate::engine::Engine::fit_lines`] on the device (`kernels::ROUTES`), for the plain
+/// ridge: no normals (the two-face fit stays on the host), no opacity weights, and points
+/// to fit.
+pub static ROUTE: FitRoute = FitRoute {
+    route: Route {
+        kernel: &FIT,
+        answer: GpuEngine::fit_batch,
+    },
+    takes: |engine, spec, points| {
+        points.normals.is_none() && !spec.opacity_weight && !engine.grid.is_empty()
+    },
 };
 
 impl GpuEngine {
@@ -88,7 +101,7 @@ impl GpuEngine {
     /// boundary point, whose ridge the kernel left to the host, whose weight lies within
     /// 1e-9 (relative) of `fit_min_points`, or that the device could not take, is fitted
     /// on the host from its exact members (`host_fallbacks` counts them).
-    pub(in crate::engine::gpu) fn fit_batch(
+    fn fit_batch(
         &self,
         b: &mut Buffers,
         queries: &[Query],

@@ -20,12 +20,11 @@ mod scan;
 mod walk;
 
 pub use eval::eval_source;
-pub use extent::EXTENT;
-pub use fit::{fit_source, FIT};
+pub use fit::fit_source;
 pub use walk::walk_source;
 
 use super::layout;
-use super::pipelines::KernelSpec;
+use super::pipelines::{KernelSpec, Routes};
 
 /// Every kernel, launcher by launcher (each launcher's `KERNELS`: its pipelines), which the
 /// device opening hands to [`super::pipelines::Kernels::new`]. Adding a kernel is one line
@@ -41,6 +40,15 @@ pub static KERNELS: &[&[KernelSpec]] = &[
     &fit::KERNELS,
     &extent::KERNELS,
 ];
+
+/// Which launcher answers each query the GPU engine can take over from its member lists
+/// (`None`: the member lists answer it): the GPU engine's `Engine` methods ask this, so a
+/// kernel that takes over a query is one line here.
+pub static ROUTES: Routes = Routes {
+    axial: None,
+    extent: Some(&extent::ROUTE),
+    fit_lines: Some(&fit::ROUTE),
+};
 
 /// Every pipeline of [`KERNELS`], in order.
 pub fn kernel_specs() -> impl Iterator<Item = &'static KernelSpec> {
