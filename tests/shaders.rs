@@ -254,11 +254,17 @@ fn validate_variant(src: &str, name: &str) -> Result<(), String> {
     .map_err(|e| format!("{e:?}"))
 }
 
+/// The registered pipeline named `name`'s source, as the engine compiles it.
+fn source_of(name: &str) -> String {
+    let k = kernel_specs().find(|k| k.name == name);
+    (k.unwrap_or_else(|| panic!("no kernel {name}")).source)()
+}
+
 /// The grid walk as the engine compiles it, once per pass with the pass a constant.
 #[test]
 fn both_walk_passes_validate() {
-    for emit in [false, true] {
-        let src = linegs_gpu::engine::gpu::walk_source(emit);
+    for (emit, name) in [(false, "walk count"), (true, "walk emit")] {
+        let src = source_of(name);
         assert!(src.contains(&format!("let emit = {emit};")));
         assert!(!src.contains("= params.mode"));
         validate_variant(&src, "walk.wgsl").unwrap_or_else(|e| panic!("emit {emit}: {e}"));
@@ -269,17 +275,29 @@ fn both_walk_passes_validate() {
 /// constant: every variant validates, and the mode really is replaced.
 #[test]
 fn every_evaluation_mode_variant_validates() {
-    for mode in [
-        layout::MODE_STATS,
-        layout::MODE_STATS_SIDES,
-        layout::MODE_HIST,
-        layout::MODE_BELOW,
-        layout::MODE_MEMBERS,
-    ] {
-        let cover = mode == layout::MODE_STATS || mode == layout::MODE_STATS_SIDES;
-        let src = linegs_gpu::engine::gpu::eval_source(mode, cover);
-        assert!(src.contains(&format!("let mode = {mode}u;")));
-        assert!(src.contains(&format!("let cover_on = {cover};")));
+    let evals: Vec<String> = kernel_specs()
+        .filter(|k| k.shader == "eval.wgsl")
+        .map(|k| (k.source)())
+        .collect();
+    let variants = [
+        (layout::MODE_STATS, false),
+        (layout::MODE_STATS, true),
+        (layout::MODE_STATS_SIDES, false),
+        (layout::MODE_STATS_SIDES, true),
+        (layout::MODE_HIST, false),
+        (layout::MODE_BELOW, false),
+        (layout::MODE_MEMBERS, false),
+    ];
+    assert_eq!(evals.len(), variants.len());
+    for (mode, cover) in variants {
+        let want = [
+            format!("let mode = {mode}u;"),
+            format!("let cover_on = {cover};"),
+        ];
+        let src = evals
+            .iter()
+            .find(|s| want.iter().all(|w| s.contains(w)))
+            .unwrap_or_else(|| panic!("no evaluation variant {mode} {cover}"));
         assert!(!src.contains("= params.mode;") && !src.contains("= params.cover"));
         validate_variant(&src, "eval.wgsl").unwrap_or_else(|e| panic!("mode {mode}: {e}"));
     }

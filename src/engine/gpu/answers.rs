@@ -75,6 +75,7 @@ impl GpuEngine {
                 batch::submit(
                     ctx,
                     &self.kernels,
+                    &self.stages,
                     &self.statics,
                     &self.opts,
                     &self.grid,
@@ -202,9 +203,11 @@ impl GpuEngine {
         self.run(b, Kind::Nearest, queries, k, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
+            // One plan a query (none for a sub-batch the host answers).
+            let plans: Vec<layout::Plan> = bytemuck::pod_collect_to_vec(&o.back);
             per_query(&mut out[first..first + n], &o, 64, |i, flags, s| {
                 let (q, k) = (&qs[i], k[first + i]);
-                let plan = o.plans.get(i);
+                let plan = plans.get(i);
                 match host::nearest(grid, q, k, &o.results[i], plan, flags) {
                     Some(x) => *s = x,
                     None => {
@@ -231,7 +234,8 @@ impl GpuEngine {
         self.run(b, Kind::Members, queries, &[], &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
-            // Query after query, the device's sure members.
+            // Query after query, the device's sure members (as far as the list's capacity).
+            let members: Vec<u32> = bytemuck::pod_collect_to_vec(&o.back);
             let mut at = 0usize;
             let lists: Vec<std::ops::Range<usize>> = o
                 .results
@@ -250,11 +254,11 @@ impl GpuEngine {
                 let q = &qs[i];
                 let device = o.results[i].status & layout::STATUS_HOST == 0
                     && !o.bad
-                    && lists[i].end <= o.members.len()
+                    && lists[i].end <= members.len()
                     && q.r.is_finite()
                     && q.r >= 0.0;
                 let list = device
-                    .then(|| host::members(grid, q, &o.members[lists[i].clone()], flags))
+                    .then(|| host::members(grid, q, &members[lists[i].clone()], flags))
                     .flatten();
                 *m = list.unwrap_or_else(|| {
                     self.to_host();

@@ -1,7 +1,8 @@
 //! One sub-batch on the device: [`submit`] sizes it, binds its buffers, records the
-//! stages of [`super::stages`] into one command buffer, submits it and reads back one
-//! staging buffer; when the items, flags or members outgrew their buffers it grows them
-//! and reruns.
+//! stages of the [`Sequence`] (the registry's, `kernels::STAGES`) that run in its kind
+//! into one command buffer, submits it and reads back one staging buffer; when the items,
+//! flags or members outgrew their buffers it grows them and reruns. Nothing here names a
+//! stage.
 
 use super::device::{self, Context};
 use super::layout::*;
@@ -10,25 +11,24 @@ use super::query::gquery;
 use super::resources::{Buffers, Limits, Statics};
 pub use super::sizes::Kind;
 use super::sizes::{member_scan_max, Bound, Sizes};
-use super::stages::{self, Recorder};
+use super::stages::{Recorder, Sequence, Stage};
 use crate::engine::{EngineError, Query};
 use crate::index::Grid;
 use rayon::prelude::*;
 
-/// One sub-batch's answers: per query its result (and k-nearest plan), and the flagged
-/// points as (query slot | kind, sorted point index), sorted. A members batch also has
-/// the sure members' sorted indices, query after query (`results[i].count` each, none for
-/// a query answered on the host), and `bad` when the device miscounted them.
+/// One sub-batch's answers: per query its result, and the flagged points as (query slot
+/// | kind, sorted point index), sorted; and the bytes of what the batch's stages send
+/// back (`StageSpec::back`): a nearest batch's plans (one [`Plan`] a query), a members
+/// batch's member list (the sure members' sorted indices, query after query,
+/// `results[i].count` each, none for a query answered on the host, as far as the list's
+/// capacity), a list kernel's output (one [`super::pipelines::ListKernel::out`] a query).
+/// Members and list batches also have `bad` when the device miscounted the members.
 #[derive(Default)]
 pub struct Output {
     pub results: Vec<QResult>,
-    pub plans: Vec<Plan>,
     pub flags: Vec<(u32, u32)>,
-    pub members: Vec<u32>,
     pub bad: bool,
-    /// A list kernel's output ([`Kind::List`]), one [`super::pipelines::ListKernel::out`]
-    /// a query, as bytes (its launcher reads them: `ListOut::list_out`).
-    pub list: Vec<u8>,
+    pub back: Vec<u8>,
     /// Work items the device evaluated and points it read from the point store, over
     /// every try of the sub-batch.
     pub items_run: u64,
@@ -73,6 +73,7 @@ fn grow(need: u32, max: u32) -> u32 {
 pub fn submit(
     ctx: &Context,
     k: &Kernels,
+    seq: &Sequence,
     st: &Statics,
     lim: &Limits,
     grid: &Grid,
@@ -108,7 +109,7 @@ pub fn submit(
     let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
     loop {
-        let got = attempt(ctx, k, st, lim, b, kind, &gq, fit, rerun)?;
+        let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun)?;
         rerun = true;
         waited += got.waited;
         items_run += got.items.min(b.item_cap) as u64;
@@ -165,13 +166,15 @@ struct Readback {
     points: u64,
 }
 
-/// One try: every stage recorded into one compute pass, then one readback. A `rerun`
-/// starts from the sizing of the dispatches: the count walk and the scan of the try before
-/// are still in their buffers (whose sizes depend only on the queries).
+/// One try: every stage of `kind` recorded into one compute pass, then one readback. A
+/// `rerun` leaves out the stages that run in the first try only: the count walk and the
+/// scan of the try before are still in their buffers (whose sizes depend only on the
+/// queries).
 #[allow(clippy::too_many_arguments)]
 fn attempt(
     ctx: &Context,
     k: &Kernels,
+    seq: &Sequence,
     st: &Statics,
     lim: &Limits,
     b: &mut Buffers,
@@ -180,7 +183,8 @@ fn attempt(
     fit: &[FitQuery],
     rerun: bool,
 ) -> Result<Readback, EngineError> {
-    let sz = Sizes::of(kind, gq.len() as u32, b, lim);
+    let mut sz = Sizes::of(kind, gq.len() as u32, b);
+    sz.own = seq.own_sizes(kind, &sz, lim);
     let base = Params {
         n: sz.n,
         dims_x: st.dims[0],
@@ -195,7 +199,7 @@ fn attempt(
         member_cap: b.member_cap,
         ..Default::default()
     };
-    let slots = stages::most_slots(&sz, st.parts.len());
+    let slots = seq.most_slots(kind, &sz, lim, st.parts.len());
     let bd = Bound::take(
         ctx,
         b,
@@ -205,70 +209,61 @@ fn attempt(
         gq,
         fit,
         rerun,
+        seq.buffers(),
     );
-    let (flag_cap, member_cap) = (b.flag_cap, b.member_cap);
+    let flag_cap = b.flag_cap;
+    let s = Stage {
+        ctx,
+        k,
+        st,
+        lim,
+        kind,
+        seq,
+        sz: &sz,
+        bd: &bd,
+    };
+    let backs: Vec<(&wgpu::Buffer, u64)> = seq
+        .running(kind, false)
+        .filter_map(|x| (x.back)(&s))
+        .collect();
+    assert!(
+        backs.len() <= 1,
+        "one stage of a batch sends its output back"
+    );
+    let tail = backs.first().map_or(0, |x| x.1);
+    let r = sz.results;
+    let after = r + sz.ctl;
+    let staging_bytes = after + tail;
+    let staging = b.staging.get(ctx, staging_bytes).clone();
 
     let mut enc = ctx.encoder();
     enc.clear_buffer(&bd.ctl, 0, Some(CTL_HEAD as u64 * 4));
-    if kind == Kind::Nearest {
-        enc.clear_buffer(&bd.aux, 0, Some(sz.hist.next_multiple_of(4)));
+    for x in seq.running(kind, rerun) {
+        (x.before)(&s, &mut enc);
     }
     let uniform = {
         let mut rec = Recorder::new(ctx, &mut enc, &bd.params, slots, base);
-        let s = stages::Stage {
-            k,
-            st,
-            lim,
-            sz: &sz,
-            bd: &bd,
-        };
-        if !rerun {
-            s.count(&mut rec);
-            s.scan(&mut rec, &bd.scan, sz.scan, &sz.levels);
-        }
-        s.size_items(&mut rec);
-        s.emit(&mut rec);
-        let mode = match kind {
-            Kind::Stats { sides: false, .. } | Kind::Members | Kind::List(_) => MODE_STATS,
-            Kind::Stats { sides: true, .. } => MODE_STATS_SIDES,
-            Kind::Nearest => MODE_HIST,
-        };
-        s.evaluate(&mut rec, k.eval(ctx, mode, base.cover != 0)?, mode);
-        if kind.lists() {
-            s.members(&mut rec, ctx)?;
-        }
-        if kind == Kind::Nearest {
-            s.nearest(&mut rec, ctx)?;
-        }
-        s.reduce(&mut rec);
-        if let Kind::List(l) = kind {
-            s.list(&mut rec, l);
+        for x in seq.running(kind, rerun) {
+            (x.record)(&s, &mut rec)?;
         }
         rec.finish()
     };
     // Written before the submit that reads it.
     ctx.queue.write_buffer(&bd.params, 0, &uniform);
 
-    let r = sz.results;
-    let after = r + sz.ctl;
-    enc.copy_buffer_to_buffer(&bd.results, 0, &bd.staging, 0, r);
-    enc.copy_buffer_to_buffer(&bd.ctl, 0, &bd.staging, r, sz.ctl);
-    match (kind, &bd.fitout) {
-        (Kind::Nearest, _) => enc.copy_buffer_to_buffer(&bd.plans, 0, &bd.staging, after, sz.plans),
-        (Kind::Members, _) => enc.copy_buffer_to_buffer(&bd.aux, 0, &bd.staging, after, sz.members),
-        (Kind::List(_), Some(out)) => {
-            enc.copy_buffer_to_buffer(out, 0, &bd.staging, after, sz.fitout)
-        }
-        _ => {}
+    enc.copy_buffer_to_buffer(&bd.results, 0, &staging, 0, r);
+    enc.copy_buffer_to_buffer(&bd.ctl, 0, &staging, r, sz.ctl);
+    if let Some(&(buf, bytes)) = backs.first() {
+        enc.copy_buffer_to_buffer(buf, 0, &staging, after, bytes);
     }
-    let (got, waited) = ctx.submit_and_map(enc, &bd.staging, sz.staging, |bytes| {
-        read(bytes, kind, &sz, flag_cap, member_cap)
+    let (got, waited) = ctx.submit_and_map(enc, &staging, staging_bytes, |bytes| {
+        read(bytes, kind, &sz, flag_cap)
     })?;
     Ok(Readback { waited, ..got })
 }
 
 /// The staging buffer's bytes as one try's [`Readback`] (its wait not yet set).
-fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32, member_cap: u32) -> Readback {
+fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32) -> Readback {
     let (r, rest) = bytes.split_at(sz.results as usize);
     let (c, tail) = rest.split_at(sz.ctl as usize);
     let results: Vec<QResult> = bytemuck::pod_collect_to_vec(r);
@@ -281,24 +276,16 @@ fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32, member_cap: u32) ->
     flags.sort_unstable_by_key(|&(q, p)| ((q & !FLAG_CANDIDATE), q >> 31, p));
     let mut out = Output {
         flags,
+        back: tail.to_vec(),
         ..Default::default()
     };
     let mut members = 0u64;
-    match kind {
-        Kind::Nearest => out.plans = bytemuck::pod_collect_to_vec(&tail[..sz.plans as usize]),
-        Kind::List(_) => out.list = tail[..sz.fitout as usize].to_vec(),
-        _ => {}
-    }
     if kind.lists() {
         members = results
             .iter()
             .filter(|r| r.status & STATUS_HOST == 0)
             .map(|r| r.count as u64)
             .sum();
-        if kind == Kind::Members {
-            let kept = members.min(member_cap as u64) as usize;
-            out.members = device::pods::<u32>(&tail[..kept * 4]).into_owned();
-        }
         out.bad = ctlw[CTL_MEMBERS_BAD as usize] != 0;
     }
     out.results = results;

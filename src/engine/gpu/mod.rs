@@ -65,8 +65,7 @@ pub use device::{
     PciBusError,
 };
 pub use kernels::{
-    common_wgsl, eval_source, f64_kernel_source, fit_source, kernel_source, kernel_specs,
-    list_kernel_source, walk_source,
+    common_wgsl, f64_kernel_source, kernel_source, kernel_specs, list_kernel_source,
 };
 pub use layout::CHUNK;
 pub use options::{FitOn, GpuOptions, GpuSetup, GpuSetupError, MembersOn, SMALL_BATCH};
@@ -85,6 +84,57 @@ use glam::DVec3;
 use resources::Buffers;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+
+/// Each kind of device batch and the stages a try of it records, in order, each with its
+/// own buffers, as the registry (`kernels::STAGES`) makes them (with `rerun`, a rerun's:
+/// the sub-batch again with larger buffers): what `tests/shaders.rs` checks the order of.
+/// The kinds: `stats`, `stats sides cover`, `nearest`, `members`, and `list <kernel>` for
+/// each list kernel of `kernels::ROUTES`.
+#[allow(clippy::type_complexity)]
+pub fn batch_stages(rerun: bool) -> Vec<(String, Vec<(&'static str, Vec<&'static str>)>)> {
+    use sizes::Kind;
+    let seq = stages::Sequence::new(kernels::STAGES);
+    let r = &kernels::ROUTES;
+    let lists = [
+        r.axial.map(|r| r.kernel),
+        r.extent.map(|r| r.kernel),
+        r.fit_lines.map(|r| r.route.kernel),
+    ];
+    let mut kinds = vec![
+        (
+            "stats".to_string(),
+            Kind::Stats {
+                sides: false,
+                cover: false,
+            },
+        ),
+        (
+            "stats sides cover".to_string(),
+            Kind::Stats {
+                sides: true,
+                cover: true,
+            },
+        ),
+        ("nearest".to_string(), Kind::Nearest),
+        ("members".to_string(), Kind::Members),
+    ];
+    kinds.extend(
+        lists
+            .into_iter()
+            .flatten()
+            .map(|l| (format!("list {}", l.spec.name), Kind::List(l))),
+    );
+    kinds
+        .into_iter()
+        .map(|(name, kind)| {
+            let stages = seq
+                .running(kind, rerun)
+                .map(|s| (s.name, s.buffers.iter().map(|b| b.name).collect()))
+                .collect();
+            (name, stages)
+        })
+        .collect()
+}
 
 /// Seconds of host work and of waiting for the device, accumulated over the engine's life.
 #[derive(Default)]
@@ -106,6 +156,8 @@ pub struct GpuEngine {
     grid: Arc<Grid>,
     ctx: Context,
     kernels: pipelines::Kernels,
+    /// The stages of every batch, in order (`kernels::STAGES`).
+    stages: stages::Sequence,
     statics: resources::Statics,
     opts: resources::Limits,
     /// One batch at a time: the buffers and the error scopes are per batch.
@@ -178,8 +230,7 @@ impl GpuDevice {
         // fit's, the end gaps'): their kernels compile here, on the opening thread while
         // the grid is built, instead of in the run's first fit batch.
         if fit_wanted {
-            kernels.eval(&ctx, layout::MODE_MEMBERS, false)?;
-            kernels.members(&ctx)?;
+            stages::Sequence::new(kernels::STAGES).prepare(&kernels, &ctx, sizes::Kind::Members)?;
         }
         let device = GpuDevice {
             ctx,
@@ -282,6 +333,7 @@ impl GpuDevice {
             grid,
             ctx,
             kernels,
+            stages: stages::Sequence::new(kernels::STAGES),
             statics,
             opts: limits,
             buffers: Mutex::new(buffers),

@@ -225,12 +225,11 @@ pub struct Buffers {
     /// The k-nearest histograms, or the coverage mask.
     pub aux: Reusable,
     pub plans: Reusable,
-    /// Members batches: the scan of the items' member counts, and the member list.
-    pub mscan: Reusable,
+    /// Members and list batches: the member list.
     pub members: Reusable,
-    /// Fit batches: the queries' frames and the ridges.
-    pub fitq: Reusable,
-    pub fitout: Reusable,
+    /// The stages' own buffers (`sizes::BufferSpec`), in the order of the stage sequence,
+    /// each made on first use.
+    pub own: Vec<Reusable>,
     pub staging: Reusable,
     /// Bytes of the coverage mask in `aux` (set by `clear_mask`).
     pub aux_len: u64,
@@ -263,10 +262,8 @@ impl Buffers {
             ),
             aux: Reusable::new("aux", storage),
             plans: Reusable::new("plans", storage),
-            mscan: Reusable::new("mscan", storage),
             members: Reusable::new("members", storage),
-            fitq: Reusable::new("fitq", storage),
-            fitout: Reusable::new("fitout", storage),
+            own: Vec::new(),
             staging: Reusable::new("staging", wgpu::BufferUsages::MAP_READ),
             aux_len: 4,
             item_cap: lim.item_max.min(1 << 16),

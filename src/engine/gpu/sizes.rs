@@ -1,9 +1,10 @@
 //! What one try of a device batch binds: the [`Kind`] of batch, the byte [`Sizes`] of its
-//! buffers (with the levels of its prefix scans) and the [`Bound`] buffers themselves.
-//! [`super::batch`] sizes and binds a try; [`super::stages`] records its dispatches over
-//! them.
+//! buffers (with the levels of its prefix scan) and the [`Bound`] buffers themselves: the
+//! ones every batch shares, and the stages' own ([`BufferSpec`], declared by their
+//! launchers). [`super::batch`] sizes and binds a try; [`super::stages`] records its
+//! dispatches over them.
 
-use super::device::Context;
+use super::device::{Context, Reusable};
 use super::layout::*;
 use super::pipelines::ListKernel;
 use super::resources::{Buffers, Limits};
@@ -30,12 +31,18 @@ impl Kind {
     pub fn lists(self) -> bool {
         matches!(self, Kind::Members | Kind::List(_))
     }
+}
 
-    /// Whether the batch uploads per-query frames (`FitQuery`) for a list kernel and
-    /// reads back its per-query output.
-    pub fn f64_kernel(self) -> bool {
-        matches!(self, Kind::List(_))
-    }
+/// A buffer of a stage's own (its launcher's `StageSpec::buffers`), bound in the batches
+/// its stage runs in, reused and grown across batches like the shared ones.
+#[derive(Debug)]
+pub struct BufferSpec {
+    pub name: &'static str,
+    /// Its bytes in a try of a batch of `kind` with these sizes.
+    pub bytes: fn(Kind, &Sizes, &Limits) -> u64,
+    /// Whether the first try of a sub-batch writes the batch's per-query frames
+    /// (`FitQuery`, f64) into it.
+    pub frames: bool,
 }
 
 /// One level of a multi-level prefix scan: the first element, the elements, and where its
@@ -82,9 +89,8 @@ pub struct Sizes {
     pub levels: Vec<Level>,
     pub total_idx: u32,
     pub scan: u64,
-    /// The levels of a members batch's scan of the items' member counts, and its bytes.
-    pub mlevels: Vec<Level>,
-    pub mscan: u64,
+    /// Capacity of the item buffers (entries).
+    pub item_cap: u32,
     pub items: u64,
     pub partials: u64,
     pub results: u64,
@@ -92,54 +98,35 @@ pub struct Sizes {
     pub hist: u64,
     pub plans: u64,
     pub members: u64,
-    pub fitq: u64,
-    pub fitout: u64,
     /// The histograms, the coverage mask or the member list (whichever `kind` uses).
     pub aux: u64,
-    /// What comes back: results, the control words, then the plans, members or ridges.
-    pub staging: u64,
+    /// The bytes of every stage's own buffer (`stages::Sequence::buffers`, in order;
+    /// `None` where its stage does not run in this kind of batch).
+    pub own: Vec<Option<u64>>,
 }
 
 impl Sizes {
-    pub(super) fn of(kind: Kind, n: u32, b: &Buffers, lim: &Limits) -> Sizes {
+    pub(super) fn of(kind: Kind, n: u32, b: &Buffers) -> Sizes {
         let n64 = n as u64;
         let (levels, total_idx, scan_len) = scan_levels(n);
-        // The items' member counts are scanned over the buffer's capacity (the total is on
-        // the device); entries past the total do not change the offsets before it.
-        let (mlevels, _, mscan_len) = scan_levels(b.item_cap.min(member_scan_max(lim)));
         let size_of = |bytes: usize, count: u64| count * bytes as u64;
         let results = size_of(std::mem::size_of::<QResult>(), n64);
         let ctl = (CTL_HEAD as u64 + 2 * b.flag_cap as u64) * 4;
         let hist = n64 * NBINS as u64 * 4;
         let plans = size_of(std::mem::size_of::<Plan>(), n64);
         let members = b.member_cap as u64 * 4;
-        let fitout = match kind {
-            Kind::List(l) => l.out * n64,
-            _ => 0,
-        };
         let aux = match kind {
             Kind::Nearest => hist,
             Kind::Stats { cover: true, .. } => b.aux_len,
             Kind::Stats { cover: false, .. } => 4,
             Kind::Members | Kind::List(_) => members,
         };
-        let tail = match kind {
-            Kind::Nearest => plans,
-            Kind::Members => members,
-            Kind::List(_) => fitout,
-            Kind::Stats { .. } => 0,
-        };
         Sizes {
             n,
             levels,
             total_idx,
             scan: scan_len as u64 * 4,
-            mlevels,
-            mscan: if kind.lists() {
-                mscan_len as u64 * 4
-            } else {
-                4
-            },
+            item_cap: b.item_cap,
             items: size_of(std::mem::size_of::<Item>(), b.item_cap as u64),
             partials: size_of(std::mem::size_of::<Partial>(), b.item_cap as u64),
             results,
@@ -147,16 +134,15 @@ impl Sizes {
             hist,
             plans,
             members,
-            fitq: size_of(std::mem::size_of::<FitQuery>(), n64),
-            fitout,
             aux,
-            staging: results + ctl + tail,
+            own: Vec::new(),
         }
     }
 }
 
 /// The buffers one try binds, each at least its size in [`Sizes`] (the reusable buffers
-/// of [`Buffers`], grown where they were smaller).
+/// of [`Buffers`], grown where they were smaller); the staging buffer is taken once the
+/// stages have said what comes back.
 pub struct Bound {
     pub params: wgpu::Buffer,
     /// The batch's queries as texels ([`super::device::QueryTexture`]): what the walk,
@@ -171,17 +157,15 @@ pub struct Bound {
     /// The k-nearest histograms, the coverage mask, or (a members or fit batch) the
     /// member list.
     pub aux: wgpu::Buffer,
-    pub mscan: wgpu::Buffer,
     pub plans: wgpu::Buffer,
-    /// A fit batch's query frames and ridges.
-    pub fitq: Option<wgpu::Buffer>,
-    pub fitout: Option<wgpu::Buffer>,
-    pub staging: wgpu::Buffer,
+    /// Every stage's own buffer, as [`Sizes::own`] (`None` where its stage does not run).
+    pub own: Vec<Option<wgpu::Buffer>>,
 }
 
 impl Bound {
-    /// The buffers of a try of `kind`; the first try of a sub-batch also uploads its
-    /// queries (and fit frames): a rerun finds them in place.
+    /// The buffers of a try of `kind` (`own`: the stages' own, as [`Sizes::own`]); the
+    /// first try of a sub-batch also uploads its queries (and their frames, into the own
+    /// buffers that take them): a rerun finds them in place.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn take(
         ctx: &Context,
@@ -192,13 +176,26 @@ impl Bound {
         gq: &[GQuery],
         fit: &[FitQuery],
         rerun: bool,
+        own: &[&'static BufferSpec],
     ) -> Bound {
-        let fitq = kind.f64_kernel().then(|| b.fitq.get(ctx, sz.fitq).clone());
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        while b.own.len() < own.len() {
+            b.own.push(Reusable::new(own[b.own.len()].name, storage));
+        }
+        let own: Vec<Option<wgpu::Buffer>> = own
+            .iter()
+            .zip(&sz.own)
+            .zip(&mut b.own)
+            .map(|((spec, bytes), r)| {
+                let buf = r.get(ctx, (*bytes)?).clone();
+                if spec.frames && !rerun {
+                    ctx.queue.write_buffer(&buf, 0, bytemuck::cast_slice(fit));
+                }
+                Some(buf)
+            })
+            .collect();
         if !rerun {
             b.qtex.write(ctx, gq);
-            if let Some(q) = &fitq {
-                ctx.queue.write_buffer(q, 0, bytemuck::cast_slice(fit));
-            }
         }
         Bound {
             params: b.params.get(ctx, params_bytes).clone(),
@@ -214,13 +211,8 @@ impl Bound {
             } else {
                 b.aux.get(ctx, sz.aux).clone()
             },
-            mscan: b.mscan.get(ctx, sz.mscan).clone(),
-            fitq,
-            fitout: kind
-                .f64_kernel()
-                .then(|| b.fitout.get(ctx, sz.fitout).clone()),
             plans: b.plans.get(ctx, sz.plans.max(16)).clone(),
-            staging: b.staging.get(ctx, sz.staging).clone(),
+            own,
         }
     }
 }

@@ -1,6 +1,8 @@
-//! How the stages of one device batch are recorded: the [`Recorder`] of one compute pass
-//! and the [`Stage`] every kernel's launcher (`kernels/`) records its dispatch from, in
-//! the order [`super::batch`] calls them:
+//! How the stages of one device batch are declared and recorded: each stage a
+//! [`StageSpec`] of its kernel's launcher (`kernels/`), which says the kinds of batch it
+//! runs in, its own buffers, its uniform slots, what it records and what comes back;
+//! the registry (`kernels::STAGES`) lists them in order, and [`super::batch`] records
+//! every stage of the [`Sequence`] that runs in the batch's kind, in that order:
 //!
 //! ```text
 //! count ─ scan ─ size_items ─ emit ─ evaluate ─┬─────────────────────────┬─ reduce ─ list kernel
@@ -17,15 +19,115 @@ use super::device::{self, Context};
 use super::layout::*;
 use super::pipelines::Kernels;
 use super::resources::{Limits, Statics};
-use super::sizes::{Bound, Sizes};
+use super::sizes::{Bound, BufferSpec, Kind, Sizes};
+use crate::engine::EngineError;
 
-/// Most uniform slots a try records: the walk's two passes, the args, the members'
-/// gather and scatter, the cut, the reduction and the fit (8); two slots per scan level
-/// of each scan, less one (up the levels, then back down but the top); and three
-/// evaluation passes per point-store part (stats, then below-the-cut or members).
-pub fn most_slots(sz: &Sizes, parts: usize) -> usize {
-    let scan = |levels: usize| (2 * levels).saturating_sub(1);
-    8 + scan(sz.levels.len()) + scan(sz.mlevels.len()) + 3 * parts
+/// One stage of a device batch, declared by its kernel's launcher and listed, in the
+/// order the batch records it, in `kernels::STAGES`.
+pub struct StageSpec {
+    /// Its name ([`super::batch_stages`]).
+    pub name: &'static str,
+    /// Whether it runs in batches of this kind.
+    pub runs_in: fn(Kind) -> bool,
+    /// Whether a rerun of the sub-batch (with larger item, flag or member buffers)
+    /// records it again; a stage whose output depends only on the queries (the count
+    /// walk and its scan) runs in the first try only.
+    pub on_rerun: bool,
+    /// Its own buffers, bound in the batches it runs in ([`Stage::own`]).
+    pub buffers: &'static [BufferSpec],
+    /// Most uniform slots it takes in one try, from the sizes, the limits and the parts of
+    /// the point store.
+    pub slots: fn(&Sizes, &Limits, usize) -> usize,
+    /// Commands before the compute pass (a clear of what its kernels add into).
+    pub before: fn(&Stage<'_>, &mut wgpu::CommandEncoder),
+    /// Records its dispatches.
+    pub record: fn(&Stage<'_>, &mut Recorder<'_>) -> Result<(), EngineError>,
+    /// What comes back from the batch after the per-query results and the control words
+    /// (one stage of a kind at most): a buffer and its bytes.
+    pub back: for<'a> fn(&'a Stage<'a>) -> Option<(&'a wgpu::Buffer, u64)>,
+    /// Compiles the pipelines it uses in batches of this kind that compile on first use
+    /// (the device opening's, where the ridge runs on the device).
+    pub prepare: fn(&Kernels, &Context, Kind) -> Result<(), EngineError>,
+}
+
+impl StageSpec {
+    /// What a launcher's stage leaves as it is: runs in every batch and every try, one
+    /// slot, no buffers of its own, nothing before the pass, nothing back, nothing to
+    /// compile ahead; records nothing.
+    pub const BASE: StageSpec = StageSpec {
+        name: "",
+        runs_in: |_| true,
+        on_rerun: true,
+        buffers: &[],
+        slots: |_, _, _| 1,
+        before: |_, _| {},
+        record: |_, _| Ok(()),
+        back: |_| None,
+        prepare: |_, _, _| Ok(()),
+    };
+}
+
+/// The stages of the registry, in order, with their own buffers one after another (each
+/// its index in [`Sizes::own`], [`Bound::own`] and the buffers' `own`).
+pub struct Sequence {
+    stages: &'static [&'static StageSpec],
+    buffers: Vec<&'static BufferSpec>,
+}
+
+impl Sequence {
+    pub fn new(stages: &'static [&'static StageSpec]) -> Sequence {
+        let buffers = stages.iter().flat_map(|s| s.buffers.iter()).collect();
+        Sequence { stages, buffers }
+    }
+
+    /// Every stage's own buffer, stage after stage.
+    pub fn buffers(&self) -> &[&'static BufferSpec] {
+        &self.buffers
+    }
+
+    /// The stages a try of `kind` records, in order (a `rerun` without those that run in
+    /// the first try only).
+    pub fn running(&self, kind: Kind, rerun: bool) -> impl Iterator<Item = &'static StageSpec> {
+        let stages = self.stages;
+        stages
+            .iter()
+            .copied()
+            .filter(move |s| (s.runs_in)(kind) && (s.on_rerun || !rerun))
+    }
+
+    /// The bytes of every own buffer in a try of `kind` (`None` where its stage does not
+    /// run).
+    pub fn own_sizes(&self, kind: Kind, sz: &Sizes, lim: &Limits) -> Vec<Option<u64>> {
+        self.stages
+            .iter()
+            .flat_map(|s| {
+                let runs = (s.runs_in)(kind);
+                s.buffers
+                    .iter()
+                    .map(move |b| runs.then(|| (b.bytes)(kind, sz, lim)))
+            })
+            .collect()
+    }
+
+    /// Most uniform slots a try of `kind` records: its stages' together.
+    pub fn most_slots(&self, kind: Kind, sz: &Sizes, lim: &Limits, parts: usize) -> usize {
+        self.running(kind, false)
+            .map(|s| (s.slots)(sz, lim, parts))
+            .sum()
+    }
+
+    /// Compiles ahead what the stages of `kind` compile on first use.
+    pub fn prepare(&self, k: &Kernels, ctx: &Context, kind: Kind) -> Result<(), EngineError> {
+        self.running(kind, false)
+            .try_for_each(|s| (s.prepare)(k, ctx, kind))
+    }
+
+    fn slot(&self, b: &BufferSpec) -> usize {
+        self.buffers
+            .iter()
+            .position(|x| std::ptr::eq(*x, b))
+            .unwrap_or_else(|| panic!("buffer `{}` of no registered stage", b.name))
+    }
 }
 
 /// The uniform slot `i` of `buf`, for binding 0.
@@ -108,17 +210,33 @@ impl<'a> Recorder<'a> {
     }
 }
 
-/// What every stage reads: the kernels, the grid's buffers, the sizes and the bound
-/// buffers of this try.
+/// What every stage reads: the device, the kernels, the grid's buffers, the kind of
+/// batch, the sizes and the bound buffers of this try.
 pub struct Stage<'a> {
+    pub ctx: &'a Context,
     pub k: &'a Kernels,
     pub st: &'a Statics,
     pub lim: &'a Limits,
+    pub kind: Kind,
+    pub seq: &'a Sequence,
     pub sz: &'a Sizes,
     pub bd: &'a Bound,
 }
 
 impl Stage<'_> {
+    /// The stage's own buffer `b` (one of its [`StageSpec::buffers`]) and its bytes in
+    /// this try.
+    pub fn own(&self, b: &BufferSpec) -> (&wgpu::Buffer, u64) {
+        let i = self.seq.slot(b);
+        match (&self.bd.own[i], self.sz.own[i]) {
+            (Some(buf), Some(bytes)) => (buf, bytes),
+            _ => panic!(
+                "buffer `{}` used in a batch its stage does not run in",
+                b.name
+            ),
+        }
+    }
+
     /// A workgroup per [`WG`] queries (tiled past `max_x`).
     pub(in crate::engine::gpu) fn per_query(&self) -> (u32, u32) {
         device::tiles(self.sz.n as u64, WG as u64, self.lim.max_x)

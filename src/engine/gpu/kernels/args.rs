@@ -3,7 +3,7 @@
 
 use super::super::device;
 use super::super::pipelines::{KernelSpec, When};
-use super::super::stages::{Recorder, Stage};
+use super::super::stages::{Recorder, Stage, StageSpec};
 use super::kernel_source;
 
 pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
@@ -15,10 +15,20 @@ pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
     structs: &[],
 }];
 
+/// Every try of every batch, after the items are counted and scanned.
+pub static STAGE: StageSpec = StageSpec {
+    name: "args",
+    record: |s, rec| {
+        s.size_items(rec);
+        Ok(())
+    },
+    ..StageSpec::BASE
+};
+
 impl Stage<'_> {
     /// Sizes the emit pass (at byte 12 of the indirect buffer) and the per-item passes
     /// (at 0).
-    pub fn size_items(&self, rec: &mut Recorder<'_>) {
+    fn size_items(&self, rec: &mut Recorder<'_>) {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
         let bind = [
             h(&bd.scan, sz.scan),

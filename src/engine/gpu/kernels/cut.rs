@@ -2,10 +2,11 @@
 //! a below-the-cut pass of `eval.wgsl`; the plans come back for the host to rank the
 //! candidates.
 
-use super::super::device::{self, Context};
+use super::super::device;
 use super::super::layout::MODE_BELOW;
 use super::super::pipelines::{KernelSpec, When};
-use super::super::stages::{Recorder, Stage};
+use super::super::sizes::Kind;
+use super::super::stages::{Recorder, Stage, StageSpec};
 use super::kernel_source;
 use crate::engine::EngineError;
 
@@ -18,9 +19,26 @@ pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
     structs: &[],
 }];
 
+/// The cut of every try of a nearest batch, after its histogram pass (which adds into the
+/// histograms this clears first); the plans come back.
+pub static STAGE: StageSpec = StageSpec {
+    name: "cut",
+    runs_in: |kind| kind == Kind::Nearest,
+    slots: |_, _, parts| 1 + parts,
+    before: |s, enc| enc.clear_buffer(&s.bd.aux, 0, Some(s.sz.hist.next_multiple_of(4))),
+    record: |s, rec| s.nearest(rec),
+    back: |s| Some((&s.bd.plans, s.sz.plans)),
+    prepare: |k, ctx, _| {
+        k.get(ctx, &KERNELS[0])?;
+        k.eval(ctx, MODE_BELOW, false).map(|_| ())
+    },
+    ..StageSpec::BASE
+};
+
 impl Stage<'_> {
     /// The cut, one invocation per query, then the sums of the points below it.
-    pub fn nearest(&self, rec: &mut Recorder<'_>, ctx: &Context) -> Result<(), EngineError> {
+    fn nearest(&self, rec: &mut Recorder<'_>) -> Result<(), EngineError> {
+        let ctx = self.ctx;
         let (sz, bd, h) = (self.sz, self.bd, device::head);
         let bind = [
             wgpu::BindingResource::TextureView(&bd.qtex),

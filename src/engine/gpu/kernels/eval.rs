@@ -5,7 +5,8 @@
 use super::super::device::{self, Context};
 use super::super::layout::*;
 use super::super::pipelines::{KernelSpec, Kernels, When};
-use super::super::stages::{Recorder, Stage};
+use super::super::sizes::Kind;
+use super::super::stages::{Recorder, Stage, StageSpec};
 use super::kernel_source;
 use crate::engine::EngineError;
 
@@ -54,8 +55,31 @@ const fn spec(name: &'static str, source: fn() -> String, when: When) -> KernelS
     }
 }
 
+/// The stats pass of every try of every batch (sides, the coverage bits, or the
+/// k-nearest histogram, as the batch's kind asks), once per part of the point store.
+pub static STAGE: StageSpec = StageSpec {
+    name: "eval",
+    slots: |_, _, parts| parts,
+    record: |s, rec| {
+        let mode = mode_of(s.kind);
+        s.evaluate(rec, s.k.eval(s.ctx, mode, rec.base.cover != 0)?, mode);
+        Ok(())
+    },
+    prepare: |k, ctx, kind| k.eval(ctx, mode_of(kind), false).map(|_| ()),
+    ..StageSpec::BASE
+};
+
+/// The mode of a batch's stats pass.
+fn mode_of(kind: Kind) -> u32 {
+    match kind {
+        Kind::Stats { sides: false, .. } | Kind::Members | Kind::List(_) => MODE_STATS,
+        Kind::Stats { sides: true, .. } => MODE_STATS_SIDES,
+        Kind::Nearest => MODE_HIST,
+    }
+}
+
 /// The evaluation kernel's variants, each its own pipeline: (mode, coverage bits).
-pub const EVAL_VARIANTS: [(u32, bool); 7] = [
+const EVAL_VARIANTS: [(u32, bool); 7] = [
     (MODE_STATS, false),
     (MODE_STATS, true),
     (MODE_STATS_SIDES, false),
@@ -74,7 +98,7 @@ const EVAL_COVER_LINE: &str = "let cover_on = params.cover != 0u;";
 /// the coverage bits): both are constants instead of the uniform's, so each pipeline
 /// carries only its own branches (on lavapipe the stats pass then costs about 40 % less
 /// CPU time; on GPUs fewer registers).
-pub fn eval_source(mode: u32, cover: bool) -> String {
+fn eval_source(mode: u32, cover: bool) -> String {
     let src = include_str!("../../../../shaders/eval.wgsl");
     assert!(
         src.contains(EVAL_MODE_LINE) && src.contains(EVAL_COVER_LINE),
@@ -89,7 +113,7 @@ pub fn eval_source(mode: u32, cover: bool) -> String {
 impl Kernels {
     /// The evaluation pipeline of `mode` (coverage bits only in the stats modes),
     /// compiled now if this is its first use.
-    pub fn eval(
+    pub(super) fn eval(
         &self,
         ctx: &Context,
         mode: u32,
@@ -107,7 +131,7 @@ impl Kernels {
 impl Stage<'_> {
     /// `eval` (compiled for `mode`), once per part of the point store: every point of
     /// every item of that part, sized by `args.wgsl`.
-    pub fn evaluate(&self, rec: &mut Recorder<'_>, eval: &wgpu::ComputePipeline, mode: u32) {
+    pub(super) fn evaluate(&self, rec: &mut Recorder<'_>, eval: &wgpu::ComputePipeline, mode: u32) {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
         for (part, points) in self.st.parts.iter().enumerate() {
             let p = Params {

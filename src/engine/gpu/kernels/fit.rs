@@ -52,7 +52,7 @@ shared! {
 
 /// The fit kernel's full source ([`list_kernel_source`] of `fit.wgsl`; compiled only on
 /// a device with `SHADER_F64`).
-pub fn fit_source() -> String {
+fn fit_source() -> String {
     let own = format!(
         "// Generated from src/engine/gpu/kernels/fit.rs: do not edit here.\n{}\
          const MIN_ELONGATION: f64 = {:?}lf;\n\

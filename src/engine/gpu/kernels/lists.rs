@@ -13,24 +13,60 @@ use super::super::device;
 use super::super::layout::{FitQuery, FIT_WG};
 use super::super::pipelines::ListKernel;
 use super::super::resources::Buffers;
-use super::super::stages::{Recorder, Stage};
+use super::super::sizes::BufferSpec;
+use super::super::stages::{Recorder, Stage, StageSpec};
 use super::super::GpuEngine;
 use crate::engine::{EngineError, Query};
 
+/// The list kernel of every try of a list batch, after the reduction; its output comes
+/// back.
+pub static STAGE: StageSpec = StageSpec {
+    name: "list",
+    runs_in: |kind| matches!(kind, Kind::List(_)),
+    buffers: &BUFFERS,
+    record: |s, rec| {
+        if let Kind::List(l) = s.kind {
+            s.list(rec, l);
+        }
+        Ok(())
+    },
+    back: |s| matches!(s.kind, Kind::List(_)).then(|| s.own(&BUFFERS[OUT])),
+    ..StageSpec::BASE
+};
+
+/// The queries' frames (written at the first try) and the kernel's output.
+static BUFFERS: [BufferSpec; 2] = [
+    BufferSpec {
+        name: "fitq",
+        bytes: |_, sz, _| sz.n as u64 * std::mem::size_of::<FitQuery>() as u64,
+        frames: true,
+    },
+    BufferSpec {
+        name: "fitout",
+        bytes: |kind, sz, _| match kind {
+            Kind::List(l) => l.out * sz.n as u64,
+            _ => 0,
+        },
+        frames: false,
+    },
+];
+const FRAMES: usize = 0;
+const OUT: usize = 1;
+
 /// A list kernel's output, one `T` a query, as the device wrote it.
-pub trait ListOut {
+pub(super) trait ListOut {
     fn list_out<T: bytemuck::Pod>(&self) -> Vec<T>;
 }
 
 impl ListOut for Output {
     fn list_out<T: bytemuck::Pod>(&self) -> Vec<T> {
-        bytemuck::pod_collect_to_vec(&self.list)
+        bytemuck::pod_collect_to_vec(&self.back)
     }
 }
 
 /// The frame of `q` every list kernel reads: `P1`, the unit direction (`Segment::dir`)
 /// and the radius, in f64 (the rest zero, for the kernel's own fields).
-pub fn frame(q: &Query) -> FitQuery {
+pub(super) fn frame(q: &Query) -> FitQuery {
     let (p1, d) = (q.seg.p1, q.seg.dir());
     FitQuery {
         p1x: p1.x,
@@ -47,24 +83,23 @@ pub fn frame(q: &Query) -> FitQuery {
 impl Stage<'_> {
     /// List kernel `l` over each query's member list, after the reduction has counted its
     /// members. Nothing without the kernel or the centers' coordinates on the device.
-    pub fn list(&self, rec: &mut Recorder<'_>, l: &ListKernel) {
+    fn list(&self, rec: &mut Recorder<'_>, l: &ListKernel) {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let (Some(fitq), Some(out), Some(pipeline), Some((world, world_bytes))) = (
-            &bd.fitq,
-            &bd.fitout,
-            self.k.compiled(l.spec),
-            &self.st.world,
-        ) else {
+        let (Some(pipeline), Some((world, world_bytes))) =
+            (self.k.compiled(l.spec), &self.st.world)
+        else {
             return;
         };
+        let ((fitq, fitq_bytes), (out, out_bytes)) =
+            (self.own(&BUFFERS[FRAMES]), self.own(&BUFFERS[OUT]));
         let bind = [
-            h(fitq, sz.fitq),
+            h(fitq, fitq_bytes),
             h(&bd.scan, sz.scan),
             h(&bd.partials, sz.partials),
             h(&bd.results, sz.results),
             h(&bd.aux, sz.members),
             h(world, *world_bytes),
-            h(out, sz.fitout),
+            h(out, out_bytes),
         ];
         let base = rec.base;
         rec.bind(pipeline, base, &bind);
@@ -76,7 +111,7 @@ impl Stage<'_> {
 impl GpuEngine {
     /// Runs list kernel `l` over `queries` (their `frames`, one each) in sub-batches,
     /// calling `each(first query, output)` for every sub-batch in order.
-    pub(in crate::engine::gpu) fn run_list(
+    pub(super) fn run_list(
         &self,
         b: &mut Buffers,
         l: &'static ListKernel,

@@ -5,8 +5,10 @@
 use super::super::device::{self, Context};
 use super::super::layout::MODE_MEMBERS;
 use super::super::pipelines::{KernelSpec, Kernels, When};
-use super::super::stages::{Recorder, Stage};
-use super::kernel_source;
+use super::super::resources::Limits;
+use super::super::sizes::{member_scan_max, scan_levels, BufferSpec, Kind, Level, Sizes};
+use super::super::stages::{Recorder, Stage, StageSpec};
+use super::{kernel_source, scan};
 use crate::engine::EngineError;
 
 pub static KERNELS: [KernelSpec; 2] = [
@@ -28,9 +30,41 @@ pub static KERNELS: [KernelSpec; 2] = [
     },
 ];
 
+/// The member lists of every try of a members or list batch, after the stats pass; a
+/// members batch sends the list back.
+pub static STAGE: StageSpec = StageSpec {
+    name: "members",
+    runs_in: Kind::lists,
+    buffers: &BUFFERS,
+    slots: |sz, lim, parts| 2 + scan::slots(&levels(sz, lim).0) + parts,
+    record: |s, rec| s.members(rec),
+    back: |s| (s.kind == Kind::Members).then_some((&s.bd.aux, s.sz.members)),
+    prepare: |k, ctx, _| {
+        k.eval(ctx, MODE_MEMBERS, false)?;
+        k.members(ctx)?;
+        Ok(())
+    },
+    ..StageSpec::BASE
+};
+
+/// The scan of the items' member counts.
+static BUFFERS: [BufferSpec; 1] = [BufferSpec {
+    name: "mscan",
+    bytes: |_, sz, lim| levels(sz, lim).1 as u64 * 4,
+    frames: false,
+}];
+
+/// The levels of the scan of the items' member counts and its length: over the item
+/// buffer's capacity (the total is on the device; entries past it do not change the
+/// offsets before it).
+fn levels(sz: &Sizes, lim: &Limits) -> (Vec<Level>, u32) {
+    let (levels, _, len) = scan_levels(sz.item_cap.min(member_scan_max(lim)));
+    (levels, len)
+}
+
 impl Kernels {
     /// The gather and scatter pipelines, compiled now if this is their first use.
-    pub fn members(
+    fn members(
         &self,
         ctx: &Context,
     ) -> Result<(&wgpu::ComputePipeline, &wgpu::ComputePipeline), EngineError> {
@@ -40,21 +74,26 @@ impl Kernels {
 
 impl Stage<'_> {
     /// Gather, scan, scatter, then the member pass.
-    pub fn members(&self, rec: &mut Recorder<'_>, ctx: &Context) -> Result<(), EngineError> {
+    fn members(&self, rec: &mut Recorder<'_>) -> Result<(), EngineError> {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
-        let (gather, scatter) = self.k.members(ctx)?;
+        let (gather, scatter) = self.k.members(self.ctx)?;
+        let (mscan, mscan_bytes) = self.own(&BUFFERS[0]);
         let bind = [
             h(&bd.ctl, sz.ctl),
             h(&bd.partials, sz.partials),
-            h(&bd.mscan, sz.mscan),
+            h(mscan, mscan_bytes),
         ];
         let base = rec.base;
         rec.bind(gather, base, &bind);
         rec.indirect(&bd.indirect, 0);
-        self.scan(rec, &bd.mscan, sz.mscan, &sz.mlevels);
+        self.scan(rec, mscan, mscan_bytes, &levels(sz, self.lim).0);
         rec.bind(scatter, base, &bind);
         rec.indirect(&bd.indirect, 0);
-        self.evaluate(rec, self.k.eval(ctx, MODE_MEMBERS, false)?, MODE_MEMBERS);
+        self.evaluate(
+            rec,
+            self.k.eval(self.ctx, MODE_MEMBERS, false)?,
+            MODE_MEMBERS,
+        );
         Ok(())
     }
 }

@@ -19,12 +19,9 @@ mod reduce;
 mod scan;
 mod walk;
 
-pub use eval::eval_source;
-pub use fit::fit_source;
-pub use walk::walk_source;
-
 use super::layout;
 use super::pipelines::{KernelSpec, Routes};
+use super::stages::StageSpec;
 
 /// Every kernel, launcher by launcher (each launcher's `KERNELS`: its pipelines), which the
 /// device opening hands to [`super::pipelines::Kernels::new`]. Adding a kernel is one line
@@ -39,6 +36,21 @@ pub static KERNELS: &[&[KernelSpec]] = &[
     &reduce::KERNELS,
     &fit::KERNELS,
     &extent::KERNELS,
+];
+
+/// The stages of a device batch, in the order a try records them: each a launcher's
+/// [`StageSpec`], which says the kinds of batch it runs in, its own buffers and what comes
+/// back (`stages::Sequence`, which the batches iterate). A stage kernel is one line here.
+pub static STAGES: &[&StageSpec] = &[
+    &walk::COUNT,
+    &scan::STAGE,
+    &args::STAGE,
+    &walk::EMIT,
+    &eval::STAGE,
+    &members::STAGE,
+    &cut::STAGE,
+    &reduce::STAGE,
+    &lists::STAGE,
 ];
 
 /// Which launcher answers each query the GPU engine can take over from its member lists

@@ -2,7 +2,7 @@
 
 use super::super::device;
 use super::super::pipelines::{KernelSpec, When};
-use super::super::stages::{Recorder, Stage};
+use super::super::stages::{Recorder, Stage, StageSpec};
 use super::kernel_source;
 
 pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
@@ -14,9 +14,19 @@ pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
     structs: &[],
 }];
 
+/// Every try of every batch, after the evaluation passes.
+pub static STAGE: StageSpec = StageSpec {
+    name: "reduce",
+    record: |s, rec| {
+        s.reduce(rec);
+        Ok(())
+    },
+    ..StageSpec::BASE
+};
+
 impl Stage<'_> {
     /// One invocation per query.
-    pub fn reduce(&self, rec: &mut Recorder<'_>) {
+    fn reduce(&self, rec: &mut Recorder<'_>) {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
         let bind = [
             h(&bd.scan, sz.scan),

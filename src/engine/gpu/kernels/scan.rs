@@ -5,7 +5,7 @@ use super::super::device;
 use super::super::layout::Params;
 use super::super::pipelines::{KernelSpec, When};
 use super::super::sizes::Level;
-use super::super::stages::{Recorder, Stage};
+use super::super::stages::{Recorder, Stage, StageSpec};
 use super::kernel_source;
 
 pub static KERNELS: [KernelSpec; 2] = [
@@ -27,10 +27,34 @@ pub static KERNELS: [KernelSpec; 2] = [
     },
 ];
 
+/// The scan of the queries' item counts, in the first try of a sub-batch (a rerun finds
+/// it in place).
+pub static STAGE: StageSpec = StageSpec {
+    name: "scan",
+    on_rerun: false,
+    slots: |sz, _, _| slots(&sz.levels),
+    record: |s, rec| {
+        s.scan(rec, &s.bd.scan, s.sz.scan, &s.sz.levels);
+        Ok(())
+    },
+    ..StageSpec::BASE
+};
+
+/// The uniform slots of a scan over `levels`: up the levels, then back down but the top.
+pub(super) fn slots(levels: &[Level]) -> usize {
+    (2 * levels.len()).saturating_sub(1)
+}
+
 impl Stage<'_> {
     /// The prefix sum of `buf` over `levels`, up the levels (each level's block sums into
     /// the next), then the scanned block sums added back down.
-    pub fn scan(&self, rec: &mut Recorder<'_>, buf: &wgpu::Buffer, bytes: u64, levels: &[Level]) {
+    pub(super) fn scan(
+        &self,
+        rec: &mut Recorder<'_>,
+        buf: &wgpu::Buffer,
+        bytes: u64,
+        levels: &[Level],
+    ) {
         let base = rec.base;
         let p = |l: &Level| Params {
             n: l.len,

@@ -4,7 +4,7 @@
 use super::super::device;
 use super::super::layout::{Params, MODE_COUNT, MODE_EMIT};
 use super::super::pipelines::{KernelSpec, When};
-use super::super::stages::{Recorder, Stage};
+use super::super::stages::{Recorder, Stage, StageSpec};
 use super::kernel_source;
 
 pub static KERNELS: [KernelSpec; 2] = [
@@ -26,13 +26,35 @@ pub static KERNELS: [KernelSpec; 2] = [
     },
 ];
 
+/// The count pass, in the first try of a sub-batch (a rerun finds the counts and their
+/// scan in place).
+pub static COUNT: StageSpec = StageSpec {
+    name: "walk count",
+    on_rerun: false,
+    record: |s, rec| {
+        s.count(rec);
+        Ok(())
+    },
+    ..StageSpec::BASE
+};
+
+/// The emit pass, in every try, once `args.wgsl` has sized it.
+pub static EMIT: StageSpec = StageSpec {
+    name: "walk emit",
+    record: |s, rec| {
+        s.emit(rec);
+        Ok(())
+    },
+    ..StageSpec::BASE
+};
+
 /// The line of `walk.wgsl` that reads its pass (count or emit) from the uniform.
 const WALK_EMIT_LINE: &str = "let emit = params.mode == MODE_EMIT;";
 
 /// The grid walk compiled for one pass, the pass a constant: the count pass then carries
 /// no item stores (a SIMD implementation such as lavapipe runs a branch's stores under a
 /// mask even where no lane takes it) and the emit pass no count bookkeeping.
-pub fn walk_source(emit: bool) -> String {
+fn walk_source(emit: bool) -> String {
     let src = include_str!("../../../../shaders/walk.wgsl");
     assert!(src.contains(WALK_EMIT_LINE), "walk.wgsl reads its pass");
     kernel_source(&src.replace(WALK_EMIT_LINE, &format!("let emit = {emit};")))
@@ -59,13 +81,13 @@ impl Stage<'_> {
     }
 
     /// Count pass: each query's work items.
-    pub fn count(&self, rec: &mut Recorder<'_>) {
+    fn count(&self, rec: &mut Recorder<'_>) {
         self.walk(rec, &KERNELS[0], MODE_COUNT);
         rec.dispatch(self.per_query());
     }
 
     /// Emit pass: the items, contiguous per query (sized by `args.wgsl`).
-    pub fn emit(&self, rec: &mut Recorder<'_>) {
+    fn emit(&self, rec: &mut Recorder<'_>) {
         self.walk(rec, &KERNELS[1], MODE_EMIT);
         rec.indirect(&self.bd.indirect, 12);
     }
