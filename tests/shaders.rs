@@ -417,3 +417,146 @@ fn each_shader_is_loaded_by_its_own_launcher_only() {
         }
     }
 }
+
+/// The code of a source file: the lines before its `#[cfg(test)]` module, each without
+/// its `//` comment.
+fn code_of(text: &str) -> Vec<&str> {
+    text.lines()
+        .take_while(|l| !l.trim_start().starts_with("#[cfg(test)]"))
+        .map(|l| l.find("//").map_or(l, |k| &l[..k]))
+        .collect()
+}
+
+/// Every `.rs` file under `src/`, as (path from the crate root, text).
+fn rust_sources() -> Vec<(String, String)> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut sources = Vec::new();
+    let mut stack = vec![root.join("src")];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                let text = std::fs::read_to_string(&p).unwrap();
+                let rel = p.strip_prefix(root).unwrap().to_string_lossy();
+                sources.push((rel.replace('\\', "/"), text));
+            }
+        }
+    }
+    sources.sort();
+    sources
+}
+
+/// Whether `code` names `path` as a whole path segment (`kernels::fit`, not
+/// `kernels::fit_x`).
+fn names(code: &str, path: &str) -> bool {
+    code.match_indices(path).any(|(at, _)| {
+        let before = code[..at].chars().next_back();
+        let after = code[at + path.len()..].chars().next();
+        !before.is_some_and(|c| c.is_alphanumeric() || c == '_')
+            && !after.is_some_and(|c| c.is_alphanumeric() || c == '_')
+    })
+}
+
+/// A kernel is reached only through the registry (`kernels/mod.rs`): no file outside
+/// `src/engine/gpu/kernels/` names a launcher, the registry re-exports nothing of one,
+/// and every item of a launcher that is visible outside `kernels/` (plain `pub`) is a
+/// static the registry lists (its `KERNELS`, its stages, its routes); everything else
+/// of a launcher is `pub(super)` or private, so that the compiler keeps the GPU engine,
+/// the batches, the sizes and the buffers from calling into it. Adding a kernel then
+/// changes no file but its own two and the registry.
+#[test]
+fn a_launcher_is_reached_only_through_the_registry() {
+    let sources = rust_sources();
+    let dir = "src/engine/gpu/kernels/";
+    let registry = format!("{dir}mod.rs");
+    let reg = code_of(&sources.iter().find(|(p, _)| *p == registry).unwrap().1).join("\n");
+    let launchers: Vec<(String, &str)> = sources
+        .iter()
+        .filter(|(p, _)| p.starts_with(dir) && *p != registry)
+        .map(|(p, t)| {
+            (
+                p[dir.len()..].trim_end_matches(".rs").to_string(),
+                t.as_str(),
+            )
+        })
+        .collect();
+    assert!(launchers.len() >= 10, "{launchers:?}");
+    let mut bad = Vec::new();
+    for (path, text) in sources.iter().filter(|(p, _)| !p.starts_with(dir)) {
+        for (n, line) in code_of(text).iter().enumerate() {
+            for (name, _) in &launchers {
+                if names(line, &format!("kernels::{name}")) {
+                    bad.push(format!("{path}:{}: names the launcher {name}", n + 1));
+                }
+            }
+        }
+    }
+    for line in reg
+        .lines()
+        .filter(|l| l.trim_start().starts_with("pub use"))
+    {
+        bad.push(format!("{registry}: re-exports `{}`", line.trim()));
+    }
+    for (name, text) in &launchers {
+        for (n, line) in code_of(text).iter().enumerate() {
+            let Some(rest) = line.trim_start().strip_prefix("pub ") else {
+                continue;
+            };
+            let item = rest
+                .strip_prefix("static ")
+                .map(|r| r.split(|c: char| !(c.is_alphanumeric() || c == '_')).next());
+            match item.flatten() {
+                Some(item) if names(&reg, &format!("&{name}::{item}")) => {}
+                _ => bad.push(format!(
+                    "{dir}{name}.rs:{}: visible outside kernels/ and not in the registry: {}",
+                    n + 1,
+                    line.trim()
+                )),
+            }
+        }
+    }
+    assert!(bad.is_empty(), "{bad:#?}");
+}
+
+/// The stages of each kind of batch are the registry's (`kernels::STAGES`), in its
+/// order, each with the buffers its launcher declares: `batch.rs` records exactly what
+/// `batch_stages` lists (both iterate the same sequence), and a rerun leaves out the
+/// count walk and its scan.
+#[test]
+fn each_kind_of_batch_records_the_registrys_stages_in_order() {
+    use linegs_gpu::engine::gpu::batch_stages;
+    let show = |rerun: bool| -> Vec<String> {
+        batch_stages(rerun)
+            .into_iter()
+            .map(|(kind, stages)| {
+                let stages: Vec<String> = stages
+                    .iter()
+                    .map(|(s, own)| match own.is_empty() {
+                        true => s.to_string(),
+                        false => format!("{s} [{}]", own.join(", ")),
+                    })
+                    .collect();
+                format!("{kind}: {}", stages.join(" > "))
+            })
+            .collect()
+    };
+    let head = "walk count > scan > args > walk emit > eval";
+    let lists = format!("{head} > members [mscan] > reduce > list [fitq, fitout]");
+    assert_eq!(
+        show(false),
+        [
+            format!("stats: {head} > reduce"),
+            format!("stats sides cover: {head} > reduce"),
+            format!("nearest: {head} > cut > reduce"),
+            format!("members: {head} > members [mscan] > reduce"),
+            format!("list extent: {lists}"),
+            format!("list fit: {lists}"),
+        ]
+    );
+    let first = show(false);
+    for (again, first) in show(true).iter().zip(&first) {
+        assert_eq!(*again, first.replacen("walk count > scan > ", "", 1));
+    }
+}

@@ -45,11 +45,11 @@ pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
 /// Most members of a query the extent kernel takes (its loop runs
 /// `MAX_EXTENT_MEMBERS / FIT_WG + log2(FIT_WG)` iterations: 16,390); a query with more is
 /// the host's.
-pub const MAX_EXTENT_MEMBERS: u32 = 1 << 20;
+const MAX_EXTENT_MEMBERS: u32 = 1 << 20;
 /// `ExtentOut::status`: the ends found; no sure member; the host answers the query.
-pub const EXTENT_OK: u32 = 0;
-pub const EXTENT_NONE: u32 = 1;
-pub const EXTENT_HOST: u32 = 2;
+const EXTENT_OK: u32 = 0;
+const EXTENT_NONE: u32 = 1;
+const EXTENT_HOST: u32 = 2;
 
 shared! {
     /// One query's extent from the extent kernel (`extent.wgsl`, f64): the smallest and

@@ -22,19 +22,19 @@ pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
 }];
 
 /// Most mean-shift steps of the ridge (`ridge()`'s schedule in src/geom/fit.rs).
-pub const FIT_STEPS: u32 = 100;
+const FIT_STEPS: u32 = 100;
 /// Most members of a query the fit kernel takes; a query with more is fitted on the host.
 /// The kernel's loops then stay below FIT_STEPS + 1 passes of
 /// `MAX_FIT_MEMBERS / FIT_WG + log2(FIT_WG)` iterations (26,724), far below lavapipe's
 /// 65,535.
-pub const MAX_FIT_MEMBERS: u32 = 16_384;
+const MAX_FIT_MEMBERS: u32 = 16_384;
 /// `FitOut::status`: the ridge found (`t0`, `a`, `b`, `weight`); no weight left (no
 /// members, or the kernel lost them all: "unclear"); or a decision too close to its
 /// threshold for rounding to be sure of (or a query too large) for the device: the host
 /// fits the query.
-pub const FIT_OK: u32 = 0;
-pub const FIT_NONE: u32 = 1;
-pub const FIT_HOST: u32 = 2;
+const FIT_OK: u32 = 0;
+const FIT_NONE: u32 = 1;
+const FIT_HOST: u32 = 2;
 
 shared! {
     /// One query's ridge from the fit kernel, in scene units and f64: the line
