@@ -11,7 +11,8 @@
 //! different address per lane is a loop over the lanes (the evaluation kernel 2.3x faster
 //! there). Per batch the host uploads only the queries (96 bytes each, in the Morton
 //! order of their midpoints' cells: `order.rs`), as a texture whose texels the kernels
-//! fetch, and one submit runs the stages (each recorded by its kernel's launcher,
+//! fetch, and one submit runs the stages that run in the batch's kind, in the order of
+//! the registry's `kernels::STAGES` (each declared and recorded by its kernel's launcher,
 //! `kernels/`):
 //! 1. `walk.wgsl` (count): per query, the work items its capped cylinder needs (cells it
 //!    can touch, each cell cut into chunks of at most [`CHUNK`] points);
@@ -33,11 +34,14 @@
 //! buffers the batch is rerun with larger ones (the sizes are kept for later batches).
 //!
 //! The files: `options.rs` (what callers choose), `kernels/` (one launcher a kernel,
-//! and the one list of them that the device opening compiles), `pipelines.rs` (a
-//! kernel's description and the compiled pipelines), `resources.rs` (limits,
-//! what is uploaded once, per-batch buffers), `query.rs` (a query as the kernels read
+//! and the registry: the pipelines the device opening compiles, the stages of a batch in
+//! order, and which launcher answers which query), `pipelines.rs` (a kernel's
+//! description, the queries a list kernel may answer, and the compiled pipelines),
+//! `resources.rs` (limits, what is uploaded once, per-batch buffers), `sizes.rs` (a
+//! batch's kind, sizes and bound buffers), `query.rs` (a query as the kernels read
 //! it), `order.rs` (the queries' order), `batch.rs` (one sub-batch: sizes, buffers, the
-//! stages in order, submit, readback), `stages.rs` (the recorder of a compute pass),
+//! stages in order, submit, readback), `stages.rs` (a stage's description, the sequence
+//! of them and the recorder of a compute pass),
 //! `answers.rs` (outputs into answers), `host.rs` (the host's f64
 //! decisions), `device.rs` (wgpu), `layout.rs` (the structs shared with WGSL).
 //!
