@@ -299,7 +299,7 @@ fn every_evaluation_mode_variant_validates() {
             .find(|s| want.iter().all(|w| s.contains(w)))
             .unwrap_or_else(|| panic!("no evaluation variant {mode} {cover}"));
         assert!(!src.contains("= params.mode;") && !src.contains("= params.cover"));
-        validate_variant(&src, "eval.wgsl").unwrap_or_else(|e| panic!("mode {mode}: {e}"));
+        validate_variant(src, "eval.wgsl").unwrap_or_else(|e| panic!("mode {mode}: {e}"));
     }
 }
 
