@@ -364,25 +364,7 @@ fn every_registered_kernel_validates_and_every_shader_is_registered() {
 /// in the registry, which is the only other file of `src/` that names the launcher.
 #[test]
 fn each_shader_is_loaded_by_its_own_launcher_only() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let mut sources = Vec::new();
-    let mut stack = vec![root.join("src")];
-    while let Some(dir) = stack.pop() {
-        for e in std::fs::read_dir(&dir).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else if p.extension().is_some_and(|x| x == "rs") {
-                let text = std::fs::read_to_string(&p).unwrap();
-                let rel = p
-                    .strip_prefix(root)
-                    .unwrap()
-                    .to_string_lossy()
-                    .replace('\\', "/");
-                sources.push((rel, text));
-            }
-        }
-    }
+    let sources = rust_sources();
     let registry = "src/engine/gpu/kernels/mod.rs";
     let reg = &sources.iter().find(|(p, _)| p == registry).unwrap().1;
     for path in kernels() {
