@@ -10,7 +10,7 @@ use super::pipelines::Kernels;
 use super::query::gquery;
 use super::resources::{Buffers, Limits, Statics};
 pub use super::sizes::Kind;
-use super::sizes::{member_scan_max, Bound, Sizes};
+use super::sizes::{Bound, Sizes};
 use super::stages::{Recorder, Sequence, Stage};
 use crate::engine::{EngineError, Query};
 use crate::index::Grid;
@@ -108,6 +108,7 @@ pub fn submit(
     }
     let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
+    let most_items = seq.most_items(kind, lim);
     loop {
         let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun)?;
         rerun = true;
@@ -115,7 +116,7 @@ pub fn submit(
         items_run += got.items.min(b.item_cap) as u64;
         points_read += got.points;
         let mut again = false;
-        if kind.lists() && got.items > member_scan_max(lim) {
+        if got.items > most_items {
             return Ok(Attempt::TooLarge(waited, items_run, points_read));
         }
         if got.items > b.item_cap {

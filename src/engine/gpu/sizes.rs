@@ -77,11 +77,6 @@ pub fn scan_levels(n: u32) -> (Vec<Level>, u32, u32) {
     }
 }
 
-/// Most items a members batch may scan: one scan level within `max_x` workgroups.
-pub fn member_scan_max(lim: &Limits) -> u32 {
-    SCAN_WG.saturating_mul(lim.max_x)
-}
-
 /// Byte sizes of everything one try binds, from the batch and the buffers' capacities.
 pub struct Sizes {
     pub n: u32,

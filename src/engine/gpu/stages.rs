@@ -33,6 +33,8 @@ pub struct StageSpec {
     /// records it again; a stage whose output depends only on the queries (the count
     /// walk and its scan) runs in the first try only.
     pub on_rerun: bool,
+    /// Most work items a batch it runs in may have (a sub-batch with more is split).
+    pub max_items: fn(&Limits) -> u32,
     /// Its own buffers, bound in the batches it runs in ([`Stage::own`]).
     pub buffers: &'static [BufferSpec],
     /// Most uniform slots it takes in one try, from the sizes, the limits and the parts of
@@ -51,13 +53,14 @@ pub struct StageSpec {
 }
 
 impl StageSpec {
-    /// What a launcher's stage leaves as it is: runs in every batch and every try, one
-    /// slot, no buffers of its own, nothing before the pass, nothing back, nothing to
+    /// What a launcher's stage leaves as it is: runs in every batch and every try, no
+    /// bound of its own on the items, one slot, no buffers of its own, nothing before the pass, nothing back, nothing to
     /// compile ahead; records nothing.
     pub const BASE: StageSpec = StageSpec {
         name: "",
         runs_in: |_| true,
         on_rerun: true,
+        max_items: |_| u32::MAX,
         buffers: &[],
         slots: |_, _, _| 1,
         before: |_, _| {},
@@ -107,6 +110,14 @@ impl Sequence {
                     .map(move |b| runs.then(|| (b.bytes)(kind, sz, lim)))
             })
             .collect()
+    }
+
+    /// Most work items a batch of `kind` may have: its stages' least.
+    pub fn most_items(&self, kind: Kind, lim: &Limits) -> u32 {
+        self.running(kind, false)
+            .map(|s| (s.max_items)(lim))
+            .min()
+            .unwrap_or(u32::MAX)
     }
 
     /// Most uniform slots a try of `kind` records: its stages' together.

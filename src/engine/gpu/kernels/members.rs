@@ -4,9 +4,10 @@
 
 use super::super::device::{self, Context};
 use super::super::layout::MODE_MEMBERS;
+use super::super::layout::SCAN_WG;
 use super::super::pipelines::{KernelSpec, Kernels, When};
 use super::super::resources::Limits;
-use super::super::sizes::{member_scan_max, scan_levels, BufferSpec, Kind, Level, Sizes};
+use super::super::sizes::{scan_levels, BufferSpec, Kind, Level, Sizes};
 use super::super::stages::{Recorder, Stage, StageSpec};
 use super::{kernel_source, scan};
 use crate::engine::EngineError;
@@ -36,6 +37,7 @@ pub static STAGE: StageSpec = StageSpec {
     name: "members",
     runs_in: Kind::lists,
     buffers: &BUFFERS,
+    max_items: member_scan_max,
     slots: |sz, lim, parts| 2 + scan::slots(&levels(sz, lim).0) + parts,
     record: |s, rec| s.members(rec),
     back: |s| (s.kind == Kind::Members).then_some((&s.bd.aux, s.sz.members)),
@@ -53,6 +55,12 @@ static BUFFERS: [BufferSpec; 1] = [BufferSpec {
     bytes: |_, sz, lim| levels(sz, lim).1 as u64 * 4,
     frames: false,
 }];
+
+/// Most items a batch that lists members may have: its scan of their member counts is
+/// one level within `max_x` workgroups.
+fn member_scan_max(lim: &Limits) -> u32 {
+    SCAN_WG.saturating_mul(lim.max_x)
+}
 
 /// The levels of the scan of the items' member counts and its length: over the item
 /// buffer's capacity (the total is on the device; entries past it do not change the
