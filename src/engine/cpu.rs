@@ -2,6 +2,7 @@
 //! ([`super::order`]), exact f64 tests on the grid's rows. Each query sums its points in grid
 //! order, so results do not depend on the thread count or the order of work.
 
+use super::bound::ListBound;
 use super::order::SpatialOrder;
 use super::walk::{any_member, for_each_member, members_into};
 use super::{
@@ -13,7 +14,7 @@ use crate::geom::p64;
 use crate::index::Grid;
 use glam::DVec3;
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 pub use super::walk::member_list;
@@ -130,20 +131,41 @@ pub(crate) fn add_nearest<I: Ord + Copy>(
     }
 }
 
-/// [`Engine::members`] over `grid` on the host, f64.
-pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
+/// [`Engine::members`] over `grid` on the host, f64: at most `bound.limit` members in
+/// all ([`ListBound`]), else [`EngineError::Limit`] (no list holds more than what is left
+/// of the bound while it is walked).
+pub fn members_of(
+    grid: &Grid,
+    queries: &[Query],
+    bound: &ListBound,
+) -> Result<Vec<Vec<Member>>, EngineError> {
     let order = SpatialOrder::new(grid, queries);
-    order.restore(
+    let listed = AtomicUsize::new(0);
+    let over = AtomicBool::new(false);
+    let lists = order.restore(
         (0..queries.len())
             .into_par_iter()
             .with_min_len(8)
             .map_init(Vec::new, |buf, j| {
+                let left = bound.limit.saturating_sub(listed.load(Ordering::Relaxed));
                 // Listed into a buffer the thread reuses, then copied once at its size.
-                members_into(grid, &queries[order.index(j)], buf);
+                if over.load(Ordering::Relaxed)
+                    || !members_into(grid, &queries[order.index(j)], buf, left)
+                    || listed.fetch_add(buf.len(), Ordering::Relaxed) + buf.len() > bound.limit
+                {
+                    over.store(true, Ordering::Relaxed);
+                    return Vec::new();
+                }
                 buf.clone()
             })
             .collect(),
-    )
+    );
+    if over.load(Ordering::Relaxed) {
+        return Err(bound.exceeded(
+            "the edge fit's decision rule (or --max-sagitta's check) on the CPU engine",
+        ));
+    }
+    Ok(lists)
 }
 
 /// [`Engine::extent`] over `grid` on the host, f64.
@@ -213,7 +235,7 @@ impl Engine for CpuEngine {
 
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
         self.count_batch(queries.len());
-        Ok(members_of(&self.grid, queries))
+        members_of(&self.grid, queries, &ListBound::new()?)
     }
 
     /// The walks stop at their first member.

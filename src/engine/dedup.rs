@@ -67,7 +67,7 @@ impl Groups {
     fn of(queries: &[Query], k: Option<&[u64]>) -> Option<Groups> {
         let n = queries.len();
         // A batch of 2^31 queries or more is asked as it is (it would not fit in memory).
-        if n < 2 || n >= 1 << 31 {
+        if !(2..1 << 31).contains(&n) {
             return None;
         }
         let key_of = |i: usize| key(&queries[i], k.map_or(0, |k| k[i]));

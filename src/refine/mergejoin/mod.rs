@@ -175,12 +175,15 @@ fn input_lines(groups: &[u32]) -> Vec<Vec<usize>> {
     members
 }
 
+/// One group's result: its items, each with the indices of the group's items it holds.
+type GroupResult = Vec<(Item, Vec<usize>)>;
+
 /// Puts each input line's result in the place of its first segment (`None`: the line's
 /// one segment as it is).
 fn in_input_order(
     lines: &LineSet,
     members: &[Vec<usize>],
-    mut results: Vec<Option<Vec<(Item, Vec<usize>)>>>,
+    mut results: Vec<Option<GroupResult>>,
 ) -> (LineSet, Vec<Vec<usize>>) {
     let mut first: Vec<Option<usize>> = vec![None; lines.len()];
     for (k, m) in members.iter().enumerate() {
