@@ -171,13 +171,12 @@ pub fn members_of(
 /// [`Engine::extent`] over `grid` on the host, f64.
 pub fn extents_of(grid: &Grid, queries: &[Query]) -> Vec<super::Extent> {
     let order = SpatialOrder::new(grid, queries);
-    order.restore(
-        (0..queries.len())
-            .into_par_iter()
-            .with_min_len(8)
-            .map(|j| extent_of(grid, &queries[order.index(j)]))
-            .collect(),
-    )
+    let sent: Vec<super::Extent> = (0..queries.len())
+        .into_par_iter()
+        .with_min_len(8)
+        .map(|j| extent_of(grid, &queries[order.index(j)]))
+        .collect();
+    order.restore_copied(&sent)
 }
 
 /// [`Engine::extent`] of one query on the host.
@@ -209,24 +208,29 @@ impl Engine for CpuEngine {
                 .collect()
         });
         let order = SpatialOrder::new(&self.grid, queries);
-        let both: Vec<(CylStats, NearestSum)> = order.restore(
-            (0..queries.len())
+        let sent = |j: usize, members: &mut Vec<(f64, usize, DVec3)>| {
+            let i = order.index(j);
+            self.one(i, &queries[i], ask, mask.as_deref(), members)
+        };
+        // Without nearest sums only the stats are collected (and restored).
+        let (stats, nearest) = if ask.nearest == Nearest::No {
+            let stats: Vec<CylStats> = (0..queries.len())
                 .into_par_iter()
                 .with_min_len(8)
-                .map_init(Vec::new, |members, j| {
-                    let i = order.index(j);
-                    self.one(i, &queries[i], ask, mask.as_deref(), members)
-                })
-                .collect(),
-        );
-        let (stats, nearest): (Vec<CylStats>, Vec<NearestSum>) = both.into_iter().unzip();
+                .map_init(Vec::new, |members, j| sent(j, members).0)
+                .collect();
+            (order.restore_copied(&stats), Vec::new())
+        } else {
+            let both: Vec<(CylStats, NearestSum)> = (0..queries.len())
+                .into_par_iter()
+                .with_min_len(8)
+                .map_init(Vec::new, |members, j| sent(j, members))
+                .collect();
+            order.restore_copied(&both).into_iter().unzip()
+        };
         Ok(Answers {
             stats,
-            nearest: if ask.nearest == Nearest::No {
-                Vec::new()
-            } else {
-                nearest
-            },
+            nearest,
             coverage: mask.map(|m| Coverage {
                 mask: m.into_iter().map(|a| a.into_inner()).collect(),
             }),
@@ -242,13 +246,12 @@ impl Engine for CpuEngine {
     fn occupied(&self, queries: &[Query]) -> Result<Vec<bool>, EngineError> {
         self.count_batch(queries.len());
         let order = SpatialOrder::new(&self.grid, queries);
-        Ok(order.restore(
-            (0..queries.len())
-                .into_par_iter()
-                .with_min_len(8)
-                .map(|j| any_member(&self.grid, &queries[order.index(j)]))
-                .collect(),
-        ))
+        let sent: Vec<bool> = (0..queries.len())
+            .into_par_iter()
+            .with_min_len(8)
+            .map(|j| any_member(&self.grid, &queries[order.index(j)]))
+            .collect();
+        Ok(order.restore_copied(&sent))
     }
 
     /// Only the axial positions, straight from the walk: no member records, no sort by
