@@ -205,6 +205,10 @@ pub fn run(args: impl IntoIterator<Item = std::ffi::OsString>) -> u8 {
     linegs_gpu::refine::mergejoin::set_max_pairs_per_segment(
         std::env::var("LINEGS_MAX_PAIRS_PER_SEGMENT").ok(),
     );
+    // And the bound on the members a batch of lists holds.
+    linegs_gpu::engine::bound::set_max_listed_members(
+        std::env::var("LINEGS_MAX_LISTED_MEMBERS").ok(),
+    );
     if let Err(e) = start_threads() {
         eprintln!("error: {e}");
         return 1;

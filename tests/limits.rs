@@ -126,3 +126,109 @@ fn an_unreadable_pair_bound_is_named() {
         assert!(!out.exists());
     }
 }
+
+/// `refine` on the dense edge with `extra` options and `LINEGS_MAX_LISTED_MEMBERS=listed`
+/// (`None`: unset).
+fn refine_listed(
+    g: &str,
+    l: &str,
+    out: &Path,
+    listed: Option<&str>,
+    extra: &[&str],
+) -> std::process::Output {
+    let mut c = linegs();
+    c.args([
+        "refine",
+        "--backend",
+        "cpu",
+        "-g",
+        g,
+        "-l",
+        l,
+        "-o",
+        out.to_str().unwrap(),
+        "--radius",
+        "0.03",
+    ])
+    .args(extra);
+    c.env_remove("LINEGS_MAX_PAIRS_PER_SEGMENT");
+    match listed {
+        Some(v) => c.env("LINEGS_MAX_LISTED_MEMBERS", v),
+        None => c.env_remove("LINEGS_MAX_LISTED_MEMBERS"),
+    };
+    c.output().unwrap()
+}
+
+/// The edge fit's decision rule lists the members of the segments it moved, at most
+/// `LINEGS_MAX_LISTED_MEMBERS` in one batch: lowered to 1,000, the 400 pieces' lists
+/// (about 150 members each) cross it, and `refine` says which bound and how to raise it,
+/// exits 1 and writes nothing; at the default it refines the same input.
+#[test]
+fn the_edge_fit_stops_at_its_member_list_bound_with_exit_1_and_no_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let (l, g) = dense_edge(dir.path());
+    let out = dir.path().join("out.obj");
+    let o = refine_listed(&g, &l, &out, Some("1000"), &["--fit", "edge"]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let msg = stderr(&o);
+    assert!(
+        msg.contains("the edge fit's decision rule (or --max-sagitta's check) on the CPU engine needs more than 1000 listed members in one batch")
+            && msg.contains("at most 1000 (LINEGS_MAX_LISTED_MEMBERS)")
+            && msg.contains("raise the bound with LINEGS_MAX_LISTED_MEMBERS=N")
+            && !msg.contains("panicked"),
+        "{msg}"
+    );
+    assert!(!out.exists(), "partial output written");
+    let o = refine_listed(&g, &l, &out, None, &["--fit", "edge"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(out.exists());
+}
+
+/// `--split-gaps` with interior splits lists the sorted positions of as many segments at
+/// a time as `LINEGS_MAX_LISTED_MEMBERS` allows: a segment that alone holds more stops the
+/// run with exit 1 and the bound's message, nothing written (the batches themselves:
+/// `gaps::tests`); at the default it refines the same input.
+#[test]
+fn split_gaps_stops_past_its_member_list_bound_with_exit_1_and_no_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let (l, g) = dense_edge(dir.path());
+    let out = dir.path().join("out.obj");
+    // No fit: its lists would cross the bound first.
+    let opts = [
+        "--fit",
+        "none",
+        "--split-gaps",
+        "0.01",
+        "--split-interior",
+        "true",
+    ];
+    let o = refine_listed(&g, &l, &out, Some("20"), &opts);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let msg = stderr(&o);
+    assert!(
+        msg.contains("--split-gaps with interior splits needs more than 20 listed members")
+            && msg.contains("LINEGS_MAX_LISTED_MEMBERS=N")
+            && !msg.contains("panicked"),
+        "{msg}"
+    );
+    assert!(!out.exists(), "partial output written");
+    let o = refine_listed(&g, &l, &out, None, &opts);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(out.exists());
+}
+
+/// A value of `LINEGS_MAX_LISTED_MEMBERS` that is no positive whole number is named.
+#[test]
+fn an_unreadable_member_list_bound_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let (l, g) = dense_edge(dir.path());
+    let out = dir.path().join("out.obj");
+    let o = refine_listed(&g, &l, &out, Some("lots"), &["--fit", "edge"]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("LINEGS_MAX_LISTED_MEMBERS=\"lots\" is not a positive whole number"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!out.exists());
+}

@@ -2,6 +2,7 @@
 //! ([`super::order`]), exact f64 tests on the grid's rows. Each query sums its points in grid
 //! order, so results do not depend on the thread count or the order of work.
 
+use super::bound::ListBound;
 use super::order::SpatialOrder;
 use super::walk::{any_member, for_each_member, members_into};
 use super::{
@@ -13,7 +14,7 @@ use crate::geom::p64;
 use crate::index::Grid;
 use glam::DVec3;
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 pub use super::walk::member_list;
@@ -130,32 +131,52 @@ pub(crate) fn add_nearest<I: Ord + Copy>(
     }
 }
 
-/// [`Engine::members`] over `grid` on the host, f64.
-pub fn members_of(grid: &Grid, queries: &[Query]) -> Vec<Vec<Member>> {
+/// [`Engine::members`] over `grid` on the host, f64: at most `bound.limit` members in
+/// all ([`ListBound`]), else [`EngineError::Limit`] (no list holds more than what is left
+/// of the bound while it is walked).
+pub fn members_of(
+    grid: &Grid,
+    queries: &[Query],
+    bound: &ListBound,
+) -> Result<Vec<Vec<Member>>, EngineError> {
     let order = SpatialOrder::new(grid, queries);
-    order.restore(
+    let listed = AtomicUsize::new(0);
+    let over = AtomicBool::new(false);
+    let lists = order.restore(
         (0..queries.len())
             .into_par_iter()
             .with_min_len(8)
             .map_init(Vec::new, |buf, j| {
+                let left = bound.limit.saturating_sub(listed.load(Ordering::Relaxed));
                 // Listed into a buffer the thread reuses, then copied once at its size.
-                members_into(grid, &queries[order.index(j)], buf);
+                if over.load(Ordering::Relaxed)
+                    || !members_into(grid, &queries[order.index(j)], buf, left)
+                    || listed.fetch_add(buf.len(), Ordering::Relaxed) + buf.len() > bound.limit
+                {
+                    over.store(true, Ordering::Relaxed);
+                    return Vec::new();
+                }
                 buf.clone()
             })
             .collect(),
-    )
+    );
+    if over.load(Ordering::Relaxed) {
+        return Err(bound.exceeded(
+            "the edge fit's decision rule (or --max-sagitta's check) on the CPU engine",
+        ));
+    }
+    Ok(lists)
 }
 
 /// [`Engine::extent`] over `grid` on the host, f64.
 pub fn extents_of(grid: &Grid, queries: &[Query]) -> Vec<super::Extent> {
     let order = SpatialOrder::new(grid, queries);
-    order.restore(
-        (0..queries.len())
-            .into_par_iter()
-            .with_min_len(8)
-            .map(|j| extent_of(grid, &queries[order.index(j)]))
-            .collect(),
-    )
+    let sent: Vec<super::Extent> = (0..queries.len())
+        .into_par_iter()
+        .with_min_len(8)
+        .map(|j| extent_of(grid, &queries[order.index(j)]))
+        .collect();
+    order.restore_copied(&sent)
 }
 
 /// [`Engine::extent`] of one query on the host.
@@ -187,24 +208,29 @@ impl Engine for CpuEngine {
                 .collect()
         });
         let order = SpatialOrder::new(&self.grid, queries);
-        let both: Vec<(CylStats, NearestSum)> = order.restore(
-            (0..queries.len())
+        let sent = |j: usize, members: &mut Vec<(f64, usize, DVec3)>| {
+            let i = order.index(j);
+            self.one(i, &queries[i], ask, mask.as_deref(), members)
+        };
+        // Without nearest sums only the stats are collected (and restored).
+        let (stats, nearest) = if ask.nearest == Nearest::No {
+            let stats: Vec<CylStats> = (0..queries.len())
                 .into_par_iter()
                 .with_min_len(8)
-                .map_init(Vec::new, |members, j| {
-                    let i = order.index(j);
-                    self.one(i, &queries[i], ask, mask.as_deref(), members)
-                })
-                .collect(),
-        );
-        let (stats, nearest): (Vec<CylStats>, Vec<NearestSum>) = both.into_iter().unzip();
+                .map_init(Vec::new, |members, j| sent(j, members).0)
+                .collect();
+            (order.restore_copied(&stats), Vec::new())
+        } else {
+            let both: Vec<(CylStats, NearestSum)> = (0..queries.len())
+                .into_par_iter()
+                .with_min_len(8)
+                .map_init(Vec::new, |members, j| sent(j, members))
+                .collect();
+            order.restore_copied(&both).into_iter().unzip()
+        };
         Ok(Answers {
             stats,
-            nearest: if ask.nearest == Nearest::No {
-                Vec::new()
-            } else {
-                nearest
-            },
+            nearest,
             coverage: mask.map(|m| Coverage {
                 mask: m.into_iter().map(|a| a.into_inner()).collect(),
             }),
@@ -213,20 +239,19 @@ impl Engine for CpuEngine {
 
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError> {
         self.count_batch(queries.len());
-        Ok(members_of(&self.grid, queries))
+        members_of(&self.grid, queries, &ListBound::new()?)
     }
 
     /// The walks stop at their first member.
     fn occupied(&self, queries: &[Query]) -> Result<Vec<bool>, EngineError> {
         self.count_batch(queries.len());
         let order = SpatialOrder::new(&self.grid, queries);
-        Ok(order.restore(
-            (0..queries.len())
-                .into_par_iter()
-                .with_min_len(8)
-                .map(|j| any_member(&self.grid, &queries[order.index(j)]))
-                .collect(),
-        ))
+        let sent: Vec<bool> = (0..queries.len())
+            .into_par_iter()
+            .with_min_len(8)
+            .map(|j| any_member(&self.grid, &queries[order.index(j)]))
+            .collect();
+        Ok(order.restore_copied(&sent))
     }
 
     /// Only the axial positions, straight from the walk: no member records, no sort by

@@ -3,6 +3,7 @@
 //! answers: [`cpu::CpuEngine`] (rayon, f64) or the GPU engine (wgpu + WGSL). Steps never
 //! know which.
 
+pub mod bound;
 pub mod cpu;
 pub mod dedup;
 pub mod fit;

@@ -79,6 +79,26 @@ impl SpatialOrder {
         self.perm.iter().map(|&i| xs[i as usize].clone()).collect()
     }
 
+    /// [`Self::restore`] of plain values, gathered in parallel through the inverse
+    /// permutation into one new array (no array of options, no serial scatter: at 3 x 10^6
+    /// answers a batch those were hundreds of MB of fresh pages and a cache miss a
+    /// value on one thread).
+    pub fn restore_copied<T: Copy + Send + Sync>(&self, ys: &[T]) -> Vec<T> {
+        if ys.is_empty() {
+            return Vec::new();
+        }
+        debug_assert_eq!(ys.len(), self.perm.len());
+        let mut inverse = vec![0u32; ys.len()];
+        for (j, &i) in self.perm.iter().enumerate() {
+            inverse[i as usize] = j as u32;
+        }
+        inverse
+            .par_iter()
+            .with_min_len(4096)
+            .map(|&j| ys[j as usize])
+            .collect()
+    }
+
     /// Answers in the order sent, back in the caller's order (empty stays empty).
     pub fn restore<T>(&self, ys: Vec<T>) -> Vec<T> {
         if ys.is_empty() {

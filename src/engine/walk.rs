@@ -55,12 +55,14 @@ pub(crate) fn any_member(grid: &Grid, q: &Query) -> bool {
 /// The members of one query on the host, in working-set order.
 pub fn member_list(grid: &Grid, q: &Query) -> Vec<Member> {
     let mut out = Vec::new();
-    members_into(grid, q, &mut out);
+    members_into(grid, q, &mut out, usize::MAX);
     out
 }
 
-/// [`member_list`] into `out` (cleared first).
-pub(crate) fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
+/// [`member_list`] into `out` (cleared first), when `q` has at most `most` members;
+/// `false` (and `out` left empty) when it has more: the walk then holds no more than
+/// `most` of them at any time.
+pub(crate) fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>, most: usize) -> bool {
     out.clear();
     // Working-set order, not grid order: the grid's layout follows the working
     // box, so a far segment would otherwise reorder the members (and the fit's
@@ -70,10 +72,20 @@ pub(crate) fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
     ORDER.with_borrow_mut(|(keys, found)| {
         keys.clear();
         found.clear();
+        let mut over = false;
         for_each_member(grid, q, |j, t, offset| {
+            if found.len() == most {
+                over = true;
+                return;
+            }
             keys.push((grid.ids[j] as u64) << 32 | found.len() as u64);
             found.push((t, offset));
         });
+        if over {
+            keys.clear();
+            found.clear();
+            return false;
+        }
         keys.sort_unstable();
         out.extend(keys.iter().map(|&k| {
             let (t, offset) = found[k as u32 as usize];
@@ -83,7 +95,8 @@ pub(crate) fn members_into(grid: &Grid, q: &Query, out: &mut Vec<Member>) {
                 offset,
             }
         }));
-    });
+        true
+    })
 }
 
 /// Sort keys (working-set id above the place of a measurement) and the measurements

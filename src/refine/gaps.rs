@@ -12,10 +12,12 @@
 //! hole is not a break in the line (and where the Gaussians cluster, as along a trained
 //! or noisy edge, short holes are more common than the uniform model says). Pieces of a
 //! split holding fewer than `fit_min_points` points are dropped (a few stray points past
-//! a gap are not a line). One engine batch for all segments: their sorted axial positions
-//! (`Engine::axial`) with interior splits, else only each one's count and extent
-//! (`Engine::extent`).
+//! a gap are not a line). One engine batch for all segments of each one's count and extent
+//! (`Engine::extent`); with interior splits then their sorted axial positions
+//! (`Engine::axial`), in batches of at most [`crate::engine::bound::MAX_LISTED_MEMBERS`]
+//! positions by those counts.
 
+use crate::engine::bound::ListBound;
 use crate::engine::{Engine, EngineError, Extent, Query};
 use crate::geom::{LineSet, Segment};
 use crate::refine::params::{group, Check};
@@ -129,6 +131,20 @@ pub fn split_gaps_traced(
     min_points: u32,
     interior: bool,
 ) -> Result<(LineSet, GapNotes, Vec<usize>), EngineError> {
+    let bound = ListBound::new()?;
+    split_gaps_within(engine, lines, r, alpha, min_points, interior, bound)
+}
+
+/// [`split_gaps_traced`] under the bound `bound` on the positions a batch lists.
+fn split_gaps_within(
+    engine: &dyn Engine,
+    lines: &LineSet,
+    r: f64,
+    alpha: f64,
+    min_points: u32,
+    interior: bool,
+    bound: ListBound,
+) -> Result<(LineSet, GapNotes, Vec<usize>), EngineError> {
     let mut total = GapNotes::default();
     if alpha <= 0.0 || lines.is_empty() {
         return Ok((lines.clone(), total, (0..lines.len()).collect()));
@@ -136,27 +152,38 @@ pub fn split_gaps_traced(
     let mut from = Vec::with_capacity(lines.len());
     let queries: Vec<Query> = lines.segments.iter().map(|s| Query::new(*s, r)).collect();
     // Without interior splits only the ends are tested: each cylinder's count and
-    // extent, not its sorted positions.
-    let (axial, extents) = if interior {
-        (engine.axial(&queries)?, Vec::new())
-    } else {
-        (Vec::new(), engine.extent(&queries)?)
+    // extent, not its sorted positions. With them, the sorted positions of as many
+    // segments at a time as the bound on listed members allows, by their counts.
+    let extents = engine.extent(&queries)?;
+    let kept_of = |i: usize, t: Option<&[f64]>| {
+        let l = lines.segments[i].length();
+        match t {
+            Some(t) => pieces(t, l, alpha, r, min_points, true),
+            None => match ends(&extents[i], l, alpha, r) {
+                Some((lo, hi, notes)) => (vec![(lo, hi)], notes),
+                None => (vec![(0.0, l)], GapNotes::default()),
+            },
+        }
     };
+    let mut kept_all = Vec::with_capacity(lines.len());
+    if interior {
+        for chunk in bounded_chunks(&extents, bound.limit) {
+            let Some(chunk) = chunk else {
+                return Err(bound.exceeded("--split-gaps with interior splits"));
+            };
+            let axial = engine.axial(&queries[chunk.clone()])?;
+            kept_all.extend(chunk.zip(&axial).map(|(i, t)| kept_of(i, Some(t))));
+        }
+    } else {
+        kept_all.extend((0..lines.len()).map(|i| kept_of(i, None)));
+    }
     let mut segments = Vec::with_capacity(lines.len());
     let mut groups = lines
         .groups
         .as_ref()
         .map(|_| Vec::with_capacity(lines.len()));
-    for (i, s) in lines.segments.iter().enumerate() {
+    for ((i, s), (kept, notes)) in lines.segments.iter().enumerate().zip(kept_all) {
         let l = s.length();
-        let (kept, notes) = if interior {
-            pieces(&axial[i], l, alpha, r, min_points, true)
-        } else {
-            match ends(&extents[i], l, alpha, r) {
-                Some((lo, hi, notes)) => (vec![(lo, hi)], notes),
-                None => (vec![(0.0, l)], GapNotes::default()),
-            }
-        };
         total.ends_cut += notes.ends_cut;
         total.split += notes.split;
         total.pieces_dropped += notes.pieces_dropped;
@@ -182,6 +209,33 @@ pub fn split_gaps_traced(
         }
     }
     Ok((LineSet { segments, groups }, total, from))
+}
+
+/// Consecutive ranges of queries whose member counts sum to at most `limit` each, in
+/// order, each as long as the bound allows; `None` for a query that alone has more.
+fn bounded_chunks(
+    extents: &[Extent],
+    limit: usize,
+) -> impl Iterator<Item = Option<std::ops::Range<usize>>> + '_ {
+    let mut start = 0;
+    std::iter::from_fn(move || {
+        if start == extents.len() {
+            return None;
+        }
+        let (mut end, mut sum) = (start, 0u64);
+        while end < extents.len() && sum + extents[end].count <= limit as u64 {
+            sum += extents[end].count;
+            end += 1;
+        }
+        if end == start {
+            // Ends the iteration: the caller stops at the first `None`.
+            start = extents.len();
+            return Some(None);
+        }
+        let r = start..end;
+        start = end;
+        Some(Some(r))
+    })
 }
 
 group! {
@@ -381,5 +435,57 @@ mod tests {
         assert_eq!((kept.len(), notes.split), (1, 0), "{kept:?}");
         let (kept, notes) = pieces(&t, l, 0.01, 0.001, 8, true);
         assert_eq!((kept.len(), notes.split), (2, 1), "{kept:?}");
+    }
+
+    /// With interior splits the positions are listed in batches of at most the bound's
+    /// members by the segments' counts: any bound that holds the largest segment gives the
+    /// unbounded result, piece for piece and note for note, and a smaller one is the
+    /// bound's error.
+    #[test]
+    fn interior_splits_list_in_bounded_batches_with_the_same_pieces() {
+        // Rows with holes along x at several heights: each segment splits or not.
+        let mut pts = Vec::new();
+        let mut segs = Vec::new();
+        for k in 0..12 {
+            let y = k as f64 * 0.5;
+            let mut row_k = Vec::new();
+            row(0.0, 0.2 + 0.005 * k as f64, 0.001, &mut row_k);
+            row(0.3, 0.6, 0.001, &mut row_k);
+            pts.extend(row_k.iter().map(|p| [p[0], p[1] + y as f32, p[2]]));
+            segs.push(Segment::new(
+                DVec3::new(-0.05, y, 0.0),
+                DVec3::new(0.65 + 0.02 * k as f64, y, 0.0),
+            ));
+        }
+        let e = engine(&pts);
+        let lines = LineSet::new(segs);
+        let run =
+            |limit: usize| split_gaps_within(&e, &lines, 0.01, 0.01, 8, true, ListBound::of(limit));
+        let whole = run(usize::MAX).unwrap();
+        assert_eq!(whole.0.len(), 24, "{:?}", whole.0.segments);
+        assert_eq!(whole.1.split, 12);
+        let counts = e
+            .extent(
+                &lines
+                    .segments
+                    .iter()
+                    .map(|s| Query::new(*s, 0.01))
+                    .collect::<Vec<_>>(),
+            )
+            .unwrap();
+        let most = counts.iter().map(|c| c.count).max().unwrap() as usize;
+        let all: u64 = counts.iter().map(|c| c.count).sum();
+        assert!(most > 400 && (all as usize) > 3 * most, "{most} {all}");
+        let batches = |limit| bounded_chunks(&counts, limit).count();
+        assert_eq!(batches(most), 12);
+        assert!(batches(2 * most) > 1 && batches(2 * most) < 12);
+        for limit in [most, most + 1, 2 * most, 5 * most, all as usize] {
+            assert_eq!(run(limit).unwrap(), whole, "limit {limit}");
+        }
+        let err = run(most - 1).unwrap_err().to_string();
+        assert!(
+            err.contains(&format!("needs more than {} listed members", most - 1)),
+            "{err}"
+        );
     }
 }

@@ -131,14 +131,26 @@ fn merge_join_budget(
     sweep_from: usize,
 ) -> Result<(LineSet, Vec<Vec<usize>>), EngineError> {
     let cx = Ctx::new(Mode::Cluster, s);
+    // A cluster of one segment has no pair: it comes back as it is, without a machine
+    // (most clusters of a large scene are such; their machines' memory was most of the
+    // step's).
     let mut machines: Vec<rounds::Machine> = clusters
         .iter()
+        .filter(|c| c.len() > 1)
         .map(|c| rounds::Machine::new(items_of(lines, c), Mode::Cluster, budget, sweep_from))
         .collect();
-    rounds::run(engine, &mut machines, cx)?;
+    let segments = clusters.iter().map(Vec::len).sum();
+    rounds::run(engine, &mut machines, cx, segments)?;
     let mut items = Vec::with_capacity(lines.len());
     let mut members = Vec::with_capacity(lines.len());
-    for (m, c) in machines.into_iter().zip(clusters) {
+    let mut machines = machines.into_iter();
+    for c in clusters {
+        if c.len() == 1 {
+            items.extend(items_of(lines, c));
+            members.push(vec![c[0]]);
+            continue;
+        }
+        let Some(m) = machines.next() else { break };
         for (it, k) in m.into_items_with_members() {
             items.push(it);
             let mut idx: Vec<usize> = k.into_iter().map(|k| c[k]).collect();
@@ -163,11 +175,15 @@ fn input_lines(groups: &[u32]) -> Vec<Vec<usize>> {
     members
 }
 
-/// Puts each input line's result in the place of its first segment.
+/// One group's result: its items, each with the indices of the group's items it holds.
+type GroupResult = Vec<(Item, Vec<usize>)>;
+
+/// Puts each input line's result in the place of its first segment (`None`: the line's
+/// one segment as it is).
 fn in_input_order(
     lines: &LineSet,
     members: &[Vec<usize>],
-    mut results: Vec<Vec<(Item, Vec<usize>)>>,
+    mut results: Vec<Option<GroupResult>>,
 ) -> (LineSet, Vec<Vec<usize>>) {
     let mut first: Vec<Option<usize>> = vec![None; lines.len()];
     for (k, m) in members.iter().enumerate() {
@@ -176,7 +192,14 @@ fn in_input_order(
     let mut out = Vec::with_capacity(lines.len());
     let mut from = Vec::with_capacity(lines.len());
     for k in first.into_iter().flatten() {
-        for (it, held) in results[k].drain(..) {
+        // `None`: the line's one segment, unchanged.
+        let Some(result) = results[k].take() else {
+            let i = members[k][0];
+            out.extend(items_of(lines, &[i]));
+            from.push(vec![i]);
+            continue;
+        };
+        for (it, held) in result {
             out.push(it);
             let mut idx: Vec<usize> = held.into_iter().map(|h| members[k][h]).collect();
             idx.sort_unstable();
@@ -222,17 +245,25 @@ fn collinear_merge_from(
     }
     let members = input_lines(groups);
     let cx = Ctx::new(Mode::Collinear, s);
+    // A line of one segment has no pair: it comes back as it is, without a machine
+    // (most lines of a large scene are such; their machines' memory was most of the
+    // step's).
     let mut machines: Vec<rounds::Machine> = members
         .iter()
+        .filter(|m| m.len() > 1)
         .map(|m| {
             let items = items_of(lines, m);
             rounds::Machine::new(items, Mode::Collinear, FIRST_BUDGET, sweep_from)
         })
         .collect();
-    rounds::run(engine, &mut machines, cx)?;
-    let results = machines
-        .into_iter()
-        .map(|m| m.into_items_with_members())
+    rounds::run(engine, &mut machines, cx, lines.len())?;
+    let mut machines = machines.into_iter();
+    let results = members
+        .iter()
+        .map(|m| match m.len() {
+            1 => None,
+            _ => machines.next().map(|m| m.into_items_with_members()),
+        })
         .collect();
     Ok(in_input_order(lines, &members, results))
 }

@@ -687,31 +687,32 @@ impl PairBound {
     }
 }
 
-/// Runs every group to its end, one engine batch per round.
+/// Runs every group to its end, one engine batch per round; `segments`: the step's input
+/// segments (the pair bound's base; groups of one segment need no machine).
 pub(super) fn run(
     engine: &dyn Engine,
     machines: &mut [Machine],
     cx: Ctx,
+    segments: usize,
 ) -> Result<(), EngineError> {
-    let bound = PairBound::new(machines.iter().map(|m| m.items.len()).sum())?;
-    while machines.iter().any(|m| !m.done()) {
-        // Each unfinished group's listing and the entries it holds with it (a finished
-        // group holds none).
-        let (listings, held): (Vec<Option<Listing>>, Vec<usize>) = machines
+    let bound = PairBound::new(segments)?;
+    // The groups still running: a round walks these, not every group (the long tail of
+    // rounds of a few large groups would otherwise walk the finished ones each time).
+    let mut active: Vec<&mut Machine> = machines.iter_mut().filter(|m| !m.done()).collect();
+    while !active.is_empty() {
+        // Each unfinished group's listing and the entries it holds with it.
+        let (listings, held): (Vec<Listing>, Vec<usize>) = active
             .par_iter_mut()
-            .map(|m| match m.done() {
-                true => (None, 0),
-                false => {
-                    let l = m.list(cx);
-                    let held = m.held() + l.cands.len();
-                    (Some(l), held)
-                }
+            .map(|m| {
+                let l = m.list(cx);
+                let held = m.held() + l.cands.len();
+                (l, held)
             })
             .unzip();
         bound.check(held.iter().sum(), &cx)?;
         let mut queries = Vec::new();
         let mut offsets = Vec::with_capacity(listings.len());
-        for l in listings.iter().flatten() {
+        for l in &listings {
             offsets.push(queries.len());
             queries.extend_from_slice(&l.queries);
         }
@@ -721,16 +722,15 @@ pub(super) fn run(
         } else {
             engine.stats(&queries, Want::SUMS)?
         };
-        let mut offsets = offsets.into_iter();
-        let work: Vec<(&mut Machine, Listing, usize)> = machines
-            .iter_mut()
+        active
+            .par_iter_mut()
             .zip(listings)
-            .filter_map(|(m, l)| l.map(|l| (m, l, offsets.next().unwrap_or(0))))
-            .collect();
-        work.into_par_iter().for_each(|(m, l, off)| {
-            let n = l.queries.len();
-            m.apply(l, &res[off..off + n], cx);
-        });
+            .zip(offsets)
+            .for_each(|((m, l), off)| {
+                let n = l.queries.len();
+                m.apply(l, &res[off..off + n], cx);
+            });
+        active.retain(|m| !m.done());
     }
     Ok(())
 }

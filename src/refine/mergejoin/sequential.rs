@@ -112,7 +112,7 @@ pub fn collinear_merge_sequential(
         let mut items = items_of(lines, m);
         restart_loop(engine, &mut items, false, cx)?;
         // The executable definition keeps no provenance.
-        results.push(items.into_iter().map(|it| (it, Vec::new())).collect());
+        results.push(Some(items.into_iter().map(|it| (it, Vec::new())).collect()));
     }
     Ok(in_input_order(lines, &members, results).0)
 }
