@@ -146,6 +146,26 @@ fn write_store(grid: &Grid, dst: wgpu::WriteOnly<'_, [u8]>, first: usize) {
     }
 }
 
+/// The bytes of `src` at the start of `dst` (mapped memory, first written here), piece
+/// by piece in parallel: most of a copy into new mapped memory is the kernel's first
+/// touch of its pages, which the cores then share (the upload of 10^6 Gaussians, 28 MB
+/// with the centers' coordinates, took about 44 ms on one core of the development
+/// machine, 22–41 ms on its two).
+fn par_copy(mut dst: wgpu::WriteOnly<'_, [u8]>, src: &[u8]) {
+    const PIECE: usize = 1 << 18;
+    let (whole, mut tail) = dst.slice(..src.len()).into_chunks::<PIECE>();
+    let pieces: Vec<wgpu::WriteOnly<'_, [u8; PIECE]>> = whole.into_iter().collect();
+    let rest = &src[pieces.len() * PIECE..];
+    pieces
+        .into_par_iter()
+        .zip(src.par_chunks_exact(PIECE))
+        .for_each(|(piece, from)| {
+            let mut piece: wgpu::WriteOnly<'_, [u8]> = piece.into();
+            piece.copy_from_slice(from)
+        });
+    tail.copy_from_slice(rest);
+}
+
 impl Statics {
     /// Uploads the cell table and the point store (computed now unless given for this
     /// very grid); with `world`, also the centers' own coordinates where one binding holds
@@ -168,10 +188,7 @@ impl Statics {
             Some(s) if std::ptr::eq(s.grid.as_ptr(), std::sync::Arc::as_ptr(grid)) => Some(s.rel),
             _ => None,
         };
-        // The bytes of `src` at the start of `dst`.
-        let copy = |mut dst: wgpu::WriteOnly<'_, [u8]>, src: &[u8]| {
-            dst.slice(..src.len()).copy_from_slice(src)
-        };
+        let copy = par_copy;
         ctx.scoped("uploading the Gaussians", || {
             let cell_start = ctx.filled_buffer("cell_start", cell_bytes, |dst| {
                 copy(dst, bytemuck::cast_slice(&grid.cell_start))
