@@ -9,8 +9,9 @@
 //! Gaussians x 10^6 segments on the CPU engine): at most 11x the time of the 10^7 row in
 //! the same run, peak resident memory at most 8 GB.
 //!
-//! The ladder runs in the command line's own process (built by `cargo bench` beside this
-//! bench), so its allocator and peak-memory readings are the ones users see.
+//! The ladder runs in the command line's own processes (built by `cargo bench` beside this
+//! bench), one a row as its command runs it (`-- --in-process`: all rows in one), so its
+//! allocator and peak-memory readings are the ones users see.
 
 use std::process::{Command, ExitCode};
 

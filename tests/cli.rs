@@ -901,6 +901,36 @@ fn the_scale_ladder_prints_its_rows_with_their_commands() {
         out.contains("(all rows: linegs-gpu bench --case ladder --max 100000)"),
         "{out}"
     );
+    // Every row in a process of its own by default, all in this one with --in-process:
+    // the same scene and refinement either way.
+    let segments_out = |o: &std::process::Output| -> Vec<u64> {
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let t = &v["tables"][0];
+        t["rows"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["cells"][col("segments out")].as_u64().unwrap())
+            .collect()
+    };
+    let args = ["bench", "--case", "ladder", "--max", "100000", "--json"];
+    let own = run(&args);
+    let one = run(&[&args[..], &["--in-process"]].concat());
+    assert!(
+        own.status.success() && one.status.success(),
+        "{}",
+        stderr(&one)
+    );
+    assert_eq!(segments_out(&own), segments_out(&one));
+    assert_eq!(
+        segments_out(&own),
+        [rows[0]["cells"][col("segments out")].as_u64().unwrap()]
+    );
+    let v: serde_json::Value = serde_json::from_slice(&one.stdout).unwrap();
+    assert_eq!(
+        v["tables"][0]["command"],
+        "linegs-gpu bench --case ladder --max 100000 --in-process"
+    );
     // Below the first row: an input error, nothing measured.
     let o = run(&["bench", "--case", "ladder", "--max", "99999"]);
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));

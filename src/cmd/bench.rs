@@ -54,6 +54,15 @@ pub struct BenchArgs {
     /// Seed of the synthetic scenes.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
+    /// The ladder: run every row in this process, one after another, instead of each in a
+    /// process of its own (its row's command).
+    #[arg(long)]
+    pub in_process: bool,
+    /// The ladder's child: measure the row of this many Gaussians in this process and
+    /// print its numbers as one JSON line (what `--case ladder` reads from each row's
+    /// process).
+    #[arg(long, value_name = "N", hide = true)]
+    pub ladder_row: Option<usize>,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -289,6 +298,9 @@ struct RunTiming {
 }
 
 pub fn run(a: BenchArgs, verbose: bool) -> Result<()> {
+    if let Some(n) = a.ladder_row {
+        return ladder::child(&a, n);
+    }
     if !a.case.is_empty() {
         return run_cases(&a);
     }

@@ -11,6 +11,7 @@ use linegs_gpu::mem;
 use linegs_gpu::pipeline::Scene;
 use linegs_gpu::refine::{Params, Profile};
 use linegs_gpu::synth;
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// The smallest row.
@@ -34,15 +35,8 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
             a.max
         )));
     }
-    let backends = if a.backend.is_empty() {
-        vec![BackendArg::Cpu]
-    } else {
-        a.backend.clone()
-    };
-    let params = Params {
-        profile: chosen(&a.profile),
-        ..Params::default()
-    };
+    let backends = backends_of(a);
+    let params = params_of(a);
     // The options beside the sizes and the engine, as the rows' commands repeat them.
     let mut flags = String::new();
     if params.profile != Profile::default() {
@@ -63,9 +57,10 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
             rayon::current_num_threads()
         ),
         command: format!(
-            "linegs-gpu bench --case ladder --max {}{}{flags}",
+            "linegs-gpu bench --case ladder --max {}{}{flags}{}",
             a.max,
-            super::backend_flag(&backends)
+            super::backend_flag(&backends),
+            if a.in_process { " --in-process" } else { "" }
         ),
         columns: [
             "Gaussians",
@@ -88,50 +83,24 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
             "build: making the synthetic scene (not in refine); refine: the whole refinement, \
              the fastest of --repeat; cpu: the process's CPU seconds in it (user and system, \
              all threads: less sensitive than wall time to other programs on the machine); peak: the process's resident peak over building and \
-             refining the row (reset per row); x: against the row 10x smaller"
+             refining the row; x: against the row 10x smaller"
                 .into(),
+            if a.in_process {
+                "every row in this process, one after another (--in-process)".into()
+            } else {
+                "every row in a process of its own, as its command runs it".into()
+            },
         ],
     };
     // Per engine, the previous row.
     let mut previous: Vec<Option<Measured>> = vec![None; backends.len()];
     for (n, m) in sizes {
-        mem::reset_peak_rss();
-        let t = Instant::now();
-        let scene = {
-            let s = synth::scaled_scene(n, m, a.seed);
-            Scene::from_arrays(s.gaussians, s.lines)?
+        let row = if a.in_process {
+            measure(a, &params, &backends, n, m)?
+        } else {
+            in_own_process(a, n)?
         };
-        let build_seconds = t.elapsed().as_secs_f64();
-        let build_peak = peak_mb();
-        for (k, &b) in backends.iter().enumerate() {
-            let job = crate::cmd::env::job(params.clone(), b.into())?;
-            let mut best: Option<Measured> = None;
-            for _ in 0..a.repeat {
-                mem::reset_peak_rss();
-                let cpu0 = cpu_seconds();
-                let out = job.refine(&scene, |_| {})?;
-                let cpu = cpu_seconds().zip(cpu0).map(|(b, a)| b - a);
-                let r = out.report;
-                let peak = match (peak_mb(), build_peak) {
-                    (Some(x), Some(y)) => Some(x.max(y)),
-                    (x, y) => x.or(y),
-                };
-                let slowest = r
-                    .stages
-                    .iter()
-                    .max_by(|x, y| x.seconds.total_cmp(&y.seconds))
-                    .map_or(String::new(), |s| format!("{} {:.2}", s.name, s.seconds));
-                if best.as_ref().is_none_or(|x| r.total_seconds < x.seconds) {
-                    best = Some(Measured {
-                        seconds: r.total_seconds,
-                        cpu,
-                        peak,
-                        slowest,
-                        out: out.lines.len(),
-                    });
-                }
-            }
-            let now = best.expect("repeat >= 1");
+        for ((k, &b), now) in backends.iter().enumerate().zip(row.engines) {
             let growth = |now: Option<f64>, before: Option<f64>| match (now, before) {
                 (Some(x), Some(y)) if y > 0.0 => Cell::Num(x / y, 2),
                 _ => Cell::None,
@@ -142,7 +111,7 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
                     Cell::Count(n as u64),
                     Cell::Count(m as u64),
                     Cell::Text(Backend::from(b).as_str().into()),
-                    Cell::Num(build_seconds, 2),
+                    Cell::Num(row.build_seconds, 2),
                     Cell::Num(now.seconds, 2),
                     growth(Some(now.seconds), before.map(|p| p.seconds)),
                     now.cpu.map_or(Cell::None, |c| Cell::Num(c, 2)),
@@ -163,8 +132,131 @@ pub fn run(a: &BenchArgs) -> Result<Table> {
     Ok(table)
 }
 
+/// The engines of the rows (`--backend`, or the CPU engine).
+fn backends_of(a: &BenchArgs) -> Vec<BackendArg> {
+    if a.backend.is_empty() {
+        vec![BackendArg::Cpu]
+    } else {
+        a.backend.clone()
+    }
+}
+
+fn params_of(a: &BenchArgs) -> Params {
+    Params {
+        profile: chosen(&a.profile),
+        ..Params::default()
+    }
+}
+
+/// One row: the scene's build and each engine's fastest refinement of it.
+#[derive(Serialize, Deserialize)]
+struct RowMeasured {
+    build_seconds: f64,
+    /// In the order of `--backend`.
+    engines: Vec<Measured>,
+}
+
+/// The row of `n` Gaussians measured in a process of its own: this program run as the
+/// row's child (`bench --ladder-row n` with the same options), which prints the row's
+/// numbers as one JSON line. Each row then starts as its command does, on a fresh heap:
+/// in one process a row inherits the pages the allocator kept from the rows before it,
+/// which speeds the 10^7 row more than the 10^8 one (docs/benchmarks.md, "Scale").
+fn in_own_process(a: &BenchArgs, n: usize) -> Result<RowMeasured> {
+    let exe = std::env::current_exe()
+        .map_err(|e| anyhow::anyhow!("bench --case ladder: this program's path: {e}"))?;
+    let mut cmd = std::process::Command::new(exe);
+    cmd.args(["bench", "--ladder-row", &n.to_string()])
+        .args(["--profile", &a.profile])
+        .args(["--seed", &a.seed.to_string()])
+        .args(["--repeat", &a.repeat.to_string()])
+        .stdin(std::process::Stdio::null())
+        .stderr(std::process::Stdio::inherit());
+    let names: Vec<&str> = backends_of(a)
+        .iter()
+        .map(|&b| Backend::from(b).as_str())
+        .collect();
+    cmd.args(["--backend", &names.join(",")]);
+    let out = cmd
+        .output()
+        .map_err(|e| anyhow::anyhow!("bench --case ladder: starting the row of {n}: {e}"))?;
+    if !out.status.success() {
+        anyhow::bail!(
+            "bench --case ladder: the row of {n} Gaussians ended with {} (its messages above)",
+            out.status
+        );
+    }
+    serde_json::from_slice(&out.stdout).map_err(|e| {
+        anyhow::anyhow!("bench --case ladder: the row of {n} Gaussians printed no numbers: {e}")
+    })
+}
+
+/// `bench --ladder-row n`: the row of `n` Gaussians in this process, printed as one JSON
+/// line for the ladder that started it.
+pub fn child(a: &BenchArgs, n: usize) -> Result<()> {
+    if a.repeat == 0 {
+        return Err(input_error("bench needs --repeat >= 1"));
+    }
+    let row = measure(a, &params_of(a), &backends_of(a), n, n / PER_SEGMENT)?;
+    println!("{}", serde_json::to_string(&row)?);
+    Ok(())
+}
+
+/// The row of `n` Gaussians and `m` segments in this process: the scene built, then each
+/// engine's fastest of `--repeat` refinements.
+fn measure(
+    a: &BenchArgs,
+    params: &Params,
+    backends: &[BackendArg],
+    n: usize,
+    m: usize,
+) -> Result<RowMeasured> {
+    mem::reset_peak_rss();
+    let t = Instant::now();
+    let scene = {
+        let s = synth::scaled_scene(n, m, a.seed);
+        Scene::from_arrays(s.gaussians, s.lines)?
+    };
+    let build_seconds = t.elapsed().as_secs_f64();
+    let build_peak = peak_mb();
+    let mut engines = Vec::with_capacity(backends.len());
+    for &b in backends {
+        let job = crate::cmd::env::job(params.clone(), b.into())?;
+        let mut best: Option<Measured> = None;
+        for _ in 0..a.repeat {
+            mem::reset_peak_rss();
+            let cpu0 = cpu_seconds();
+            let out = job.refine(&scene, |_| {})?;
+            let cpu = cpu_seconds().zip(cpu0).map(|(b, a)| b - a);
+            let r = out.report;
+            let peak = match (peak_mb(), build_peak) {
+                (Some(x), Some(y)) => Some(x.max(y)),
+                (x, y) => x.or(y),
+            };
+            let slowest = r
+                .stages
+                .iter()
+                .max_by(|x, y| x.seconds.total_cmp(&y.seconds))
+                .map_or(String::new(), |s| format!("{} {:.2}", s.name, s.seconds));
+            if best.as_ref().is_none_or(|x| r.total_seconds < x.seconds) {
+                best = Some(Measured {
+                    seconds: r.total_seconds,
+                    cpu,
+                    peak,
+                    slowest,
+                    out: out.lines.len(),
+                });
+            }
+        }
+        engines.push(best.expect("repeat >= 1"));
+    }
+    Ok(RowMeasured {
+        build_seconds,
+        engines,
+    })
+}
+
 /// One row's numbers (the fastest of `--repeat`).
-#[derive(Clone)]
+#[derive(Clone, Serialize, Deserialize)]
 struct Measured {
     /// The refinement's wall seconds and CPU seconds.
     seconds: f64,
