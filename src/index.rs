@@ -9,6 +9,7 @@
 use crate::geom::{p64, Aabb, Segment};
 use glam::DVec3;
 use rayon::prelude::*;
+use std::borrow::Cow;
 
 /// Upper bound on the number of cells: the table stays small next to the points even when
 /// the scene is huge compared with the radius (the cell then grows beyond `r`).
@@ -38,17 +39,19 @@ fn max_cells(n: usize, host: bool) -> f64 {
 
 /// Gaussian centers inside the box of all segment endpoints grown by 0.1x its longest edge.
 #[derive(Clone, Debug)]
-pub struct WorkingSet {
+pub struct WorkingSet<'a> {
     pub bounds: Aabb,
-    pub points: Vec<[f32; 3]>,
+    /// The centers inside, in their order: the caller's own array where every center is
+    /// inside (no copy), else a copy of those inside.
+    pub points: Cow<'a, [[f32; 3]]>,
 }
 
-impl WorkingSet {
+impl<'a> WorkingSet<'a> {
     /// Keeps the centers inside `Aabb::of_segments(segments).grown(0.1)` (inclusive).
-    pub fn new(centers: &[[f32; 3]], segments: &[Segment]) -> Self {
+    pub fn new(centers: &'a [[f32; 3]], segments: &[Segment]) -> Self {
         let bounds = Aabb::of_segments(segments).grown(0.1);
         let points = if bounds.is_empty() {
-            Vec::new()
+            Cow::Owned(Vec::new())
         } else {
             // Counted first, then written in place: a parallel filter that collects
             // chains and copies its pieces, and took longer than one thread's filter.
@@ -58,6 +61,15 @@ impl WorkingSet {
                 .par_chunks(CHUNK)
                 .map(|c| c.iter().filter(|p| keep(p)).count())
                 .collect();
+            // Every center inside (a model the lines span): the working set is the
+            // caller's array itself (a copy of 1.2 GB at 10^8 centers took a fifth of the
+            // index stage).
+            if counts.iter().sum::<usize>() == centers.len() {
+                return WorkingSet {
+                    bounds,
+                    points: Cow::Borrowed(centers),
+                };
+            }
             let mut points = vec![[0f32; 3]; counts.iter().sum()];
             let mut rest = &mut points[..];
             let mut outs = Vec::with_capacity(counts.len());
@@ -71,7 +83,7 @@ impl WorkingSet {
                     *o = *p;
                 }
             });
-            points
+            Cow::Owned(points)
         };
         WorkingSet { bounds, points }
     }
@@ -141,14 +153,22 @@ impl Grid {
     fn build_capped(points: &[[f32; 3]], bounds: Aabb, cell_hint: f64, host: bool) -> Grid {
         // The working box as before when it gives cells near the hint (normal scenes get
         // the very same grid); otherwise the points' box, then the quantile box below.
-        let mut pts_box = Aabb::empty();
-        for p in points {
-            pts_box.extend(p64(*p));
-        }
-        let mut b = bounds;
-        for p in points {
-            b.extend(p64(*p));
-        }
+        // The points' box, by both cores (min and max in any order give the same box).
+        let union = |a: Aabb, b: Aabb| Aabb {
+            min: a.min.min(b.min),
+            max: a.max.max(b.max),
+        };
+        let pts_box = points
+            .par_chunks(1 << 16)
+            .map(|c| {
+                let mut b = Aabb::empty();
+                for p in c {
+                    b.extend(p64(*p));
+                }
+                b
+            })
+            .reduce(Aabb::empty, union);
+        let mut b = union(bounds, pts_box);
         if b.is_empty() {
             b = Aabb {
                 min: DVec3::ZERO,
@@ -412,16 +432,108 @@ fn prefetch<T>(x: &T) {
     let _ = x;
 }
 
-/// Sorts `items` by their high 32 bits (all below `bound`), stably: a least significant
-/// digit radix sort, 12 bits a pass (two passes for the grid's 2^24 cells at most), a pass
-/// skipped where every item has the same digit.
+/// Sorts `items` by their high 32 bits (all below `bound`), stably. Small sorts (or keys
+/// of at most [`TOP_BITS`] bits): a least significant digit radix sort, 12 bits a pass, a
+/// pass skipped where every item has the same digit. Large ones: one pass by the key's
+/// top [`TOP_BITS`] bits into buckets, counted and scattered by both cores, then each
+/// bucket sorted by the rest of its bits on its own, in parallel: a bucket (about 25,000
+/// items at 10^8 points) sorts in the cache, where a pass over the whole array scatters
+/// into 4,096 places of a 0.8 GB array at random.
 fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
-    const BITS: u32 = 12;
-    const BUCKETS: usize = 1 << BITS;
-    let passes = (usize::BITS - bound.saturating_sub(1).leading_zeros()).div_ceil(BITS);
-    if items.len() < 2 || passes == 0 {
+    let bits = usize::BITS - bound.saturating_sub(1).leading_zeros();
+    if items.len() < 2 || bits == 0 {
         return;
     }
+    let mut other = vec![0u64; items.len()];
+    if bits <= TOP_BITS || items.len() < SPLIT_FROM {
+        lsd_whole(items, &mut other, bits);
+        return;
+    }
+    let low = bits - TOP_BITS;
+    let top = |it: u64| (it >> (32 + low)) as usize;
+    const BUCKETS: usize = 1 << TOP_BITS;
+    // Each chunk's count of each bucket, then the chunks scatter into their own pieces of
+    // each bucket (chunk order within a bucket: stable).
+    let chunk = items
+        .len()
+        .div_ceil(4 * rayon::current_num_threads())
+        .max(1 << 14);
+    let counts: Vec<Vec<usize>> = items
+        .par_chunks(chunk)
+        .map(|c| {
+            let mut h = vec![0usize; BUCKETS];
+            for &it in c {
+                h[top(it)] += 1;
+            }
+            h
+        })
+        .collect();
+    let mut sizes = vec![0usize; BUCKETS];
+    for h in &counts {
+        for (s, k) in sizes.iter_mut().zip(h) {
+            *s += k;
+        }
+    }
+    {
+        let mut pieces: Vec<Vec<&mut [u64]>> =
+            counts.iter().map(|_| Vec::with_capacity(BUCKETS)).collect();
+        let mut rest: &mut [u64] = &mut other;
+        for b in 0..BUCKETS {
+            for (c, h) in counts.iter().enumerate() {
+                let (piece, tail) = std::mem::take(&mut rest).split_at_mut(h[b]);
+                pieces[c].push(piece);
+                rest = tail;
+            }
+        }
+        items
+            .par_chunks(chunk)
+            .zip(pieces.par_iter_mut())
+            .for_each(|(c, pieces)| {
+                let mut at = vec![0usize; BUCKETS];
+                for &it in c {
+                    let d = top(it);
+                    pieces[d][at[d]] = it;
+                    at[d] += 1;
+                }
+            });
+    }
+    // Each bucket (in `other`) by its low bits, with the same range of `items` as scratch:
+    // every bucket takes the same number of passes, so every one ends in the same array.
+    let passes = low.div_ceil(LOW_BITS);
+    if passes > 0 {
+        let width = low.div_ceil(passes);
+        let mut buckets: Vec<(&mut [u64], &mut [u64])> = Vec::with_capacity(BUCKETS);
+        let (mut a, mut b): (&mut [u64], &mut [u64]) = (&mut other, items);
+        for &n in &sizes {
+            let (x, a_rest) = std::mem::take(&mut a).split_at_mut(n);
+            let (y, b_rest) = std::mem::take(&mut b).split_at_mut(n);
+            buckets.push((x, y));
+            (a, b) = (a_rest, b_rest);
+        }
+        buckets
+            .into_par_iter()
+            .for_each(|(data, scratch)| lsd_slices(data, scratch, width, passes));
+    }
+    // After an even number of passes within the buckets, the sorted items are in `other`.
+    if passes.is_multiple_of(2) {
+        std::mem::swap(items, &mut other);
+    }
+}
+
+/// Keys of more bits than this are sorted by their top this many bits first
+/// ([`radix_sort_high`]).
+const TOP_BITS: u32 = 12;
+/// The widest digit of a pass within a bucket (its counts: 16 KiB).
+const LOW_BITS: u32 = 11;
+/// Items from which [`radix_sort_high`] splits by the top digit first.
+const SPLIT_FROM: usize = 1 << 16;
+
+/// The least significant digit radix sort of all `items` by their high `bits` bits (12 a
+/// pass; `other`: scratch of the same length), the sorted items left in `items`.
+fn lsd_whole(items: &mut Vec<u64>, other: &mut Vec<u64>, bits: u32) {
+    const BITS: u32 = 12;
+    const BUCKETS: usize = 1 << BITS;
+    let passes = bits.div_ceil(BITS);
     let digit = |it: u64, pass: u32| ((it >> (32 + pass * BITS)) as usize) & (BUCKETS - 1);
     // Every pass's counts in one read.
     let mut counts = vec![[0usize; BUCKETS]; passes as usize];
@@ -430,7 +542,6 @@ fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
             c[digit(it, pass as u32)] += 1;
         }
     }
-    let mut other = vec![0u64; items.len()];
     for (pass, c) in counts.iter().enumerate() {
         if c.contains(&items.len()) {
             continue;
@@ -446,7 +557,34 @@ fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
             other[next[d]] = it;
             next[d] += 1;
         }
-        std::mem::swap(items, &mut other);
+        std::mem::swap(items, other);
+    }
+}
+
+/// `passes` least significant digit passes of `width` bits over the high half's low bits,
+/// from `data` to `scratch` and back (no pass skipped): after an odd number the sorted
+/// items are in `scratch`, after an even number in `data`.
+fn lsd_slices(data: &mut [u64], scratch: &mut [u64], width: u32, passes: u32) {
+    let mask = (1usize << width) - 1;
+    let mut next = [0usize; 1 << LOW_BITS];
+    let next = &mut next[..=mask];
+    let (mut from, mut to) = (data, scratch);
+    for pass in 0..passes {
+        let shift = 32 + pass * width;
+        next.fill(0);
+        for &it in from.iter() {
+            next[(it >> shift) as usize & mask] += 1;
+        }
+        let mut at = 0;
+        for n in next.iter_mut() {
+            (*n, at) = (at, at + *n);
+        }
+        for &it in from.iter() {
+            let d = (it >> shift) as usize & mask;
+            to[next[d]] = it;
+            next[d] += 1;
+        }
+        std::mem::swap(&mut from, &mut to);
     }
 }
 
@@ -568,6 +706,14 @@ mod tests {
             (5_000_000, 3000, 5_000_000),
             (1 << 30, 3000, 1 << 30),
             (1 << 20, 3000, 1 << 12),
+            // Split by the top digit first (at least SPLIT_FROM items, keys beyond 12
+            // bits): within the buckets one pass (20 bits), two (24, 30 bits), and keys
+            // crowded into a few buckets (every key below 2^14 of 2^24).
+            (1 << 20, 100_000, 1 << 20),
+            (1 << 24, 100_000, 1 << 24),
+            (1 << 30, 100_000, 1 << 30),
+            (1 << 24, 100_000, 1 << 14),
+            (5_000, 100_000, 5_000),
         ] {
             let mut items: Vec<u64> = (0..n)
                 .map(|i| ((uni(&mut s) * below as f64) as u64).min(below - 1) << 32 | i)
@@ -721,7 +867,9 @@ mod tests {
             .collect();
         let r = 0.03;
         let ws = WorkingSet::new(&pts, &near);
+        let n_ws = ws.len();
         let g = Grid::build(&ws.points, ws.bounds, r);
+        drop(ws);
         let (cost, counts) = cost_and_counts(&g, &near, r);
         // Now one endpoint flies to (1000, 1000, 1000), and floaters join the working set.
         for k in 0..10 {
@@ -730,7 +878,7 @@ mod tests {
         let mut far = near.clone();
         far[0] = Segment::new(far[0].p1, DVec3::splat(1000.0));
         let ws_far = WorkingSet::new(&pts, &far);
-        assert_eq!(ws_far.len(), ws.len() + 10);
+        assert_eq!(ws_far.len(), n_ws + 10);
         let gf = Grid::build(&ws_far.points, ws_far.bounds, r);
         assert!(gf.n_cells() <= 8 * ws_far.len(), "{} cells", gf.n_cells());
         assert!(gf.cell <= 4.0 * r, "cells stay near r: {}", gf.cell);
@@ -778,6 +926,11 @@ mod tests {
             [11.0, 0.0, 1.1],
         ];
         let ws = WorkingSet::new(&c, &segs);
-        assert_eq!(ws.points, vec![[-1.0f32, 0.0, 0.0], [5.0, 1.0, -1.0]]);
+        assert_eq!(*ws.points, [[-1.0f32, 0.0, 0.0], [5.0, 1.0, -1.0]]);
+        assert!(matches!(ws.points, Cow::Owned(_)));
+        // Every center inside: the caller's array itself, not a copy.
+        let inside = [c[0], c[2]];
+        let ws = WorkingSet::new(&inside, &segs);
+        assert!(matches!(ws.points, Cow::Borrowed(p) if std::ptr::eq(p, &inside[..])));
     }
 }
