@@ -204,7 +204,7 @@ impl GpuEngine {
             let n = o.results.len();
             let qs = &queries[first..first + n];
             // One plan a query (none for a sub-batch the host answers).
-            let plans: Vec<layout::Plan> = bytemuck::pod_collect_to_vec(&o.back);
+            let plans = super::device::pods::<layout::Plan>(&o.back);
             per_query(&mut out[first..first + n], &o, 64, |i, flags, s| {
                 let (q, k) = (&qs[i], k[first + i]);
                 let plan = plans.get(i);
@@ -234,8 +234,10 @@ impl GpuEngine {
         self.run(b, Kind::Members, queries, &[], &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
-            // Query after query, the device's sure members (as far as the list's capacity).
-            let members: Vec<u32> = bytemuck::pod_collect_to_vec(&o.back);
+            // Query after query, the device's sure members (as far as the list's capacity),
+            // read in place: a copy was a fresh 4 bytes a member each sub-batch, and the
+            // first sub-batch's fresh memory is page faults (see docs/benchmarks.md).
+            let members = super::device::pods::<u32>(&o.back);
             let mut at = 0usize;
             let lists: Vec<std::ops::Range<usize>> = o
                 .results
