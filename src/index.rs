@@ -433,8 +433,8 @@ fn prefetch<T>(x: &T) {
 }
 
 /// Sorts `items` by their high 32 bits (all below `bound`), stably. Small sorts (or keys
-/// of at most [`TOP_BITS`] bits): a least significant digit radix sort, 12 bits a pass, a
-/// pass skipped where every item has the same digit. Large ones: one pass by the key's
+/// of at most [`TOP_BITS`] bits): a least significant digit radix sort over the whole
+/// array ([`lsd_slices`]). Large ones: one pass by the key's
 /// top [`TOP_BITS`] bits into buckets, counted and scattered by both cores, then each
 /// bucket sorted by the rest of its bits on its own, in parallel: a bucket (about 25,000
 /// items at 10^8 points) sorts in the cache, where a pass over the whole array scatters
@@ -446,7 +446,11 @@ fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
     }
     let mut other = vec![0u64; items.len()];
     if bits <= TOP_BITS || items.len() < SPLIT_FROM {
-        lsd_whole(items, &mut other, bits);
+        let passes = bits.div_ceil(LOW_BITS);
+        lsd_slices(items, &mut other, bits.div_ceil(passes), passes);
+        if !passes.is_multiple_of(2) {
+            std::mem::swap(items, &mut other);
+        }
         return;
     }
     let low = bits - TOP_BITS;
@@ -523,43 +527,10 @@ fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
 /// Keys of more bits than this are sorted by their top this many bits first
 /// ([`radix_sort_high`]).
 const TOP_BITS: u32 = 12;
-/// The widest digit of a pass within a bucket (its counts: 16 KiB).
+/// The widest digit of a pass over the low bits (its counts: 16 KiB).
 const LOW_BITS: u32 = 11;
 /// Items from which [`radix_sort_high`] splits by the top digit first.
 const SPLIT_FROM: usize = 1 << 16;
-
-/// The least significant digit radix sort of all `items` by their high `bits` bits (12 a
-/// pass; `other`: scratch of the same length), the sorted items left in `items`.
-fn lsd_whole(items: &mut Vec<u64>, other: &mut Vec<u64>, bits: u32) {
-    const BITS: u32 = 12;
-    const BUCKETS: usize = 1 << BITS;
-    let passes = bits.div_ceil(BITS);
-    let digit = |it: u64, pass: u32| ((it >> (32 + pass * BITS)) as usize) & (BUCKETS - 1);
-    // Every pass's counts in one read.
-    let mut counts = vec![[0usize; BUCKETS]; passes as usize];
-    for &it in items.iter() {
-        for (pass, c) in counts.iter_mut().enumerate() {
-            c[digit(it, pass as u32)] += 1;
-        }
-    }
-    for (pass, c) in counts.iter().enumerate() {
-        if c.contains(&items.len()) {
-            continue;
-        }
-        let mut next = [0usize; BUCKETS];
-        let mut at = 0;
-        for (n, k) in next.iter_mut().zip(c) {
-            *n = at;
-            at += k;
-        }
-        for &it in items.iter() {
-            let d = digit(it, pass as u32);
-            other[next[d]] = it;
-            next[d] += 1;
-        }
-        std::mem::swap(items, other);
-    }
-}
 
 /// `passes` least significant digit passes of `width` bits over the high half's low bits,
 /// from `data` to `scratch` and back (no pass skipped): after an odd number the sorted
@@ -698,8 +669,8 @@ mod tests {
     #[test]
     fn the_radix_sort_is_a_stable_sort_by_the_high_half() {
         let mut s = Rng::new(3);
-        // One pass, two, three (a bound beyond 2^24), and two passes of which the second
-        // is skipped (every key below 2^12: the same high digit).
+        // Over the whole array: one pass, two, three (a bound beyond 2^22), and two passes
+        // over keys that all share their high digit (every key below 2^12).
         for (bound, n, below) in [
             (1usize, 10, 1u64),
             (300, 1000, 300),
