@@ -9,8 +9,9 @@ Usage: scripts/kinds-eval.py [--data DIR] [--out DIR] [--scenes a,b] [--variants
                              [--run 'label:refine options' ...] [--no-default-runs]
                              [--check] [--json FILE]
 
-Scenes (DIR defaults to ../shared/data beside the repository, then tests/data; a scene
-whose files are missing is reported and, with --check, fails):
+Scenes (each file is looked up in ../shared/data beside the repository, then in
+tests/data, or in DIR alone; a scene whose files are missing is reported and, with
+--check, fails):
 - nut_edges: ABC 00000006, 50,000 Gaussians sampled along its mesh's sharp edges with
   random splat shapes and zero normals (`abc_00000006/mesh_sampled_gaussians.ply`),
   r 0.01, against its 12 straight edges; its `given` lines are NEF's predictions.
@@ -19,6 +20,8 @@ whose files are missing is reported and, with --check, fails):
 - proc, abc00000006: coarse trained models (OpenSplat, splats sunk below the faces), r 0.03.
 - proc_iso250: early round splats of a densely initialised training run, r 0.03.
 - proc_surf: splats lying on the faces, r 0.03.
+- proc_gsplat, abc00000006_gsplat: full-resolution models trained by gsplat on a GPU (in
+  tests/data only), r 0.03.
 Lines: `clean` is the trained pairs' Line3D++ output, or the exact edges where the scene
 has no such lines; `bias` and `all` plant defects into `clean` with
 scripts/plant-defects.py (seed 7); `given` is a scene's own noisy lines where it has some.
@@ -48,8 +51,13 @@ SCENES = [
      "real_pairs/proc_iso250/lines.txt", None, "real_pairs/proc_iso250/gt_lines.txt", 0.03),
     ("proc_surf", "splats on the faces", "real_pairs/proc_surf/point_cloud.ply",
      "real_pairs/proc_surf/lines.txt", None, "real_pairs/proc_surf/gt_lines.txt", 0.03),
+    ("proc_gsplat", "full-resolution GPU-trained", "real_pairs/proc_gsplat/point_cloud.ply",
+     "real_pairs/proc_gsplat/lines.txt", None, "real_pairs/proc_gsplat/gt_lines.txt", 0.03),
+    ("abc00000006_gsplat", "full-resolution GPU-trained",
+     "real_pairs/abc00000006_gsplat/point_cloud.ply", "real_pairs/abc00000006_gsplat/lines.txt",
+     None, "real_pairs/abc00000006_gsplat/gt_all_edges.txt", 0.03),
 ]
-TRAINED = {"proc", "abc00000006", "proc_iso250", "proc_surf"}
+TRAINED = {"proc", "abc00000006", "proc_iso250", "proc_surf", "proc_gsplat", "abc00000006_gsplat"}
 RUNS = [("default", []), ("fit none", ["--fit", "none"]), ("fit paper", ["--fit", "paper"]),
         ("reference", ["--profile", "reference"])]
 VARIANTS = ["clean", "bias", "all", "given"]
@@ -66,13 +74,26 @@ def binary():
     return b
 
 
-def data_dir(arg):
+def data_dirs(arg):
+    """The folders a scene's files are looked up in, first match wins: --data DIR alone, or
+    the shared data beside the repository, then tests/data (which alone holds the
+    full-resolution gsplat pairs)."""
     if arg:
-        return arg
-    for d in (os.path.join(ROOT, "..", "shared", "data"), os.path.join(ROOT, "tests", "data")):
-        if os.path.isdir(os.path.join(d, "real_pairs")):
-            return os.path.abspath(d)
-    sys.exit("kinds-eval.py: no data folder found: pass --data DIR")
+        return [arg]
+    dirs = [os.path.abspath(d) for d in (os.path.join(ROOT, "..", "shared", "data"),
+                                         os.path.join(ROOT, "tests", "data"))
+            if os.path.isdir(os.path.join(d, "real_pairs"))]
+    if not dirs:
+        sys.exit("kinds-eval.py: no data folder found: pass --data DIR")
+    return dirs
+
+
+def resolve(dirs, rel):
+    """rel in the first of dirs that holds it (in the first of dirs if none does)."""
+    for d in dirs:
+        if os.path.exists(os.path.join(d, rel)):
+            return os.path.join(d, rel)
+    return os.path.join(dirs[0], rel)
 
 
 def run(cmd):
@@ -118,9 +139,9 @@ def prepare(B, data, work, scene):
             run([B, "synth", "toy", "-o", g, "--lines-out", given, "--gt-out", gt, "-n", "20000",
                  "--seed", "1"])
     else:
-        g, gt = os.path.join(data, g), os.path.join(data, gt)
-        given = given and os.path.join(data, given)
-        clean = clean and os.path.join(data, clean)
+        g, gt = resolve(data, g), resolve(data, gt)
+        given = given and resolve(data, given)
+        clean = clean and resolve(data, clean)
     for p in (g, gt, clean, given):
         if p and not os.path.exists(p):
             return None, f"missing {p}"
@@ -152,7 +173,7 @@ def main():
     ap.add_argument("--json", help="write every row as JSON here")
     a = ap.parse_args()
     B = binary()
-    data = data_dir(a.data)
+    data = data_dirs(a.data)
     work = a.out or tempfile.mkdtemp(prefix="kinds-eval-")
     os.makedirs(work, exist_ok=True)
     scenes = [s for s in SCENES if not a.scenes or s[0] in a.scenes.split(",")]

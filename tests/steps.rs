@@ -109,9 +109,49 @@ fn a_segment_dense_to_its_ends_is_not_cropped() {
     assert_eq!(out[0], input);
 }
 
+/// A model whose Gaussians come in clumps along the edge (a trained model's flat splats on
+/// uniform faces, dense where the colour changes): an edge [0, 1] holding 10 clumps 0.04
+/// long, one every 0.1 from 0.05 on, so each end of the segment starts in a gap. The end
+/// window is empty beyond chance and the binary search stops at some gap; the whole
+/// stretch it would cut still holds the middle's density, so `default` keeps the true
+/// extent. Without the stretch check the end is cut by at least r.
+#[test]
+fn a_clumpy_edge_keeps_its_extent() {
+    let mut rng = TestRng::new(6);
+    let mut pts = Vec::new();
+    for k in 0..10 {
+        let a = 0.05 + 0.1 * k as f64;
+        pts.extend(edge_points(
+            &seg([a, 0.0, 0.0], [a + 0.04, 0.0, 0.0]),
+            400,
+            0.004,
+            &mut rng,
+        ));
+    }
+    let input = seg([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+    let e = cpu_engine(&pts, &[input], R);
+    let p = Params::default();
+    assert!(p.fixes().crop_stretch);
+    let out = crop::crop(&e, &[input], &p.with_radius(R)).unwrap()[0];
+    assert_eq!(out, input);
+    let mut off = Params::default();
+    off.switches.fix_crop_stretch = Some(false);
+    let cut = crop::crop(&e, &[input], &off.with_radius(R)).unwrap()[0];
+    assert!(
+        input.length() - cut.length() >= R,
+        "without the stretch check the clumps' gaps cut an end: {cut:?}"
+    );
+    // A true overextension of 0.3 past the last clump (which ends at 0.99) is still cut
+    // back to it.
+    let long = seg([0.0, 0.0, 0.0], [1.3, 0.0, 0.0]);
+    let e = cpu_engine(&pts, &[long], R);
+    let out = crop::crop(&e, &[long], &p.with_radius(R)).unwrap()[0];
+    assert!(out.p2.x < 1.03 && out.p2.x > 0.95, "{out:?}");
+}
+
 /// The command line's names in its order, as they were before the steps declared them:
 /// `--help`, the report's `params` and scripts that pass options by name rely on them.
-const NAMES_BEFORE: [&str; 50] = [
+const NAMES_BEFORE: [&str; 51] = [
     "profile",
     "radius",
     "translate_keep",
@@ -156,6 +196,7 @@ const NAMES_BEFORE: [&str; 50] = [
     "fix_crop_density",
     "fix_crop_min_cut",
     "fix_crop_chance",
+    "fix_crop_stretch",
     "fix_merge_fidelity",
     "order_endpoints",
     "eval_radius",

@@ -183,7 +183,9 @@ pub fn crop(
             }
         }
     }
-    for s in &searches {
+    // The cuts the search found: (search, where, how long).
+    let mut cuts = Vec::with_capacity(searches.len());
+    for (j, s) in searches.iter().enumerate() {
         let t = 0.5 * (s.a + s.b);
         // Fix `crop_min_cut`: a sparse stretch shorter than the cylinder's radius at an end
         // is no overextension: it is where the Gaussians thin out at a corner (trained
@@ -197,6 +199,38 @@ pub fn crop(
         if fixes.crop_min_cut && cut < r {
             continue;
         }
+        cuts.push((j, t, cut));
+    }
+    if fixes.crop_stretch && !cuts.is_empty() {
+        // Fix `crop_stretch`: the whole stretch to be cut must be sparse, as the end window
+        // was, not only the probe where the search stopped. An overextension past the true
+        // end holds few points all along; a stretch of a model whose Gaussians come in
+        // clumps along the edge (flat splats on uniform faces, dense only where the colour
+        // changes) holds about the middle's density, and its gaps between clumps are no end.
+        let stretches: Vec<Query> = cuts
+            .iter()
+            .map(|&(j, t, _)| {
+                let s = &searches[j];
+                let seg = &segments[s.seg];
+                if s.first {
+                    Query::new(seg.sub(0.0, t), r)
+                } else {
+                    Query::new(seg.sub(t, seg.length()), r)
+                }
+            })
+            .collect();
+        let counts = engine.stats(&stretches, Want::COUNT)?;
+        let mut k = 0;
+        cuts.retain(|&(j, _, cut)| {
+            let n = counts[k].count;
+            k += 1;
+            let dm = mid_density[searches[j].seg];
+            super::density(n, cut) < p.crop_ratio * dm
+                && (!fixes.crop_chance || poisson_at_most(n, dm * cut, CROP_CHANCE))
+        });
+    }
+    for &(j, t, _) in &cuts {
+        let s = &searches[j];
         if s.first {
             ends[s.seg].0 = t;
         } else {

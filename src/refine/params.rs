@@ -513,6 +513,12 @@ group! {
         /// middle's density (Poisson, chance at most 0.01), so that a sparse model's few
         /// points do not cut true extent. Default: profile.
         fix_crop_chance: Option<bool> = None, Check::Switch;
+        /// Fix: crop cuts an end only where the whole stretch it would cut is sparse (below
+        /// crop-ratio x the middle density and, with fix-crop-chance, beyond chance), not
+        /// only the probe where the search stopped: on a model whose density along an edge
+        /// comes in clumps, the search can stop at any gap between two clumps. Default:
+        /// profile.
+        fix_crop_stretch: Option<bool> = None, Check::Switch;
         /// Fix: a merge or join keeps every input endpoint within r/2 (the most one edge-fit
         /// step moves a line) of the line it makes, so that chords of a curve are not merged
         /// or joined across it and nearby parallel edges are not averaged. Default: profile.
@@ -535,6 +541,7 @@ pub struct Fixes {
     pub crop_density: bool,
     pub crop_min_cut: bool,
     pub crop_chance: bool,
+    pub crop_stretch: bool,
     pub merge_fidelity: bool,
     pub order_endpoints: bool,
     pub r_l: RlMode,
@@ -665,6 +672,7 @@ impl Params {
             crop_density: f.fix_crop_density.unwrap_or(on),
             crop_min_cut: f.fix_crop_min_cut.unwrap_or(on),
             crop_chance: f.fix_crop_chance.unwrap_or(on),
+            crop_stretch: f.fix_crop_stretch.unwrap_or(on),
             merge_fidelity: f.fix_merge_fidelity.unwrap_or(on),
             order_endpoints: f.order_endpoints.unwrap_or(!on),
             fit: self
