@@ -43,7 +43,8 @@ for size in "${sizes[@]}"; do
     exit 1
   }
   echo "$out"
-  if echo "$out" | grep -E "^  gpu: " | grep -qiE "llvmpipe|lavapipe|swiftshader|warp|software"; then
+  # The adapter's own line ("  gpu: <adapter> (N_box ...)"), not the counters' lines below it.
+  if echo "$out" | grep -E "^  gpu: .*\(N_box " | grep -qiE "llvmpipe|lavapipe|swiftshader|warp|software"; then
     echo "WARNING: the GPU engine ran on a software adapter; these are not real-GPU numbers" >&2
     [ -n "${BENCH_GPU_MAX_HOST_SHARE:-}" ] || continue
   fi

@@ -477,7 +477,7 @@ fn print_case(c: &Case) {
         }
         if let Some(c) = r.engine_counters.filter(|c| c.cpu_batches > 0) {
             println!(
-                "  {}: {} of {} batches ({} queries) answered on the host (small batches; member lists on a software adapter)",
+                "  {}: {} of {} batches ({} queries) answered on the host (batches under the device's size, and member lists where the host reads them)",
                 r.backend, c.cpu_batches, c.batches, c.cpu_queries
             );
         }
