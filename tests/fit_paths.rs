@@ -124,6 +124,20 @@ fn real_line3dpp_lines_fit_alike_both_ways() {
     let g = both(&pts, &twice, &Attributes::default(), 0.03, &spec());
     assert_eq!(bits(&g.segments[..segs.len()]), bits(&f.segments));
     assert_eq!(bits(&g.segments[segs.len()..]), bits(&f.segments));
+    // ... and asked once: per iteration the engine gets the distinct segments alone.
+    let asked = |s: &[Segment]| {
+        let e = cpu_engine(&pts, s, 0.03);
+        let (spec, attrs) = (spec(), Attributes::default());
+        let job = FitJob {
+            segments: s,
+            r: 0.03,
+            spec: &spec,
+            points: attrs.fit_points(),
+        };
+        by_batches(&e, &job).unwrap();
+        e.counters().queries
+    };
+    assert_eq!(asked(&twice), asked(segs));
 }
 
 #[test]

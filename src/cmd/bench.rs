@@ -227,6 +227,10 @@ struct StageShare {
     cpu_seconds: f64,
     host_seconds: f64,
     device_seconds: f64,
+    /// The GPU run's stage seconds outside its engine's batches (neither `host_seconds`
+    /// nor `device_seconds`): the stage's own host work, which the CPU run does too (the
+    /// decision rule's weighing, the clustering, merge/join's decisions).
+    outside_seconds: f64,
     /// `host_seconds / cpu_total_seconds`.
     share: f64,
     device_items: u64,
@@ -260,6 +264,10 @@ impl HostShare {
                     cpu_seconds: seconds(cpu_run, &s.name),
                     host_seconds: s.host_seconds?,
                     device_seconds: s.device_seconds.unwrap_or(0.0),
+                    outside_seconds: (s.seconds
+                        - s.host_seconds?
+                        - s.device_seconds.unwrap_or(0.0))
+                    .max(0.0),
                     share: s.host_seconds? / cpu,
                     device_items: s.device_items.unwrap_or(0),
                     point_bytes: s.point_bytes.unwrap_or(0),
@@ -504,16 +512,25 @@ fn print_host_share(h: &HostShare) {
         h.cpu_total_seconds
     );
     println!(
-        "{:<18}{:>10}{:>10}{:>10}{:>8}{:>12}{:>12}{:>12}",
-        "stage", "cpu (s)", "host (s)", "dev (s)", "share", "items", "MB read", "host lists"
+        "{:<18}{:>10}{:>10}{:>10}{:>12}{:>8}{:>12}{:>12}{:>12}",
+        "stage",
+        "cpu (s)",
+        "host (s)",
+        "dev (s)",
+        "outside (s)",
+        "share",
+        "items",
+        "MB read",
+        "host lists"
     );
     for s in &h.stages {
         println!(
-            "{:<18}{:>10.3}{:>10.3}{:>10.3}{:>7.1}%{:>12}{:>12.1}{:>12}",
+            "{:<18}{:>10.3}{:>10.3}{:>10.3}{:>12.3}{:>7.1}%{:>12}{:>12.1}{:>12}",
             s.name,
             s.cpu_seconds,
             s.host_seconds,
             s.device_seconds,
+            s.outside_seconds,
             100.0 * s.share,
             s.device_items,
             s.point_bytes as f64 / 1e6,
@@ -521,10 +538,11 @@ fn print_host_share(h: &HostShare) {
         );
     }
     println!(
-        "{:<18}{:>10.3}{:>10.3}{:>10}{:>7.1}%",
+        "{:<18}{:>10.3}{:>10.3}{:>10}{:>12}{:>7.1}%",
         "total",
         h.cpu_total_seconds,
         h.gpu_host_seconds,
+        "",
         "",
         100.0 * h.share
     );

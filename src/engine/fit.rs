@@ -24,7 +24,6 @@ use crate::geom::{p64, Segment};
 use crate::index::Grid;
 use glam::DVec3;
 use rayon::prelude::*;
-use std::collections::HashMap;
 
 /// How far (in units of r) a line may lie from the line its neighbourhood was gathered
 /// for before it is gathered again. A wider margin gathers less often but tests more points
@@ -32,7 +31,7 @@ use std::collections::HashMap;
 pub const GATHER_MARGIN: f64 = 0.5;
 
 /// The fit with one engine batch ([`Engine::fit_lines`]) per iteration, for all segments
-/// still moving; exact copies (the same segment now and at the start) are asked once.
+/// still moving; exact copies (the same input segment) are asked once.
 pub fn by_batches<E: Engine + ?Sized>(
     engine: &E,
     job: &FitJob<'_>,
@@ -40,35 +39,26 @@ pub fn by_batches<E: Engine + ?Sized>(
     let r = job.r;
     let spec = job.spec;
     let mut tracks: Vec<Track> = job.segments.iter().map(|s| Track::new(*s)).collect();
-    let mut active: Vec<usize> = (0..tracks.len()).filter(|&i| tracks[i].starts()).collect();
+    // A track's history depends only on its input segment (its steps are answers about its
+    // own line): copies of one input move together, so the first of each is fitted and the
+    // others take its state at the end. Found once, by sorting the inputs' bits, not by
+    // hashing every moving track in every iteration.
+    let first = first_copies(job.segments);
+    let mut active: Vec<usize> = (0..tracks.len())
+        .filter(|&i| first[i] == i && tracks[i].starts())
+        .collect();
     let mut iterations = 0;
     while !active.is_empty() && iterations < spec.iterations {
         iterations += 1;
-        let mut seen: HashMap<[u64; 12], usize> = HashMap::new();
-        let mut uniq: Vec<usize> = Vec::new();
-        let of: Vec<usize> = active
+        let queries: Vec<Query> = active
             .iter()
-            .map(|&i| {
-                let (a, b) = (tracks[i].cur, tracks[i].origin);
-                // (Tracks with the same start and the same line have the same history, and so
-                // the same `warm`.)
-                let key = [a.p1, a.p2, b.p1, b.p2]
-                    .map(|v| v.to_array().map(f64::to_bits))
-                    .concat();
-                *seen
-                    .entry(key.try_into().expect("12 words"))
-                    .or_insert_with(|| {
-                        uniq.push(i);
-                        uniq.len() - 1
-                    })
-            })
+            .map(|&i| Query::new(tracks[i].cur, r))
             .collect();
-        let queries: Vec<Query> = uniq.iter().map(|&i| Query::new(tracks[i].cur, r)).collect();
         let near = |j: usize, f: &LineFit| {
-            let t = &tracks[uniq[j]];
+            let t = &tracks[active[j]];
             near_threshold(&t.cur, f, &t.origin, r, spec)
         };
-        let warm: Vec<bool> = uniq.iter().map(|&i| tracks[i].warm).collect();
+        let warm: Vec<bool> = active.iter().map(|&i| tracks[i].warm).collect();
         let ask = FitAsk {
             spec,
             points: job.points,
@@ -77,14 +67,39 @@ pub fn by_batches<E: Engine + ?Sized>(
         };
         let steps = engine.fit_lines(&queries, &ask)?;
         let mut next = Vec::with_capacity(active.len());
-        for (&i, &d) in active.iter().zip(&of) {
-            if tracks[i].advance(steps[d], r, spec) {
+        for (&i, &d) in active.iter().zip(&steps) {
+            if tracks[i].advance(d, r, spec) {
                 next.push(i);
             }
         }
         active = next;
     }
+    for i in 0..tracks.len() {
+        if first[i] != i {
+            tracks[i] = tracks[first[i]];
+        }
+    }
     Ok(FitResult::of_tracks(&tracks))
+}
+
+/// For each segment the index of the first segment equal to it bit for bit (itself when
+/// none comes before it).
+fn first_copies(segments: &[Segment]) -> Vec<usize> {
+    let key = |i: usize| {
+        let s = &segments[i];
+        [s.p1, s.p2].map(|v| v.to_array().map(f64::to_bits))
+    };
+    let mut order: Vec<usize> = (0..segments.len()).collect();
+    // Equal keys keep their index order (the sort's tie-break), so a run's head is its
+    // first copy.
+    order.par_sort_unstable_by_key(|&i| (key(i), i));
+    let mut first: Vec<usize> = (0..segments.len()).collect();
+    for w in order.windows(2) {
+        if key(w[0]) == key(w[1]) {
+            first[w[1]] = first[w[0]];
+        }
+    }
+    first
 }
 
 /// [`step`] of every query's segment (`q.seg`, radius `q.r`) from its members: the
