@@ -66,10 +66,25 @@ pub fn make_engine(
     prepare(backend, gpu).finish(grid)
 }
 
+/// The error `e` once more, for the next engine of a device that did not open.
+fn again(e: &EngineError) -> EngineError {
+    match e {
+        EngineError::NoAdapter(why) => EngineError::NoAdapter(why.clone()),
+        EngineError::OutOfMemory { phase, why } => EngineError::OutOfMemory {
+            phase: phase.clone(),
+            why: why.clone(),
+        },
+        e => EngineError::Gpu(e.to_string()),
+    }
+}
+
 /// The engine of a backend in the making ([`prepare`]).
 pub struct Pending {
     backend: Backend,
     device: Option<std::thread::JoinHandle<Result<GpuDevice, EngineError>>>,
+    /// The opened device once an engine was made of it ([`Pending::engine`]), for the
+    /// next: its clone shares the device and the kernels; or why it did not open.
+    opened: Option<Result<GpuDevice, EngineError>>,
 }
 
 /// Starts making the engine of `backend`: for `gpu` and `auto` the adapter is picked and
@@ -110,6 +125,7 @@ pub fn prepare(backend: Backend, gpu: &GpuSetup) -> Pending {
     Pending {
         backend,
         device: (backend != Backend::Cpu).then(|| std::thread::spawn(open)),
+        opened: None,
     }
 }
 
@@ -120,6 +136,16 @@ impl Pending {
         mut self,
         grid: Arc<Grid>,
     ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
+        self.engine(grid)
+    }
+
+    /// [`Pending::finish`] that keeps the device for more engines: every call after the
+    /// first makes its engine on the same device and kernels (a second grid of the same
+    /// run: `--max-scale`'s placing Gaussians), with the same messages, and opens nothing.
+    pub fn engine(
+        &mut self,
+        grid: Arc<Grid>,
+    ) -> Result<(Box<dyn Engine>, Vec<String>), EngineError> {
         // While the device is still opening (drivers and kernel compilers take a good
         // part of a second), the point store it will upload is computed here.
         let store = self
@@ -127,10 +153,22 @@ impl Pending {
             .as_ref()
             .filter(|h| !h.is_finished())
             .map(|_| PointStore::of(&grid));
-        let device = self
-            .device
-            .take()
-            .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)));
+        // The device for this engine: the one opened for the first, and a clone of it (or
+        // the same error) kept for the next.
+        let device = match self.device.take() {
+            Some(h) => {
+                let d = h.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
+                self.opened = Some(match &d {
+                    Ok(d) => Ok(d.clone()),
+                    Err(e) => Err(again(e)),
+                });
+                Some(d)
+            }
+            None => self.opened.as_ref().map(|d| match d {
+                Ok(d) => Ok(d.clone()),
+                Err(e) => Err(again(e)),
+            }),
+        };
         choose(self.backend, grid, |g| match device {
             Some(d) => d?.engine_with(g, store).map(Some),
             None => Err(EngineError::NoAdapter("no adapter was opened".into())),

@@ -4,7 +4,7 @@
 use super::{RunError, Scene, Stage};
 use crate::engine::dedup::Dedup;
 use crate::engine::gpu::GpuSetup;
-use crate::engine::select::{prepare, Backend};
+use crate::engine::select::{prepare, Backend, Pending};
 use crate::engine::{Engine, EngineError};
 use crate::eval::{self, gt, Metrics};
 use crate::geom::{LineSet, Segment};
@@ -63,6 +63,21 @@ impl Refiner {
         let host = backend == Backend::Cpu;
         Refiner::build(gaussians, segments, params, host, |grid| {
             pending.finish(grid)
+        })
+    }
+
+    /// [`Refiner::with_setup`] on the device `pending` opens (or opened for an engine
+    /// before: the same device, nothing opened again).
+    pub fn with_pending(
+        gaussians: &[[f32; 3]],
+        segments: &[Segment],
+        params: &Params,
+        backend: Backend,
+        pending: &mut Pending,
+    ) -> Result<Refiner, RunError> {
+        let host = backend == Backend::Cpu;
+        Refiner::build(gaussians, segments, params, host, |grid| {
+            pending.engine(grid)
         })
     }
 
@@ -456,6 +471,17 @@ impl Job {
     }
 
     /// The engine for `scene`, built once.
+    /// [`Job::refiner`] on the device of `pending`.
+    fn refiner_on(&self, scene: &Scene, pending: &mut Pending) -> Result<Refiner, RunError> {
+        Refiner::with_pending(
+            &scene.gaussians,
+            &scene.lines.segments,
+            &self.params,
+            self.backend,
+            pending,
+        )
+    }
+
     pub fn refiner(&self, scene: &Scene) -> Result<Refiner, RunError> {
         Refiner::with_setup(
             &scene.gaussians,
@@ -537,7 +563,9 @@ impl Job {
         };
         // The whole model witnesses the lines (outliers, merges, crop, gaps, the metrics
         // as `eval` measures them); the scale cut's Gaussians place them (the edge fit).
-        let mut refiner = self.refiner(scene)?;
+        // Both engines run on one device, opened once.
+        let mut pending = prepare(self.backend, &self.gpu);
+        let mut refiner = self.refiner_on(scene, &mut pending)?;
         let frame_warning =
             match self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
                 Some((crate::frames::FrameVerdict::Different, msg)) => {
@@ -548,7 +576,7 @@ impl Job {
             };
         let normals_unused = match &placing {
             Some(placing) => {
-                let mut placer = self.refiner(placing)?;
+                let mut placer = self.refiner_on(placing, &mut pending)?;
                 let unused = placer.set_scene_attributes(placing);
                 refiner.set_placement(placer);
                 unused

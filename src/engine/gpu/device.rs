@@ -5,7 +5,9 @@ use super::super::EngineError;
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 
-/// A device, its queue and what the engine needs to know about them.
+/// A device, its queue and what the engine needs to know about them. A clone shares the
+/// device (wgpu's handles are shared), so that two engines of one run use one device.
+#[derive(Clone)]
 pub struct Context {
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,

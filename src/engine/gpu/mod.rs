@@ -190,9 +190,21 @@ pub struct GpuEngine {
     host_lists: AtomicU64,
 }
 
+/// How many times this process began to open a device ([`GpuDevice::open`]).
+static OPENED: AtomicU64 = AtomicU64::new(0);
+
+/// How many devices this process has begun to open so far: a run opens one, whatever
+/// engines it makes on it (tests, diagnostics).
+pub fn devices_opened() -> u64 {
+    OPENED.load(Ordering::Relaxed)
+}
+
 /// An opened device with the kernels compiled, before any Gaussians: what does not depend
 /// on the grid, so that the commands can open it while the grid is built
-/// (`select::prepare`). [`GpuDevice::engine`] uploads a grid and gives the engine.
+/// (`select::prepare`). [`GpuDevice::engine`] uploads a grid and gives the engine. A clone
+/// shares the device and the kernels (a second engine of the same run, `--max-scale`'s
+/// placing Gaussians, opens nothing again).
+#[derive(Clone)]
 pub struct GpuDevice {
     ctx: Context,
     kernels: pipelines::Kernels,
@@ -219,6 +231,7 @@ impl GpuDevice {
 
     /// Opens `adapter` and compiles the kernels.
     pub fn open(adapter: &wgpu::Adapter, opts: GpuOptions) -> Result<GpuDevice, EngineError> {
+        OPENED.fetch_add(1, Ordering::Relaxed);
         let ctx = Context::new(adapter, opts.mapped_uploads, opts.fill_garbage)?;
         let software = ctx.info.device_type == wgpu::DeviceType::Cpu;
         let fit_wanted = ctx.f64

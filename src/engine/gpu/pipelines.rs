@@ -107,7 +107,9 @@ pub struct Routes {
     pub fit_lines: Option<&'static FitRoute>,
 }
 
-/// The compiled pipelines, one slot per entry of the registry they were made from.
+/// The compiled pipelines, one slot per entry of the registry they were made from (a
+/// clone shares them).
+#[derive(Clone)]
 pub struct Kernels {
     specs: Vec<&'static KernelSpec>,
     pipes: Vec<OnceLock<wgpu::ComputePipeline>>,
