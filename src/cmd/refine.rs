@@ -78,6 +78,12 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
     };
     outputs.check(&a.input.paths())?;
     let params: linegs_gpu::refine::Params = a.params.into();
+    let job = Job {
+        check_frames: !a.no_frame_check,
+        ..super::env::job(params.clone(), a.engine.backend.into())?
+    };
+    // The device opens (and its kernels compile) while the files are read.
+    let device = job.open();
     let scene = load_framed(&a.input, &params, !a.no_frame_check)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
@@ -97,11 +103,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             "free memory, raise the limit (ulimit -v), or try --backend cpu"
         },
     );
-    let job = Job {
-        check_frames: !a.no_frame_check,
-        ..super::env::job(params, a.engine.backend.into())?
-    };
-    let refined = job.refine(&scene, |s| {
+    let refined = job.refine_on(&scene, device, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));
         if verbose {
             bar.println(format!(

@@ -555,6 +555,23 @@ impl Job {
     /// Refines `scene` (docs/method.md#the-refinement-steps) and reports
     /// (docs/formats.md#the-report).
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
+        self.refine_on(scene, self.open(), on_stage)
+    }
+
+    /// Starts opening this job's device (the GPU engine's adapter, device and kernels; for
+    /// the CPU engine nothing) on a thread of its own, for [`Job::refine_on`]: called before
+    /// the scene is read, the opening runs while the files are parsed.
+    pub fn open(&self) -> Pending {
+        prepare(self.backend, &self.gpu)
+    }
+
+    /// [`Job::refine`] on the device `pending` opens ([`Job::open`]).
+    pub fn refine_on(
+        &self,
+        scene: &Scene,
+        mut pending: Pending,
+        on_stage: impl FnMut(&Stage),
+    ) -> Result<Outcome, RunError> {
         let t = Instant::now();
         let cut = self.scale_cut(scene)?;
         let (placing, cut_note) = match cut {
@@ -564,7 +581,6 @@ impl Job {
         // The whole model witnesses the lines (outliers, merges, crop, gaps, the metrics
         // as `eval` measures them); the scale cut's Gaussians place them (the edge fit).
         // Both engines run on one device, opened once.
-        let mut pending = prepare(self.backend, &self.gpu);
         let mut refiner = self.refiner_on(scene, &mut pending)?;
         let frame_warning =
             match self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
