@@ -12,7 +12,7 @@
 //! scene of the manifest with its state (`ok`, `failed: ...`, `pending`), so a summary
 //! says which scenes it saw.
 
-use crate::engine::select::Backend;
+use crate::engine::select::{prepare, Backend, Pending};
 use crate::eval::Metrics;
 use crate::io::{self, Position};
 use crate::pipeline::{Job, LoadOptions, Outputs, RunError, Scene};
@@ -407,7 +407,16 @@ fn entry_inputs(e: &Entry) -> Vec<&Path> {
     v
 }
 
-fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError> {
+/// The device of the batch's scenes: opened for the first scene that runs (while its files
+/// are read) and kept for the next ones (each uploads its own Gaussians).
+type Device = Option<Pending>;
+
+fn run_scene(
+    e: &Entry,
+    opts: &BatchOptions,
+    dir: &Path,
+    device: &mut Device,
+) -> Result<(), RunError> {
     let [refined, report, _] = owned_files(dir, &opts.format);
     let outputs = Outputs {
         lines: refined,
@@ -416,6 +425,7 @@ fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError>
         ..Default::default()
     };
     outputs.check(&entry_inputs(e))?;
+    let device = device.get_or_insert_with(|| prepare(opts.backend, &opts.gpu));
     let scene = Scene::load(&e.gaussians, &e.lines, &LoadOptions::default())?;
     let gt = match &e.gt {
         Some(p) => Some(crate::eval::gt::Reference {
@@ -429,7 +439,7 @@ fn run_scene(e: &Entry, opts: &BatchOptions, dir: &Path) -> Result<(), RunError>
         gpu: opts.gpu.clone(),
         ..Job::new(entry_params(e, &opts.params), opts.backend)
     };
-    let mut out = job.refine(&scene, |_| {})?;
+    let mut out = job.refine_on(&scene, device, |_| {})?;
     outputs.write(&scene.lines, &mut out)
 }
 
@@ -522,7 +532,12 @@ fn clean_litter(outdir: &Path, name: &str, dir: &Path) {
 /// user's notes): only the owned files are written, each atomically, and the one that
 /// does not apply to the outcome (`error.txt` after a success, the report and refined
 /// segments after a failure) is removed. `None` when another run holds the scene.
-fn run_locked(e: &Entry, opts: &BatchOptions, outdir: &Path) -> Result<Option<Status>, RunError> {
+fn run_locked(
+    e: &Entry,
+    opts: &BatchOptions,
+    outdir: &Path,
+    device: &mut Device,
+) -> Result<Option<Status>, RunError> {
     let dir = scene_dir(outdir, &e.name);
     std::fs::create_dir_all(&dir).map_err(|err| io::Error::io(&dir, "create", err))?;
     let Some(_lock) = lock_scene(&dir)? else {
@@ -532,7 +547,7 @@ fn run_locked(e: &Entry, opts: &BatchOptions, outdir: &Path) -> Result<Option<St
     let [refined, report, error] = owned_files(&dir, &opts.format);
     let inputs = entry_inputs(e);
     let t = Instant::now();
-    Ok(Some(match run_scene(e, opts, &dir) {
+    Ok(Some(match run_scene(e, opts, &dir, device) {
         Ok(()) => {
             remove_owned(&error, &inputs)?;
             Status::Done {
@@ -540,6 +555,8 @@ fn run_locked(e: &Entry, opts: &BatchOptions, outdir: &Path) -> Result<Option<St
             }
         }
         Err(err) => {
+            // The next scene opens a device of its own: this one may be what failed.
+            *device = None;
             let msg = err.to_string();
             let mut set = io::OutputSet::new();
             for i in &inputs {
@@ -636,6 +653,7 @@ pub fn run(
     check_paths(m, outdir, &opts.format, Some(opts.shard), opts.summary)?;
     std::fs::create_dir_all(outdir).map_err(|e| io::Error::io(outdir, "create", e))?;
     let mut done = Vec::new();
+    let mut device: Device = None;
     for (i, e) in m.entries.iter().enumerate() {
         if !opts.shard.includes(i) {
             continue;
@@ -644,7 +662,7 @@ pub fn run(
             if opts.skip_existing && scene_dir(outdir, &e.name).join("report.json").is_file() {
                 Status::Skipped
             } else {
-                run_locked(e, opts, outdir)?.unwrap_or(Status::Busy)
+                run_locked(e, opts, outdir, &mut device)?.unwrap_or(Status::Busy)
             };
         on_scene(e, &status);
         done.push((e.name.clone(), status));

@@ -83,7 +83,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
         ..super::env::job(params.clone(), a.engine.backend.into())?
     };
     // The device opens (and its kernels compile) while the files are read.
-    let device = job.open();
+    let mut device = job.open();
     let scene = load_framed(&a.input, &params, !a.no_frame_check)?;
     let bar = ProgressBar::new_spinner();
     if let Ok(style) = ProgressStyle::with_template("{spinner} {elapsed} {msg}") {
@@ -103,7 +103,7 @@ pub fn run(a: RefineArgs, verbose: bool) -> Result<()> {
             "free memory, raise the limit (ulimit -v), or try --backend cpu"
         },
     );
-    let refined = job.refine_on(&scene, device, |s| {
+    let refined = job.refine_on(&scene, &mut device, |s| {
         bar.set_message(format!("{} done: {} segments", s.name, s.segments));
         if verbose {
             bar.println(format!(

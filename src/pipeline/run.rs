@@ -555,7 +555,7 @@ impl Job {
     /// Refines `scene` (docs/method.md#the-refinement-steps) and reports
     /// (docs/formats.md#the-report).
     pub fn refine(&self, scene: &Scene, on_stage: impl FnMut(&Stage)) -> Result<Outcome, RunError> {
-        self.refine_on(scene, self.open(), on_stage)
+        self.refine_on(scene, &mut self.open(), on_stage)
     }
 
     /// Starts opening this job's device (the GPU engine's adapter, device and kernels; for
@@ -565,11 +565,12 @@ impl Job {
         prepare(self.backend, &self.gpu)
     }
 
-    /// [`Job::refine`] on the device `pending` opens ([`Job::open`]).
+    /// [`Job::refine`] on the device `pending` opens ([`Job::open`]), or opened for an
+    /// earlier engine (`batch`: one device for every scene).
     pub fn refine_on(
         &self,
         scene: &Scene,
-        mut pending: Pending,
+        pending: &mut Pending,
         on_stage: impl FnMut(&Stage),
     ) -> Result<Outcome, RunError> {
         let t = Instant::now();
@@ -581,7 +582,7 @@ impl Job {
         // The whole model witnesses the lines (outliers, merges, crop, gaps, the metrics
         // as `eval` measures them); the scale cut's Gaussians place them (the edge fit).
         // Both engines run on one device, opened once.
-        let mut refiner = self.refiner_on(scene, &mut pending)?;
+        let mut refiner = self.refiner_on(scene, pending)?;
         let frame_warning =
             match self.frame_mismatch(scene, &refiner, refiner.settings().radius())? {
                 Some((crate::frames::FrameVerdict::Different, msg)) => {
@@ -592,7 +593,7 @@ impl Job {
             };
         let normals_unused = match &placing {
             Some(placing) => {
-                let mut placer = self.refiner_on(placing, &mut pending)?;
+                let mut placer = self.refiner_on(placing, pending)?;
                 let unused = placer.set_scene_attributes(placing);
                 refiner.set_placement(placer);
                 unused
