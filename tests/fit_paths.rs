@@ -11,7 +11,6 @@ use linegs_gpu::engine::fit::{by_batches, GATHER_MARGIN};
 use linegs_gpu::engine::{Engine, FitJob};
 use linegs_gpu::geom::Segment;
 use linegs_gpu::io;
-use linegs_gpu::pipeline::{LoadOptions, Scene};
 use linegs_gpu::refine::fit::{cut_to_working_set, Attributes, FitResult, FitSpec, How};
 use linegs_gpu::refine::Params;
 use linegs_gpu::synth;
@@ -143,13 +142,7 @@ fn real_line3dpp_lines_fit_alike_both_ways() {
 #[test]
 fn the_trained_pairs_fit_alike_both_ways_with_normals_and_opacities() {
     for pair in ["proc", "abc00000006"] {
-        let dir = data(&format!("real_pairs/{pair}"));
-        let scene = Scene::load(
-            &dir.join("point_cloud.ply"),
-            &dir.join("lines.txt"),
-            &LoadOptions::default(),
-        )
-        .unwrap();
+        let scene = pair_scene(pair);
         let segs = &scene.lines.segments;
         let c = &scene.gaussians;
         let cut = |v: &Option<Vec<f32>>| cut_to_working_set(c, v.as_ref().unwrap(), segs);

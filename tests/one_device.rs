@@ -8,7 +8,7 @@ mod common;
 
 use linegs_gpu::engine::gpu::devices_opened;
 use linegs_gpu::engine::select::Backend;
-use linegs_gpu::pipeline::{Job, LoadOptions, Scene};
+use linegs_gpu::pipeline::Job;
 use linegs_gpu::refine::{Params, RadiusArg};
 
 #[test]
@@ -17,13 +17,7 @@ fn a_run_with_the_scale_cut_and_a_batch_open_one_device_each() {
         println!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1)");
         return;
     }
-    let dir = common::data("real_pairs/proc");
-    let scene = Scene::load(
-        &dir.join("point_cloud.ply"),
-        &dir.join("lines.txt"),
-        &LoadOptions::default(),
-    )
-    .unwrap();
+    let scene = common::pair_scene("proc");
     let params = Params {
         radius: RadiusArg::Fixed(0.03),
         ..Default::default()
@@ -98,18 +92,9 @@ fn a_run_with_the_scale_cut_and_a_batch_open_one_device_each() {
         "{done:?}"
     );
     // Each scene's segments are its own run's (the device's earlier grids are gone).
-    let alone = Job {
-        gpu: common::gpu_setup(linegs_gpu::engine::gpu::GpuOptions::for_commands()),
-        ..Job::new(Params::default(), Backend::Cpu)
-    };
+    let alone = Job::new(Params::default(), Backend::Cpu);
     for p in ["proc", "proc_gsplat", "abc00000006"] {
-        let d = pairs.join(p);
-        let scene = Scene::load(
-            &d.join("point_cloud.ply"),
-            &d.join("lines.txt"),
-            &LoadOptions::default(),
-        )
-        .unwrap();
+        let scene = common::pair_scene(p);
         let want = alone.refine(&scene, |_| {}).unwrap().lines.segments.len();
         let got = linegs_gpu::io::read_lines(&out.join("results").join(p).join("refined.obj"))
             .unwrap()

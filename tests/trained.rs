@@ -13,18 +13,12 @@ use linegs_gpu::engine::select::Backend;
 use linegs_gpu::eval::gt;
 use linegs_gpu::geom::Segment;
 use linegs_gpu::io;
-use linegs_gpu::pipeline::{Job, LoadOptions, Outcome, Scene};
+use linegs_gpu::pipeline::{Job, Outcome, Scene};
 use linegs_gpu::refine::{EvalParams, Params, RadiusArg};
 
 /// `refine --radius 0.03 --eval-radius 0.1` as the command line runs it.
 fn refine(pair: &str, params: Params, backend: Backend) -> (Scene, Outcome) {
-    let dir = data(&format!("real_pairs/{pair}"));
-    let scene = Scene::load(
-        &dir.join("point_cloud.ply"),
-        &dir.join("lines.txt"),
-        &LoadOptions::default(),
-    )
-    .unwrap();
+    let scene = common::pair_scene(pair);
     let job = Job {
         gpu: common::gpu_setup(linegs_gpu::engine::gpu::GpuOptions::for_commands()),
         ..Job::new(params, backend)
@@ -63,8 +57,9 @@ fn scores(segs: &[Segment], truth: &[Segment]) -> (f64, f64, f64) {
 
 /// The targets on one pair: accuracy no worse than the input's (to 0.0001), F@0.005 at
 /// least `f_floor` below the input's, fewer segments, a higher paper score, and no line
-/// moved by the edge fit's gate-approved steps off the edges.
-fn check_pair(pair: &str, gt_file: &str, f_floor: f64) {
+/// moved by the edge fit's gate-approved steps off the edges. Returns the input, the
+/// outcome and the truth, for further checks.
+fn check_pair(pair: &str, gt_file: &str, f_floor: f64) -> (Scene, Outcome, Vec<Segment>) {
     let (scene, out) = refine(pair, params(), Backend::Cpu);
     let truth = gt_of(pair, gt_file);
     let (acc_in, _, f_in) = scores(&scene.lines.segments, &truth);
@@ -89,6 +84,7 @@ fn check_pair(pair: &str, gt_file: &str, f_floor: f64) {
         notes.fit.fit_kept > 0,
         "{pair}: the gate decided nothing: {notes:?}"
     );
+    (scene, out, truth)
 }
 
 #[test]
@@ -110,9 +106,7 @@ fn abc_nut_pair_stays_on_its_edges_and_curves() {
 /// 0.978, completeness 0.0012 -> 0.0018) until the whole stretch to be cut had to be sparse.
 #[test]
 fn gsplat_proc_pair_keeps_its_edges_and_their_extent() {
-    check_pair("proc_gsplat", "gt_lines.txt", 0.005);
-    let (scene, out) = refine("proc_gsplat", params(), Backend::Cpu);
-    let truth = gt_of("proc_gsplat", "gt_lines.txt");
+    let (scene, out, truth) = check_pair("proc_gsplat", "gt_lines.txt", 0.005);
     let (_, comp_in, _) = scores(&scene.lines.segments, &truth);
     let (_, comp, _) = scores(&out.lines.segments, &truth);
     assert!(

@@ -225,6 +225,17 @@ pub fn data(rel: &str) -> std::path::PathBuf {
         .join(rel)
 }
 
+/// The trained pair `real_pairs/<pair>` of tests/data: its Gaussians and Line3D++ lines.
+pub fn pair_scene(pair: &str) -> linegs_gpu::pipeline::Scene {
+    let dir = data(&format!("real_pairs/{pair}"));
+    linegs_gpu::pipeline::Scene::load(
+        &dir.join("point_cloud.ply"),
+        &dir.join("lines.txt"),
+        &linegs_gpu::pipeline::LoadOptions::default(),
+    )
+    .unwrap()
+}
+
 /// The `linegs-gpu` binary, for runs that need more than arguments (environment, stdin).
 pub fn linegs() -> std::process::Command {
     std::process::Command::new(env!("CARGO_BIN_EXE_linegs-gpu"))
