@@ -123,6 +123,31 @@ impl Groups {
     }
 }
 
+/// `fit` of the distinct segments of `job` (bit for bit: a segment's fit depends on its
+/// own bits alone), each answer copied back to every copy.
+pub(super) fn fit_distinct(
+    job: &FitJob<'_>,
+    fit: impl FnOnce(&FitJob<'_>) -> Result<FitResult, EngineError>,
+) -> Result<FitResult, EngineError> {
+    let queries: Vec<Query> = job.segments.iter().map(|s| Query::new(*s, job.r)).collect();
+    Ok(match Groups::of(&queries, None) {
+        None => fit(job)?,
+        Some(g) => {
+            let distinct: Vec<_> = g.first.iter().map(|&i| job.segments[i]).collect();
+            let f = fit(&FitJob {
+                segments: &distinct,
+                ..*job
+            })?;
+            FitResult {
+                segments: g.fan_out(&f.segments),
+                how: g.fan_out(&f.how),
+                iterations: f.iterations,
+                steps: g.fan_out(&f.steps),
+            }
+        }
+    })
+}
+
 /// An [`Engine`] that asks its inner engine each distinct query of a batch once. Every
 /// other method (backend, adapter, counters, seconds) is the inner engine's: its
 /// counters count the queries it actually answered; [`Dedup::asked`] counts those the
@@ -283,23 +308,7 @@ impl Engine for Dedup {
     /// distinct segment is fitted once and its result copied.
     /// Each step of a segment counts as a query asked.
     fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
-        let queries: Vec<Query> = job.segments.iter().map(|s| Query::new(*s, job.r)).collect();
-        let f = match Groups::of(&queries, None) {
-            None => self.inner.fit_edges(job)?,
-            Some(g) => {
-                let distinct: Vec<_> = g.first.iter().map(|&i| job.segments[i]).collect();
-                let f = self.inner.fit_edges(&FitJob {
-                    segments: &distinct,
-                    ..*job
-                })?;
-                FitResult {
-                    segments: g.fan_out(&f.segments),
-                    how: g.fan_out(&f.how),
-                    iterations: f.iterations,
-                    steps: g.fan_out(&f.steps),
-                }
-            }
-        };
+        let f = fit_distinct(job, |j| self.inner.fit_edges(j))?;
         let steps: u64 = f.steps.iter().map(|&s| u64::from(s)).sum();
         self.asked.fetch_add(steps, Ordering::Relaxed);
         Ok(f)

@@ -31,75 +31,46 @@ use rayon::prelude::*;
 pub const GATHER_MARGIN: f64 = 0.5;
 
 /// The fit with one engine batch ([`Engine::fit_lines`]) per iteration, for all segments
-/// still moving; exact copies (the same input segment) are asked once.
+/// still moving; exact copies (the same input segment) are asked once
+/// ([`super::dedup::fit_distinct`], as the [`super::dedup::Dedup`] wrapper asks them).
 pub fn by_batches<E: Engine + ?Sized>(
     engine: &E,
     job: &FitJob<'_>,
 ) -> Result<FitResult, EngineError> {
-    let r = job.r;
-    let spec = job.spec;
-    let mut tracks: Vec<Track> = job.segments.iter().map(|s| Track::new(*s)).collect();
-    // A track's history depends only on its input segment (its steps are answers about its
-    // own line): copies of one input move together, so the first of each is fitted and the
-    // others take its state at the end. Found once, by sorting the inputs' bits, not by
-    // hashing every moving track in every iteration.
-    let first = first_copies(job.segments);
-    let mut active: Vec<usize> = (0..tracks.len())
-        .filter(|&i| first[i] == i && tracks[i].starts())
-        .collect();
-    let mut iterations = 0;
-    while !active.is_empty() && iterations < spec.iterations {
-        iterations += 1;
-        let queries: Vec<Query> = active
-            .iter()
-            .map(|&i| Query::new(tracks[i].cur, r))
-            .collect();
-        let near = |j: usize, f: &LineFit| {
-            let t = &tracks[active[j]];
-            near_threshold(&t.cur, f, &t.origin, r, spec)
-        };
-        let warm: Vec<bool> = active.iter().map(|&i| tracks[i].warm).collect();
-        let ask = FitAsk {
-            spec,
-            points: job.points,
-            sensitive: Some(&near),
-            warm: &warm,
-        };
-        let steps = engine.fit_lines(&queries, &ask)?;
-        let mut next = Vec::with_capacity(active.len());
-        for (&i, &d) in active.iter().zip(&steps) {
-            if tracks[i].advance(d, r, spec) {
-                next.push(i);
+    super::dedup::fit_distinct(job, |job| {
+        let r = job.r;
+        let spec = job.spec;
+        let mut tracks: Vec<Track> = job.segments.iter().map(|s| Track::new(*s)).collect();
+        let mut active: Vec<usize> = (0..tracks.len()).filter(|&i| tracks[i].starts()).collect();
+        let mut iterations = 0;
+        while !active.is_empty() && iterations < spec.iterations {
+            iterations += 1;
+            let queries: Vec<Query> = active
+                .iter()
+                .map(|&i| Query::new(tracks[i].cur, r))
+                .collect();
+            let near = |j: usize, f: &LineFit| {
+                let t = &tracks[active[j]];
+                near_threshold(&t.cur, f, &t.origin, r, spec)
+            };
+            let warm: Vec<bool> = active.iter().map(|&i| tracks[i].warm).collect();
+            let ask = FitAsk {
+                spec,
+                points: job.points,
+                sensitive: Some(&near),
+                warm: &warm,
+            };
+            let steps = engine.fit_lines(&queries, &ask)?;
+            let mut next = Vec::with_capacity(active.len());
+            for (&i, &d) in active.iter().zip(&steps) {
+                if tracks[i].advance(d, r, spec) {
+                    next.push(i);
+                }
             }
+            active = next;
         }
-        active = next;
-    }
-    for i in 0..tracks.len() {
-        if first[i] != i {
-            tracks[i] = tracks[first[i]];
-        }
-    }
-    Ok(FitResult::of_tracks(&tracks))
-}
-
-/// For each segment the index of the first segment equal to it bit for bit (itself when
-/// none comes before it).
-fn first_copies(segments: &[Segment]) -> Vec<usize> {
-    let key = |i: usize| {
-        let s = &segments[i];
-        [s.p1, s.p2].map(|v| v.to_array().map(f64::to_bits))
-    };
-    let mut order: Vec<usize> = (0..segments.len()).collect();
-    // Equal keys keep their index order (the sort's tie-break), so a run's head is its
-    // first copy.
-    order.par_sort_unstable_by_key(|&i| (key(i), i));
-    let mut first: Vec<usize> = (0..segments.len()).collect();
-    for w in order.windows(2) {
-        if key(w[0]) == key(w[1]) {
-            first[w[1]] = first[w[0]];
-        }
-    }
-    first
+        Ok(FitResult::of_tracks(&tracks))
+    })
 }
 
 /// [`step`] of every query's segment (`q.seg`, radius `q.r`) from its members: the
