@@ -43,6 +43,7 @@ __all__ = [
     "read_gaussians",
     "read_lines",
     "refine",
+    "release_device",
     "write_lines",
 ]
 __version__: str = _linegs.__version__
@@ -304,3 +305,13 @@ def evaluate(
         sweep=None if radii is None else [float(r) for r in radii],
     )
     return json.loads(report)
+
+
+def release_device() -> None:
+    """Lets go of the GPU device that :func:`refine` and :func:`evaluate` keep open between
+    calls. The first call with ``backend="gpu"`` (or ``"auto"`` on a machine with a GPU)
+    opens the adapter and compiles the kernels; later calls with the same backend and GPU
+    settings reuse them, so that a loop over many small scenes pays that once. Each call's
+    Gaussians are freed when it returns either way; after this, the next GPU call opens
+    the device again."""
+    _linegs.release_device()

@@ -78,3 +78,4 @@ def evaluate(
     **params: Any,
 ) -> Dict[str, Any]:
     """``segments``, ``compare`` and ``gt``: ``(M, 2, 3)``."""
+def release_device() -> None: ...

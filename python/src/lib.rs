@@ -6,7 +6,7 @@
 //! returned as arrays that own the result. Every computation runs with the GIL released.
 
 use linegs_gpu::engine::gpu::GpuSetup;
-use linegs_gpu::engine::select::Backend;
+use linegs_gpu::engine::select::{Backend, Pending};
 use linegs_gpu::geom::{LineSet, Segment};
 use linegs_gpu::io;
 use linegs_gpu::pipeline::{self, Job, LoadOptions, RunError, Scene};
@@ -441,6 +441,60 @@ fn frame_error(e: RunError) -> RunError {
     }
 }
 
+/// The device of the last computation that succeeded, kept for the next call with the same
+/// backend and GPU setup: opening an adapter and compiling the kernels costs more than a
+/// small scene's whole refinement (the command line's `batch` keeps one for all its
+/// scenes for the same reason). The engines' buffers (the uploaded Gaussians) go with
+/// each call; only the device and its kernels stay. `release_device` lets it go.
+static KEPT: Mutex<Option<Kept>> = Mutex::new(None);
+
+struct Kept {
+    backend: Backend,
+    gpu: GpuSetup,
+    device: Pending,
+}
+
+/// Runs `f` on the kept device where `job` asks for the same backend and setup, else on
+/// one it starts opening; keeps it after a success. After a failure the device is not
+/// kept (it may be the device's fault: lost, out of memory), so the next call opens a
+/// fresh one. Calls from several threads at once each run on a device of their own.
+fn on_device<T>(
+    job: &Job,
+    f: impl FnOnce(&mut Pending) -> Result<T, RunError>,
+) -> Result<T, RunError> {
+    let kept = KEPT.lock().unwrap_or_else(|p| p.into_inner()).take();
+    let mut device = match kept {
+        Some(k) if k.backend == job.backend && k.gpu == job.gpu => k.device,
+        // Another setup's device (dropped here, outside the lock), or none.
+        _ => job.open(),
+    };
+    let out = f(&mut device)?;
+    let old = KEPT
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .replace(Kept {
+            backend: job.backend,
+            gpu: job.gpu.clone(),
+            device,
+        });
+    drop(old);
+    Ok(out)
+}
+
+/// Lets the kept device go (`linegs.release_device`): its memory and the driver's
+/// resources are freed, and the next GPU call opens one again.
+#[pyfunction]
+fn release_device(py: Python<'_>) {
+    let kept = KEPT.lock().unwrap_or_else(|p| p.into_inner()).take();
+    py.detach(|| drop(kept));
+}
+
+/// How many GPU devices this process has opened (tests: a second call opens none).
+#[pyfunction]
+fn devices_opened() -> u64 {
+    linegs_gpu::engine::gpu::devices_opened()
+}
+
 /// `(segments (K, 2, 3) float64, report JSON)`.
 #[pyfunction]
 #[pyo3(signature = (model, segments_f64, groups, args, backend_name, gt_f64 = None, sweep = None, frame_check = true, colmap = None))]
@@ -505,7 +559,7 @@ fn refine<'py>(
                     }
                     _ => s,
                 };
-                let out = job.refine(s, |_| {}).map_err(frame_error)?;
+                let out = on_device(&job, |d| job.refine_on(s, d, |_| {})).map_err(frame_error)?;
                 Ok((out.lines.segments, out.report.to_json()))
             })
         })
@@ -537,8 +591,12 @@ fn evaluate<'py>(
     let lines = LineSet::new(segments(segments_f64.as_array()));
     let compare = compare_f64.map(|c| LineSet::new(segments(c.as_array())));
     let model = model.get();
-    py.detach(|| model.with_scene(lines, |s| Ok(job.evaluate(s, compare.as_ref())?.to_json())))
-        .map_err(to_py)
+    py.detach(|| {
+        model.with_scene(lines, |s| {
+            on_device(&job, |d| job.evaluate_on(s, compare.as_ref(), d)).map(|r| r.to_json())
+        })
+    })
+    .map_err(to_py)
 }
 
 /// Every format of the library's one list of formats (`linegs_gpu::io::GAUSSIAN_FORMATS`,
@@ -574,5 +632,7 @@ fn _linegs(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(write_lines, m)?)?;
     m.add_function(wrap_pyfunction!(refine, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
+    m.add_function(wrap_pyfunction!(release_device, m)?)?;
+    m.add_function(wrap_pyfunction!(devices_opened, m)?)?;
     Ok(())
 }

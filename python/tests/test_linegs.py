@@ -349,3 +349,47 @@ def test_pip_install_puts_the_command_line_on_path(toy, tmp_path):
     # bad input: the binary's message and exit code 2
     bad = subprocess.run([str(exe), "info", str(tmp_path / "missing.ply")], capture_output=True, text=True)
     assert bad.returncode == 2 and "missing.ply" in bad.stderr
+
+
+def test_gpu_calls_share_one_device_until_released_or_failed(toy):
+    """A loop of GPU calls opens the device once: the adapter, the device and the kernels
+    outlive each call (the Gaussians do not), with the same answers every time."""
+    from linegs import _linegs
+
+    d, g, l, _ = toy
+    model = linegs.read_gaussians(g)
+    segs = linegs.read_lines(l)
+    cpu, _ = linegs.refine(model, segs, backend="cpu", radius=0.04)
+    linegs.release_device()
+    before = _linegs.devices_opened()
+    try:
+        first, rep = linegs.refine(model, segs, backend="gpu", radius=0.04)
+    except linegs.LinegsError as e:
+        if os.environ.get("CI", "").lower() not in ("", "0", "false"):
+            pytest.fail(f"no GPU adapter in CI: {e}")
+        pytest.skip(f"no GPU adapter: {e}")
+    assert rep["backend"] == "gpu"
+    assert np.array_equal(first, cpu)
+    for _ in range(2):
+        again, _ = linegs.refine(model, segs, backend="gpu", radius=0.04)
+        assert np.array_equal(again, first)
+    ev = linegs.evaluate(model, segs, compare=first, backend="gpu")
+    assert _linegs.devices_opened() == before + 1
+    # Another backend leaves the count alone and takes the kept device's place.
+    ev_cpu = linegs.evaluate(model, segs, compare=first, backend="cpu")
+    assert ev["backend"] == "gpu" and ev_cpu["backend"] == "cpu"
+    # The device sums E_rms in another order: equal to rounding.
+    for k in ("before", "after"):
+        assert ev[k] == pytest.approx(ev_cpu[k], rel=1e-9)
+    linegs.refine(model, segs, backend="gpu", radius=0.04)
+    assert _linegs.devices_opened() == before + 2
+    # A failed call does not keep its device: the next one opens a fresh one.
+    with pytest.raises(linegs.InputError):
+        linegs.refine(model, segs + 100.0, backend="gpu", radius=0.04)
+    opened = _linegs.devices_opened()
+    assert opened == before + 2
+    linegs.refine(model, segs, backend="gpu", radius=0.04)
+    assert _linegs.devices_opened() == opened + 1
+    linegs.release_device()
+    assert np.array_equal(linegs.refine(model, segs, backend="gpu", radius=0.04)[0], first)
+    assert _linegs.devices_opened() == opened + 2

@@ -649,8 +649,19 @@ impl Job {
     /// box of the scene's lines), with the same grid rule as [`Job::refine`]. In the
     /// report, `before` is the scene's lines and `after` is `compare` (null without).
     pub fn evaluate(&self, scene: &Scene, compare: Option<&LineSet>) -> Result<Report, RunError> {
+        self.evaluate_on(scene, compare, &mut self.open())
+    }
+
+    /// [`Job::evaluate`] on the device `pending` opens ([`Job::open`]), or opened for an
+    /// earlier engine (the Python binding: one device for the calls of a process).
+    pub fn evaluate_on(
+        &self,
+        scene: &Scene,
+        compare: Option<&LineSet>,
+        pending: &mut Pending,
+    ) -> Result<Report, RunError> {
         let t = Instant::now();
-        let refiner = self.refiner(scene)?;
+        let refiner = self.refiner_on(scene, pending)?;
         let radius = self
             .sweep
             .iter()
