@@ -305,6 +305,28 @@ fn dense_cell() -> (Vec<[f32; 3]>, Segment) {
     (pts, seg)
 }
 
+/// A members batch reads back about as much of its member list as the last batch's
+/// members a query suggest, and the rest in a copy of its own: a batch of a long list after
+/// one of short lists still gets every member from the device.
+#[test]
+fn a_long_member_list_after_short_ones_comes_back_whole() {
+    let (pts, seg) = dense_cell();
+    let Some((_, cpu, gpu)) = engines(&pts, 0.05, GpuOptions::default()) else {
+        return;
+    };
+    let short = [Query::new(seg, 5e-5), Query::new(seg, 3e-5)];
+    let m = gpu.members(&short).unwrap();
+    assert!(m[0].len() < 50, "{}", m[0].len());
+    assert_eq!(m, cpu.members(&short).unwrap());
+    let long = [Query::new(seg, 0.02), Query::new(seg, 0.01)];
+    let m = gpu.members(&long).unwrap();
+    assert_eq!(m[0].len(), 100_000);
+    assert_eq!(m, cpu.members(&long).unwrap());
+    // Every list from the device, none walked on the host.
+    assert_eq!(gpu.host_fallbacks(), 0);
+    assert_eq!(gpu.counters().host_lists, 0);
+}
+
 #[test]
 fn a_query_with_more_than_65535_members_in_one_cell() {
     let (pts, seg) = dense_cell();

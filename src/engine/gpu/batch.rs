@@ -141,11 +141,25 @@ pub fn submit(
             again = true;
         }
         if !again {
-            let out = Output {
+            let mut out = Output {
                 items_run,
                 points_read,
                 ..got.out
             };
+            if kind == Kind::Members {
+                // The part of the member list past what came back with the answers.
+                let used = got.members.min(b.member_cap as u64) * 4;
+                if let Some((list, read)) = got.rest.filter(|r| used > r.1) {
+                    let (rest, w) = read_range(ctx, &list, read, used - read)?;
+                    waited += w;
+                    out.back.extend_from_slice(&rest);
+                }
+            }
+            if kind.lists() {
+                // (The fit's list batches come first: their members a query size the
+                // decision rule's first members batch.)
+                b.members_per_query = Some(got.members as f64 / n as f64);
+            }
             return Ok(Attempt::Done(out, waited));
         }
     }
@@ -165,6 +179,26 @@ struct Readback {
     members: u64,
     /// Points the evaluation passes read from the point store.
     points: u64,
+    /// A members batch's member list and the bytes of it read back, where that was not
+    /// the whole list ([`Buffers::member_back`]).
+    rest: Option<(wgpu::Buffer, u64)>,
+}
+
+/// `len` bytes of `buffer` from `offset`, in a copy and a round trip of their own.
+fn read_range(
+    ctx: &Context,
+    buffer: &wgpu::Buffer,
+    offset: u64,
+    len: u64,
+) -> Result<(Vec<u8>, f64), EngineError> {
+    let staging = ctx.buffer(
+        "rest",
+        len,
+        wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+    );
+    let mut enc = ctx.encoder();
+    enc.copy_buffer_to_buffer(buffer, offset, &staging, 0, len);
+    ctx.submit_and_map(enc, &staging, len, <[u8]>::to_vec)
 }
 
 /// One try: every stage of `kind` recorded into one compute pass, then one readback. A
@@ -231,7 +265,17 @@ fn attempt(
         backs.len() <= 1,
         "one stage of a batch sends its output back"
     );
-    let tail = backs.first().map_or(0, |x| x.1);
+    let whole = backs.first().map_or(0, |x| x.1);
+    // A members batch reads back about as much of its member list as it will use.
+    let tail = if kind == Kind::Members {
+        b.member_back(gq.len(), whole)
+    } else {
+        whole
+    };
+    let rest = backs
+        .first()
+        .filter(|_| tail < whole)
+        .map(|x| (x.0.clone(), tail));
     let r = sz.results;
     let after = r + sz.ctl;
     let staging_bytes = after + tail;
@@ -254,13 +298,17 @@ fn attempt(
 
     enc.copy_buffer_to_buffer(&bd.results, 0, &staging, 0, r);
     enc.copy_buffer_to_buffer(&bd.ctl, 0, &staging, r, sz.ctl);
-    if let Some(&(buf, bytes)) = backs.first() {
-        enc.copy_buffer_to_buffer(buf, 0, &staging, after, bytes);
+    if let Some(&(buf, _)) = backs.first().filter(|_| tail > 0) {
+        enc.copy_buffer_to_buffer(buf, 0, &staging, after, tail);
     }
     let (got, waited) = ctx.submit_and_map(enc, &staging, staging_bytes, |bytes| {
         read(bytes, kind, &sz, flag_cap)
     })?;
-    Ok(Readback { waited, ..got })
+    Ok(Readback {
+        waited,
+        rest,
+        ..got
+    })
 }
 
 /// The staging buffer's bytes as one try's [`Readback`] (its wait not yet set).
@@ -297,5 +345,6 @@ fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32) -> Readback {
         flags: n_flags,
         members,
         points: ctlw[CTL_POINTS as usize] as u64 | (ctlw[CTL_POINTS as usize + 1] as u64) << 32,
+        rest: None,
     }
 }
