@@ -316,7 +316,7 @@ impl Model {
 #[cfg(feature = "cli")]
 #[pyfunction]
 fn main(py: Python<'_>, argv: Vec<std::ffi::OsString>) -> u8 {
-    py.detach(|| cli::run(argv))
+    detached(py, || cli::run(argv))
 }
 
 /// The names of every parameter (`translate_keep`, ...), as `refine` accepts them.
@@ -366,9 +366,8 @@ fn read_gaussians(
         strict,
         ..LoadOptions::default()
     };
-    let (cloud, attrs) = py
-        .detach(|| pipeline::read_gaussians_and_attributes(&path, &opts))
-        .map_err(to_py)?;
+    let (cloud, attrs) =
+        detached(py, || pipeline::read_gaussians_and_attributes(&path, &opts)).map_err(to_py)?;
     let a = match attrs {
         Some(a) => Arrays {
             centers: cloud.centers,
@@ -391,7 +390,7 @@ type Lines<'py> = (Bound<'py, PyArray3<f64>>, Option<Vec<u32>>, Vec<String>);
 
 #[pyfunction]
 fn read_lines(py: Python<'_>, path: PathBuf) -> PyResult<Lines<'_>> {
-    let f = py.detach(|| io::read_lines(&path)).map_err(io_to_py)?;
+    let f = detached(py, || io::read_lines(&path)).map_err(io_to_py)?;
     Ok((
         segment_array(py, &f.lines.segments),
         f.lines.groups,
@@ -406,7 +405,7 @@ fn write_lines(
     segments_f64: PyReadonlyArray3<'_, f64>,
 ) -> PyResult<()> {
     let segs = segments(segments_f64.as_array());
-    py.detach(|| {
+    detached(py, || {
         if let Some(i) = segs
             .iter()
             .position(|s| !(s.p1.is_finite() && s.p2.is_finite()))
@@ -441,6 +440,76 @@ fn frame_error(e: RunError) -> RunError {
     }
 }
 
+/// The thread pool the computations run in, with the process that made it. rayon's global
+/// pool does not survive a fork: a child forked after a call (Python's `multiprocessing`
+/// on Linux) inherits the pool but not its threads, and its first parallel loop waits for
+/// them forever. So each process makes a pool of its own; a child leaves its parent's
+/// alone (its threads are not there to stop).
+static POOL: Mutex<Option<(u32, std::sync::Arc<rayon::ThreadPool>)>> = Mutex::new(None);
+
+/// The process that last opened a GPU device here (0: none). Vulkan drivers do not
+/// survive a fork: a child forked from a process that opened a device hangs in its own
+/// device's first work (lavapipe: seen; the drivers' own threads and locks are the
+/// parent's), so such a child takes the CPU engine (`auto`) or gets an error (`gpu`).
+static GPU_OPENED_BY: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+/// `job` as this process can run it: in a child forked from a process that opened a GPU
+/// device ([`GPU_OPENED_BY`]), `auto` takes the CPU engine and `gpu` is an error.
+fn runnable(job: Job) -> PyResult<Job> {
+    let by = GPU_OPENED_BY.load(std::sync::atomic::Ordering::Relaxed);
+    if by == 0 || by == std::process::id() {
+        return Ok(job);
+    }
+    match job.backend {
+        Backend::Cpu => Ok(job),
+        Backend::Auto => Ok(Job {
+            backend: Backend::Cpu,
+            ..job
+        }),
+        Backend::Gpu => Err(LinegsError::new_err(format!(
+            "this process was forked from process {by} after that one opened a GPU device, and \
+             GPU drivers do not survive a fork: start the worker processes with \
+             multiprocessing's \"spawn\" or \"forkserver\" method, open no device before \
+             forking, or use backend=\"cpu\" here"
+        ))),
+    }
+}
+
+/// `f` without the GIL, in this process's pool ([`POOL`]).
+fn detached<T: Send>(py: Python<'_>, f: impl FnOnce() -> T + Send) -> T {
+    let pid = std::process::id();
+    let opened = linegs_gpu::engine::gpu::devices_opened();
+    let out = detached_in_pool(py, f);
+    if linegs_gpu::engine::gpu::devices_opened() > opened {
+        GPU_OPENED_BY.store(pid, std::sync::atomic::Ordering::Relaxed);
+    }
+    out
+}
+
+/// [`detached`] without the bookkeeping of devices.
+fn detached_in_pool<T: Send>(py: Python<'_>, f: impl FnOnce() -> T + Send) -> T {
+    let pid = std::process::id();
+    let pool = {
+        let mut slot = POOL.lock().unwrap_or_else(|p| p.into_inner());
+        match &*slot {
+            Some((owner, pool)) if *owner == pid => Some(pool.clone()),
+            _ => match rayon::ThreadPoolBuilder::new().build() {
+                Ok(pool) => {
+                    let pool = std::sync::Arc::new(pool);
+                    std::mem::forget(slot.replace((pid, pool.clone())));
+                    Some(pool)
+                }
+                // No threads to be had: the global pool (as before).
+                Err(_) => None,
+            },
+        }
+    };
+    py.detach(|| match pool {
+        Some(pool) => pool.install(f),
+        None => f(),
+    })
+}
+
 /// The device of the last computation that succeeded, kept for the next call with the same
 /// backend and GPU setup: opening an adapter and compiling the kernels costs more than a
 /// small scene's whole refinement (the command line's `batch` keeps one for all its
@@ -452,6 +521,9 @@ struct Kept {
     backend: Backend,
     gpu: GpuSetup,
     device: Pending,
+    /// The process that opened it: a child forked after (Python's `multiprocessing` on
+    /// Linux) inherits the handle but not the driver's state, so it opens its own.
+    pid: u32,
 }
 
 /// Runs `f` on the kept device where `job` asks for the same backend and setup, else on
@@ -463,7 +535,13 @@ fn on_device<T>(
     f: impl FnOnce(&mut Pending) -> Result<T, RunError>,
 ) -> Result<T, RunError> {
     let kept = KEPT.lock().unwrap_or_else(|p| p.into_inner()).take();
+    let pid = std::process::id();
     let mut device = match kept {
+        Some(k) if k.pid != pid => {
+            // The parent's device, in a forked child: neither used nor closed here.
+            std::mem::forget(k);
+            job.open()
+        }
         Some(k) if k.backend == job.backend && k.gpu == job.gpu => k.device,
         // Another setup's device (dropped here, outside the lock), or none.
         _ => job.open(),
@@ -476,6 +554,7 @@ fn on_device<T>(
             backend: job.backend,
             gpu: job.gpu.clone(),
             device,
+            pid,
         });
     drop(old);
     Ok(out)
@@ -485,8 +564,11 @@ fn on_device<T>(
 /// resources are freed, and the next GPU call opens one again.
 #[pyfunction]
 fn release_device(py: Python<'_>) {
-    let kept = KEPT.lock().unwrap_or_else(|p| p.into_inner()).take();
-    py.detach(|| drop(kept));
+    match KEPT.lock().unwrap_or_else(|p| p.into_inner()).take() {
+        Some(k) if k.pid == std::process::id() => py.detach(|| drop(k)),
+        // (A forked child's copy of its parent's device: see `Kept::pid`.)
+        other => std::mem::forget(other),
+    }
 }
 
 /// How many GPU devices this process has opened (tests: a second call opens none).
@@ -513,15 +595,15 @@ fn refine<'py>(
 ) -> PyResult<(Bound<'py, PyArray3<f64>>, String)> {
     // The command line's `--colmap`: read before any work (a bad model is an InputError).
     let colmap = match &colmap {
-        Some(dir) => Some(py.detach(|| io::read_colmap(dir)).map_err(io_to_py)?),
+        Some(dir) => Some(detached(py, || io::read_colmap(dir)).map_err(io_to_py)?),
         None => None,
     };
-    let job = Job {
+    let job = runnable(Job {
         sweep,
         gt: gt_f64.map(|g| exact_gt(&segments(g.as_array()))),
         check_frames: frame_check,
         ..job(args, backend_name)?
-    };
+    })?;
     let segs = segments(segments_f64.as_array());
     if let Some(g) = &groups {
         if g.len() != segs.len() {
@@ -537,33 +619,32 @@ fn refine<'py>(
         groups,
     };
     let model = model.get();
-    let (out, report) = py
-        .detach(|| {
-            model.with_scene(lines, |s| {
-                // The automatic frame maps the Gaussians: on a copy, so that the model's
-                // arrays (the caller's views) stay as they are.
-                let framed;
-                let s = match &colmap {
-                    Some(cm) if job.check_frames => {
-                        let mut c = s.clone();
-                        let found = c.find_frame(cm, &job.params)?;
-                        match (&found.transform, found.message()) {
-                            (Some(_), Some(m)) => c
-                                .warnings
-                                .push(format!("Gaussians mapped by the frame {m}")),
-                            (None, Some(m)) => c.warnings.push(m),
-                            _ => {}
-                        }
-                        framed = c;
-                        &framed
+    let (out, report) = detached(py, || {
+        model.with_scene(lines, |s| {
+            // The automatic frame maps the Gaussians: on a copy, so that the model's
+            // arrays (the caller's views) stay as they are.
+            let framed;
+            let s = match &colmap {
+                Some(cm) if job.check_frames => {
+                    let mut c = s.clone();
+                    let found = c.find_frame(cm, &job.params)?;
+                    match (&found.transform, found.message()) {
+                        (Some(_), Some(m)) => c
+                            .warnings
+                            .push(format!("Gaussians mapped by the frame {m}")),
+                        (None, Some(m)) => c.warnings.push(m),
+                        _ => {}
                     }
-                    _ => s,
-                };
-                let out = on_device(&job, |d| job.refine_on(s, d, |_| {})).map_err(frame_error)?;
-                Ok((out.lines.segments, out.report.to_json()))
-            })
+                    framed = c;
+                    &framed
+                }
+                _ => s,
+            };
+            let out = on_device(&job, |d| job.refine_on(s, d, |_| {})).map_err(frame_error)?;
+            Ok((out.lines.segments, out.report.to_json()))
         })
-        .map_err(to_py)?;
+    })
+    .map_err(to_py)?;
     Ok((segment_array(py, &out), report))
 }
 
@@ -582,16 +663,16 @@ fn evaluate<'py>(
     gt_f64: Option<PyReadonlyArray3<'py, f64>>,
     sweep: Option<Vec<f64>>,
 ) -> PyResult<String> {
-    let job = Job {
+    let job = runnable(Job {
         sweep,
         gt: gt_f64.map(|g| exact_gt(&segments(g.as_array()))),
         check_frames: true,
         ..job(args, backend_name)?
-    };
+    })?;
     let lines = LineSet::new(segments(segments_f64.as_array()));
     let compare = compare_f64.map(|c| LineSet::new(segments(c.as_array())));
     let model = model.get();
-    py.detach(|| {
+    detached(py, || {
         model.with_scene(lines, |s| {
             on_device(&job, |d| job.evaluate_on(s, compare.as_ref(), d)).map(|r| r.to_json())
         })

@@ -393,3 +393,50 @@ def test_gpu_calls_share_one_device_until_released_or_failed(toy):
     linegs.release_device()
     assert np.array_equal(linegs.refine(model, segs, backend="gpu", radius=0.04)[0], first)
     assert _linegs.devices_opened() == opened + 2
+
+
+def _refine_in_child(args):
+    g, l, q, backends = args
+    model, segs = linegs.read_gaussians(g), linegs.read_lines(l)
+    for backend in backends:
+        try:
+            out, rep = linegs.refine(model, segs, backend=backend, radius=0.04)
+            q.put((backend, out, rep["backend"]))
+        except linegs.LinegsError as e:
+            q.put((backend, None, str(e)))
+
+
+def test_a_forked_child_computes_and_leaves_the_parents_gpu_alone(toy):
+    """A child forked after a call (multiprocessing's default on Linux) runs in a thread
+    pool of its own (rayon's global pool has no threads in a child: it waited forever),
+    and, where the parent opened a GPU device, does not touch the GPU (the driver's
+    threads and locks are the parent's: it hung): "auto" takes the CPU engine, "gpu" says
+    why it cannot."""
+    import multiprocessing as mp
+
+    d, g, l, _ = toy
+    model, segs = linegs.read_gaussians(g), linegs.read_lines(l)
+    cpu, _ = linegs.refine(model, segs, backend="cpu", radius=0.04)
+    try:
+        linegs.refine(model, segs, backend="gpu", radius=0.04)
+    except linegs.LinegsError as e:
+        if os.environ.get("CI", "").lower() not in ("", "0", "false"):
+            pytest.fail(f"no GPU adapter in CI: {e}")
+        pytest.skip(f"no GPU adapter: {e}")
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=_refine_in_child, args=((g, l, q, ["cpu", "auto", "gpu"]),))
+    p.start()
+    got = {}
+    try:
+        for _ in range(3):
+            backend, out, what = q.get(timeout=120)
+            got[backend] = (out, what)
+        p.join(timeout=60)
+    finally:
+        if p.is_alive():
+            p.kill()
+    assert p.exitcode == 0
+    assert np.array_equal(got["cpu"][0], cpu) and got["cpu"][1] == "cpu"
+    assert np.array_equal(got["auto"][0], cpu) and got["auto"][1] == "cpu"
+    assert got["gpu"][0] is None and '"spawn"' in got["gpu"][1], got["gpu"][1]
