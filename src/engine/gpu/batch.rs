@@ -156,9 +156,11 @@ pub fn submit(
                 }
             }
             if kind.lists() {
-                // (The fit's list batches come first: their members a query size the
-                // decision rule's first members batch.)
-                b.members_per_query = Some(got.members as f64 / n as f64);
+                // The most of any listing batch so far: the fit's list batches come first,
+                // and its last iterations (the few segments still moving) list fewer
+                // members a query than the decision rule's first batch needs.
+                let m = got.members as f64 / n as f64;
+                b.members_per_query = Some(b.members_per_query.map_or(m, |p| p.max(m)));
             }
             return Ok(Attempt::Done(out, waited));
         }

@@ -255,17 +255,17 @@ pub struct Buffers {
     pub sized: bool,
     pub flag_cap: u32,
     pub member_cap: u32,
-    /// Sure members a query of the last batch that listed members (a members batch, the
-    /// fit's or the end gaps' list batches) had, on average (`None` before the first): how
-    /// much of the member list the next members batch reads back with its answers
-    /// ([`Self::member_back`]).
+    /// Sure members a query had, on average, in the batch that listed the most of them a
+    /// query so far (members batches, the fit's and the end gaps' list batches; `None`
+    /// before the first): how much of the member list the next members batch reads back
+    /// with its answers ([`Self::member_back`]).
     pub members_per_query: Option<f64>,
 }
 
 impl Buffers {
     /// Bytes of a members batch of `n` queries' member list to read back with the answers,
     /// of `cap` there are: the whole list before any batch listed members, then a quarter
-    /// more than the last such batch's members a query would need (and 4 KiB). Where
+    /// more than [`Self::members_per_query`] would need (and 4 KiB). Where
     /// the list is longer, [`super::batch::submit`] reads the rest in a copy of its own;
     /// reading the whole capacity read back about nine times the members on the bench
     /// scene (the capacity is the largest batch's, the fit's, not this batch's).
