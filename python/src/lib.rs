@@ -475,20 +475,11 @@ fn runnable(job: Job) -> PyResult<Job> {
     }
 }
 
-/// `f` without the GIL, in this process's pool ([`POOL`]).
+/// `f` without the GIL, in this process's pool ([`POOL`]); notes a device it opened
+/// ([`GPU_OPENED_BY`]).
 fn detached<T: Send>(py: Python<'_>, f: impl FnOnce() -> T + Send) -> T {
     let pid = std::process::id();
     let opened = linegs_gpu::engine::gpu::devices_opened();
-    let out = detached_in_pool(py, f);
-    if linegs_gpu::engine::gpu::devices_opened() > opened {
-        GPU_OPENED_BY.store(pid, std::sync::atomic::Ordering::Relaxed);
-    }
-    out
-}
-
-/// [`detached`] without the bookkeeping of devices.
-fn detached_in_pool<T: Send>(py: Python<'_>, f: impl FnOnce() -> T + Send) -> T {
-    let pid = std::process::id();
     let pool = {
         let mut slot = POOL.lock().unwrap_or_else(|p| p.into_inner());
         match &*slot {
@@ -504,10 +495,14 @@ fn detached_in_pool<T: Send>(py: Python<'_>, f: impl FnOnce() -> T + Send) -> T 
             },
         }
     };
-    py.detach(|| match pool {
+    let out = py.detach(|| match pool {
         Some(pool) => pool.install(f),
         None => f(),
-    })
+    });
+    if linegs_gpu::engine::gpu::devices_opened() > opened {
+        GPU_OPENED_BY.store(pid, std::sync::atomic::Ordering::Relaxed);
+    }
+    out
 }
 
 /// The device of the last computation that succeeded, kept for the next call with the same

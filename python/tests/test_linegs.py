@@ -32,11 +32,15 @@ def cli():
     exe = os.environ.get("LINEGS_GPU_BIN") or str(target_dir() / "release" / "linegs-gpu")
     if not Path(exe).exists():
         msg = f"no linegs-gpu binary at {exe}; build it with cargo build --release"
-        # In CI a comparison that cannot run is a failure, not a skip.
-        if os.environ.get("CI", "").lower() not in ("", "0", "false"):
-            pytest.fail(msg)
-        pytest.skip(msg)
+        cannot_run(msg)
     return exe
+
+
+def cannot_run(msg):
+    """Skips the test, or in CI fails it: there a test that cannot run is a failure."""
+    if os.environ.get("CI", "").lower() not in ("", "0", "false"):
+        pytest.fail(msg)
+    pytest.skip(msg)
 
 
 def run(*args):
@@ -365,9 +369,7 @@ def test_gpu_calls_share_one_device_until_released_or_failed(toy):
     try:
         first, rep = linegs.refine(model, segs, backend="gpu", radius=0.04)
     except linegs.LinegsError as e:
-        if os.environ.get("CI", "").lower() not in ("", "0", "false"):
-            pytest.fail(f"no GPU adapter in CI: {e}")
-        pytest.skip(f"no GPU adapter: {e}")
+        cannot_run(f"no GPU adapter: {e}")
     assert rep["backend"] == "gpu"
     assert np.array_equal(first, cpu)
     for _ in range(2):
@@ -420,9 +422,7 @@ def test_a_forked_child_computes_and_leaves_the_parents_gpu_alone(toy):
     try:
         linegs.refine(model, segs, backend="gpu", radius=0.04)
     except linegs.LinegsError as e:
-        if os.environ.get("CI", "").lower() not in ("", "0", "false"):
-            pytest.fail(f"no GPU adapter in CI: {e}")
-        pytest.skip(f"no GPU adapter: {e}")
+        cannot_run(f"no GPU adapter: {e}")
     ctx = mp.get_context("fork")
     q = ctx.Queue()
     p = ctx.Process(target=_refine_in_child, args=((g, l, q, ["cpu", "auto", "gpu"]),))

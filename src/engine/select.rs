@@ -155,19 +155,17 @@ impl Pending {
             .map(|_| PointStore::of(&grid));
         // The device for this engine: the one opened for the first, and a clone of it (or
         // the same error) kept for the next.
+        let share = |d: &Result<GpuDevice, EngineError>| match d {
+            Ok(d) => Ok(d.clone()),
+            Err(e) => Err(again(e)),
+        };
         let device = match self.device.take() {
             Some(h) => {
                 let d = h.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
-                self.opened = Some(match &d {
-                    Ok(d) => Ok(d.clone()),
-                    Err(e) => Err(again(e)),
-                });
+                self.opened = Some(share(&d));
                 Some(d)
             }
-            None => self.opened.as_ref().map(|d| match d {
-                Ok(d) => Ok(d.clone()),
-                Err(e) => Err(again(e)),
-            }),
+            None => self.opened.as_ref().map(share),
         };
         choose(self.backend, grid, |g| match device {
             Some(d) => d?.engine_with(g, store).map(Some),

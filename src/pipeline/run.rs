@@ -470,7 +470,6 @@ impl Job {
         }
     }
 
-    /// The engine for `scene`, built once.
     /// [`Job::refiner`] on the device of `pending`.
     fn refiner_on(&self, scene: &Scene, pending: &mut Pending) -> Result<Refiner, RunError> {
         Refiner::with_pending(
@@ -482,14 +481,9 @@ impl Job {
         )
     }
 
+    /// The engine for `scene`, built once, on a device of its own.
     pub fn refiner(&self, scene: &Scene) -> Result<Refiner, RunError> {
-        Refiner::with_setup(
-            &scene.gaussians,
-            &scene.lines.segments,
-            &self.params,
-            self.backend,
-            &self.gpu,
-        )
+        self.refiner_on(scene, &mut self.open())
     }
 
     /// `--max-scale`: `scene` without the Gaussians whose largest standard deviation
