@@ -828,6 +828,58 @@ fn the_gpu_benchmark_script_runs() {
     assert!(err.contains("(target <= -1 %)"), "{err}");
 }
 
+/// `bench` opens a GPU run's device while it builds the scene (as `refine` opens it while
+/// it reads the files) and keeps it for every repeat: the run reports how long the
+/// opening took and how much of it came after the build, and the CPU run opens nothing.
+#[test]
+fn bench_opens_the_device_while_the_scene_is_built() {
+    let o = run(&[
+        "bench",
+        "-n",
+        "20000",
+        "--num-segments",
+        "200",
+        "--backend",
+        "cpu,gpu",
+        "--repeat",
+        "2",
+        "--json",
+    ]);
+    let err = stderr(&o);
+    if !o.status.success()
+        && err.contains("adapter")
+        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
+    {
+        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({err})");
+        return;
+    }
+    assert!(o.status.success(), "{err}");
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let runs = v["cases"][0]["runs"].as_array().unwrap();
+    let of = |b: &str| runs.iter().find(|r| r["backend"] == b).unwrap();
+    let (cpu, gpu) = (of("cpu"), of("gpu"));
+    assert!(cpu.get("device_open_seconds").is_none(), "{cpu}");
+    let open = gpu["device_open_seconds"].as_f64().unwrap();
+    let wait = gpu["device_open_wait_seconds"].as_f64().unwrap();
+    assert!(open > 0.0 && (0.0..=open).contains(&wait), "{gpu}");
+    assert_eq!(cpu["segments_out"], gpu["segments_out"]);
+    // The run's setup stages are the grid and the upload: the host-share line says so.
+    let o = run(&[
+        "bench",
+        "-n",
+        "20000",
+        "--num-segments",
+        "200",
+        "--backend",
+        "cpu,gpu",
+    ]);
+    let out = stdout(&o);
+    assert!(
+        out.contains("  gpu: device opened in ") && out.contains("while the scene was built"),
+        "{out}"
+    );
+}
+
 /// `bench --case ladder`: one table, a row per size (10x a row) with the growth against the
 /// row before, and beside each row a command that measures that row alone.
 #[test]

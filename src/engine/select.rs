@@ -6,6 +6,7 @@ use super::gpu::{GpuDevice, GpuEngine, GpuSetup, PointStore};
 use super::{Engine, EngineError};
 use crate::index::Grid;
 use std::sync::Arc;
+use std::time::Instant;
 
 /// Which engine to use.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -81,10 +82,17 @@ fn again(e: &EngineError) -> EngineError {
 /// The engine of a backend in the making ([`prepare`]).
 pub struct Pending {
     backend: Backend,
-    device: Option<std::thread::JoinHandle<Result<GpuDevice, EngineError>>>,
+    /// The opening thread: the device (or why not) and when the opening ended.
+    device: Option<std::thread::JoinHandle<(Result<GpuDevice, EngineError>, Instant)>>,
+    /// When the opening started ([`prepare`]).
+    started: Instant,
+    /// The opening's result once waited for ([`Pending::wait`]), for the first engine.
+    waited: Option<Result<GpuDevice, EngineError>>,
     /// The opened device once an engine was made of it ([`Pending::engine`]), for the
     /// next: its clone shares the device and the kernels; or why it did not open.
     opened: Option<Result<GpuDevice, EngineError>>,
+    /// When the opening ended, once its thread was joined.
+    ended: Option<Instant>,
 }
 
 /// Starts making the engine of `backend`: for `gpu` and `auto` the adapter is picked and
@@ -122,10 +130,17 @@ pub fn prepare(backend: Backend, gpu: &GpuSetup) -> Pending {
         }
         _ => GpuDevice::open_setup(&gpu),
     };
+    let timed = move || {
+        let d = open();
+        (d, Instant::now())
+    };
     Pending {
         backend,
-        device: (backend != Backend::Cpu).then(|| std::thread::spawn(open)),
+        started: Instant::now(),
+        device: (backend != Backend::Cpu).then(|| std::thread::spawn(timed)),
+        waited: None,
         opened: None,
+        ended: None,
     }
 }
 
@@ -159,9 +174,8 @@ impl Pending {
             Ok(d) => Ok(d.clone()),
             Err(e) => Err(again(e)),
         };
-        let device = match self.device.take() {
-            Some(h) => {
-                let d = h.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
+        let device = match self.join().or_else(|| self.waited.take()) {
+            Some(d) => {
                 self.opened = Some(share(&d));
                 Some(d)
             }
@@ -171,6 +185,33 @@ impl Pending {
             Some(d) => d?.engine_with(g, store).map(Some),
             None => Err(EngineError::NoAdapter("no adapter was opened".into())),
         })
+    }
+}
+
+impl Pending {
+    /// Waits for the opening thread (none for the CPU engine) and keeps its device for
+    /// the engines to come. Returns the seconds from [`prepare`] to the end of the
+    /// opening, and of those the ones this call waited (`None` when nothing was opened;
+    /// after the first call the wait is 0). `bench` waits so that no opening runs beside
+    /// a timed run.
+    pub fn wait(&mut self) -> Option<(f64, f64)> {
+        let now = Instant::now();
+        if let Some(d) = self.join() {
+            self.waited = Some(d);
+        }
+        let ended = self.ended?;
+        Some((
+            ended.duration_since(self.started).as_secs_f64(),
+            ended.saturating_duration_since(now).as_secs_f64(),
+        ))
+    }
+
+    /// The opening thread's device, joined now (`None`: no thread, or joined before).
+    fn join(&mut self) -> Option<Result<GpuDevice, EngineError>> {
+        let h = self.device.take()?;
+        let (d, ended) = h.join().unwrap_or_else(|p| std::panic::resume_unwind(p));
+        self.ended = Some(ended);
+        Some(d)
     }
 }
 
