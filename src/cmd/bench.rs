@@ -195,6 +195,7 @@ impl Table {
 struct Case {
     gaussians: usize,
     segments: usize,
+    /// Seconds the scene took to build (the first engine's; each builds it for itself).
     synth_seconds: f64,
     runs: Vec<RunTiming>,
     /// GPU total / CPU total, when both ran.
@@ -373,25 +374,25 @@ fn sizes(a: BenchArgs, _verbose: bool) -> Result<()> {
     let mut cases = Vec::new();
     for &n in &a.num_gaussians {
         for &m in &a.num_segments {
-            // Each backend's device opens while the scene is built, as `refine` opens
-            // it while it reads the files, and serves every repeat, as `batch` and the
-            // Python module keep theirs; it is waited for before the first timed run.
-            let jobs = backends
-                .iter()
-                .map(|&b| super::env::job(params.clone(), b.into()))
-                .collect::<Result<Vec<_>>>()?;
-            let mut devices: Vec<_> = jobs.iter().map(|j| j.open()).collect();
-            let t = Instant::now();
-            let synth = synth::scaled_scene(n, m, a.seed);
-            let scene = Scene::from_arrays(synth.gaussians, synth.lines)?;
-            let synth_seconds = t.elapsed().as_secs_f64();
-            let opened: Vec<Option<(f64, f64)>> = devices.iter_mut().map(|d| d.wait()).collect();
             let mut runs = Vec::new();
-            for ((job, device), opened) in jobs.iter().zip(&mut devices).zip(opened) {
+            let mut synth_seconds = None;
+            for &b in &backends {
+                let job = super::env::job(params.clone(), b.into())?;
+                // Each backend builds the scene for itself (the same scene: the seed
+                // decides it), with nothing of another backend's left in the process. A
+                // GPU run's device opens while its scene is built, as `refine` opens it
+                // while it reads the files, and serves every repeat, as `batch` and the
+                // Python module keep theirs; it is waited for before the first timed run.
+                let mut device = job.open();
+                let t = Instant::now();
+                let synth = synth::scaled_scene(n, m, a.seed);
+                let scene = Scene::from_arrays(synth.gaussians, synth.lines)?;
+                synth_seconds.get_or_insert(t.elapsed().as_secs_f64());
+                let opened = device.wait();
                 let mut best: Option<RunTiming> = None;
                 for _ in 0..a.repeat {
                     mem::reset_peak_rss();
-                    let out = job.refine_on(&scene, device, |_| {})?;
+                    let out = job.refine_on(&scene, &mut device, |_| {})?;
                     let r = out.report;
                     let sum = |f: fn(&Stage) -> Option<f64>| {
                         r.stages.iter().filter_map(f).reduce(|a, b| a + b)
@@ -433,7 +434,7 @@ fn sizes(a: BenchArgs, _verbose: bool) -> Result<()> {
             let case = Case {
                 gaussians: n,
                 segments: m,
-                synth_seconds,
+                synth_seconds: synth_seconds.unwrap_or(0.0),
                 host_share: HostShare::of(&runs),
                 runs,
                 gpu_over_cpu,
@@ -461,7 +462,7 @@ fn sizes(a: BenchArgs, _verbose: bool) -> Result<()> {
 
 fn print_case(c: &Case) {
     println!(
-        "\n{} Gaussians x {} segments (synthetic scene built in {:.2} s, not timed below)",
+        "\n{} Gaussians x {} segments (synthetic scene built in {:.2} s for each engine, not timed below)",
         c.gaussians, c.segments, c.synth_seconds
     );
     print!("{:<18}", "stage (s)");
