@@ -1209,6 +1209,7 @@ fn a_bad_linegs_gpu_value_is_refused_naming_the_variable() {
     for (k, v, accepted) in [
         ("LINEGS_GPU_FIT", "gpu", "expected `device` or `host`"),
         ("LINEGS_GPU_MEMBERS", "on", "expected `device` or `host`"),
+        ("LINEGS_GPU_UPLOADS", "yes", "expected `mapped` or `staged`"),
         (
             "LINEGS_GPU_SMALL_BATCH",
             "x",

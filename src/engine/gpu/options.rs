@@ -43,7 +43,8 @@ pub struct GpuOptions {
     /// staging buffer) are created mapped and written in place
     /// instead of through the queue's staging memory and a copy (lavapipe: the first
     /// batch 20 ms shorter at 10^6 Gaussians). On by default; tests turn it off to run
-    /// the staging path that hardware adapters take.
+    /// the staging path that hardware adapters take, and so does
+    /// `LINEGS_GPU_UPLOADS=staged` ([`GpuSetup::from_vars`]).
     pub mapped_uploads: bool,
     /// Whether every new buffer the kernels write is first filled with 0xFF bytes, so that
     /// a kernel that reads memory it never wrote sees NaNs and huge counts. On in debug
@@ -143,6 +144,8 @@ impl GpuSetup {
     ///   the device);
     /// - `LINEGS_GPU_FIT=device|host`: [`GpuOptions::fit`] (else by adapter);
     /// - `LINEGS_GPU_MEMBERS=device|host`: [`GpuOptions::members`] (else by adapter);
+    /// - `LINEGS_GPU_UPLOADS=mapped|staged`: [`GpuOptions::mapped_uploads`] (`mapped`,
+    ///   the default, has an effect on a software adapter only);
     /// - `LINEGS_GPU_GARBAGE` (any value): [`GpuOptions::fill_garbage`].
     ///
     /// An empty value is the same as an unset one; any other value that is not one of
@@ -175,6 +178,11 @@ impl GpuSetup {
             Some("device") => MembersOn::Device,
             Some("host") => MembersOn::Host,
             Some(v) => return Err(bad("LINEGS_GPU_MEMBERS", v, "`device` or `host`")),
+        };
+        options.mapped_uploads = match set("LINEGS_GPU_UPLOADS").as_deref().map(str::trim) {
+            None | Some("mapped") => options.mapped_uploads,
+            Some("staged") => false,
+            Some(v) => return Err(bad("LINEGS_GPU_UPLOADS", v, "`mapped` or `staged`")),
         };
         options.fill_garbage |= var("LINEGS_GPU_GARBAGE").is_some();
         Ok(GpuSetup {
@@ -229,6 +237,7 @@ mod tests {
                 "LINEGS_GPU_SMALL_BATCH" => Some(" 0 "),
                 "LINEGS_GPU_FIT" => Some("host"),
                 "LINEGS_GPU_MEMBERS" => Some("device"),
+                "LINEGS_GPU_UPLOADS" => Some("staged"),
                 "LINEGS_GPU_GARBAGE" => Some(""),
                 _ => None,
             }
@@ -239,6 +248,7 @@ mod tests {
         assert_eq!(s.options.small_batch, 0);
         assert_eq!(s.options.fit, FitOn::Host);
         assert_eq!(s.options.members, MembersOn::Device);
+        assert!(!s.options.mapped_uploads && none.options.mapped_uploads);
         assert!(s.options.fill_garbage && s.options.warm_up);
         // an empty value is an unset one
         let empty = GpuSetup::from_vars(|k| (k != "WGPU_ADAPTER_NAME").then(|| " ".into()));
@@ -252,6 +262,7 @@ mod tests {
             ("LINEGS_GPU_SMALL_BATCH", "-1", "a whole number >= 0"),
             ("LINEGS_GPU_FIT", "gpu", "`device` or `host`"),
             ("LINEGS_GPU_MEMBERS", "Device", "`device` or `host`"),
+            ("LINEGS_GPU_UPLOADS", "host", "`mapped` or `staged`"),
         ] {
             let e = GpuSetup::from_vars(|q| (q == k).then(|| v.into()))
                 .unwrap_err()
