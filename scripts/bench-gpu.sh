@@ -11,8 +11,8 @@
 # run's host seconds exceed BENCH_GPU_MAX_HOST_SHARE percent (default 10) of the CPU run's
 # total: the host's share bounds what any GPU can gain (docs/benchmarks.md#host-share-of-the-gpu-engine).
 # On a software adapter the share is checked only when BENCH_GPU_MAX_HOST_SHARE is set (run
-# it with LINEGS_GPU_MEMBERS=device LINEGS_GPU_FIT=device, the configuration a hardware
-# adapter gets, for the share a real GPU would see).
+# it with LINEGS_GPU_MEMBERS=device LINEGS_GPU_FIT=device LINEGS_GPU_UPLOADS=staged, the
+# configuration a hardware adapter gets, for the share a real GPU would see).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # The folder cargo builds into: CARGO_TARGET_DIR, a .cargo/config setting, or ./target.
