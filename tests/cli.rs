@@ -863,6 +863,26 @@ fn bench_opens_the_device_while_the_scene_is_built() {
     let wait = gpu["device_open_wait_seconds"].as_f64().unwrap();
     assert!(open > 0.0 && (0.0..=open).contains(&wait), "{gpu}");
     assert_eq!(cpu["segments_out"], gpu["segments_out"]);
+    // `auto` reports an opening only where it ran on a GPU (without a hardware adapter it
+    // takes the CPU engine and opens nothing).
+    let o = run(&[
+        "bench",
+        "-n",
+        "20000",
+        "--num-segments",
+        "200",
+        "--backend",
+        "auto",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = &v["cases"][0]["runs"][0];
+    assert_eq!(
+        r.get("device_open_seconds").is_some(),
+        r["backend"] == "gpu",
+        "{r}"
+    );
     // The run's setup stages are the grid and the upload: the host-share line says so.
     let o = run(&[
         "bench",

@@ -399,6 +399,8 @@ fn sizes(a: BenchArgs, _verbose: bool) -> Result<()> {
                     };
                     let host_seconds = sum(|s| s.host_seconds);
                     let device_seconds = sum(|s| s.device_seconds);
+                    // `auto` without a hardware adapter ran the CPU engine: nothing opened.
+                    let opened = opened.filter(|_| r.backend != "cpu");
                     let run = RunTiming {
                         host_seconds,
                         device_seconds,
