@@ -733,11 +733,7 @@ fn a_gpu_run_without_xdg_runtime_dir_prints_no_error() {
         .output()
         .unwrap();
     let e = stderr(&o);
-    if !o.status.success()
-        && e.contains("adapter")
-        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
-    {
-        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({e})");
+    if common::no_adapter_skip(&o, &e) {
         return;
     }
     assert!(o.status.success(), "{e}");
@@ -765,11 +761,7 @@ fn a_gpu_run_with_an_unusable_tmpdir_prints_no_xdg_error() {
         .output()
         .unwrap();
     let e = stderr(&o);
-    if !o.status.success()
-        && e.contains("adapter")
-        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
-    {
-        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({e})");
+    if common::no_adapter_skip(&o, &e) {
         return;
     }
     assert!(o.status.success(), "{e}");
@@ -791,11 +783,7 @@ fn the_gpu_benchmark_script_runs() {
         .output()
         .unwrap();
     let (out, err) = (stdout(&o), stderr(&o));
-    if !o.status.success()
-        && err.contains("adapter")
-        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
-    {
-        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({err})");
+    if common::no_adapter_skip(&o, &err) {
         return;
     }
     assert!(o.status.success(), "{out}\n{err}");
@@ -846,11 +834,7 @@ fn bench_opens_the_device_while_the_scene_is_built() {
         "--json",
     ]);
     let err = stderr(&o);
-    if !o.status.success()
-        && err.contains("adapter")
-        && std::env::var("LINEGS_SKIP_GPU_TESTS").as_deref() == Ok("1")
-    {
-        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({err})");
+    if common::no_adapter_skip(&o, &err) {
         return;
     }
     assert!(o.status.success(), "{err}");

@@ -174,6 +174,17 @@ pub fn skip_gpu_tests() -> bool {
     std::env::var("LINEGS_SKIP_GPU_TESTS").is_ok_and(|v| v == "1")
 }
 
+/// Whether a run of the binary that failed for want of a GPU adapter (its standard error
+/// `err` names the adapter) is to be skipped: only where the environment opts out with
+/// `LINEGS_SKIP_GPU_TESTS=1`, and then the skip is printed.
+pub fn no_adapter_skip(o: &std::process::Output, err: &str) -> bool {
+    let skip = !o.status.success() && err.contains("adapter") && skip_gpu_tests();
+    if skip {
+        eprintln!("SKIPPED (LINEGS_SKIP_GPU_TESTS=1): no GPU adapter ({err})");
+    }
+    skip
+}
+
 /// The GPU setup of the tests' environment, as the commands read theirs: the adapter of
 /// `WGPU_ADAPTER_NAME`, new buffers filled with garbage where `LINEGS_GPU_GARBAGE` is set
 /// (scripts/test.sh sets it), and `opts` otherwise.
