@@ -629,6 +629,33 @@ fn member_lists_go_where_the_option_says() {
 }
 
 #[test]
+fn member_lists_come_back_from_the_device_in_working_set_order() {
+    // With the member lists and the ridge on the device (the options' default), a members
+    // batch's lists come back as records that the device ranked by id: the host sorts
+    // only the lists longer than the records kernel ranks (1,024 members) and any that a
+    // flagged member puts out of order.
+    let pts = random_scene(20_000, 91);
+    let mut qs = random_queries(300, 92, 0.04);
+    qs.extend(random_queries(30, 93, 0.25));
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, GpuOptions::default()) else {
+        return;
+    };
+    let want = cpu.members(&qs).unwrap();
+    assert_eq!(gpu.members(&qs).unwrap(), want);
+    assert_eq!(gpu.host_fallbacks(), 0);
+    // The records need the centers' coordinates on the device (uploaded for its fit).
+    if gpu.fits_on_device() {
+        let long = want.iter().filter(|l| l.len() > 1024).count() as u64;
+        assert!(long > 0 && long < 30, "{long} long lists");
+        let sorted = gpu.lists_sorted_on_host();
+        assert!(
+            (long..=long + 3).contains(&sorted),
+            "{sorted} lists sorted on the host, {long} longer than 1,024"
+        );
+    }
+}
+
+#[test]
 fn the_edge_fit_runs_where_the_option_says() {
     use linegs_gpu::engine::gpu::FitOn;
     use linegs_gpu::engine::FitAsk;
@@ -826,12 +853,17 @@ fn the_side_nearest_and_member_kernels_compile_on_first_use() {
     let pts = random_scene(20_000, 61);
     let qs = random_queries(200, 62, 0.04);
     // With the ridge on the device (lavapipe and hardware adapters have f64), the member
-    // kernels compile when the device opens: every refinement's edge fit needs them.
+    // kernels compile when the device opens: every refinement's edge fit needs them; with
+    // the member lists on the device too (the options' default), so does the records
+    // kernel its members batches come back through.
     let Some((_, _, fits)) = engines(&pts, 0.03, GpuOptions::default()) else {
         return;
     };
     if fits.fits_on_device() {
-        assert_eq!(fits.kernels_compiled_on_use(), ["eval members", "members"]);
+        assert_eq!(
+            fits.kernels_compiled_on_use(),
+            ["eval members", "members", "records"]
+        );
     }
     let host_fit = GpuOptions {
         fit: FitOn::Host,
@@ -925,9 +957,10 @@ fn a_warmed_up_device_answers_like_the_cpu_and_counts_none_of_its_warm_up() {
     // The warm-up's engine, batches and buffers are gone; only eager kernels ran.
     let c = gpu.counters();
     assert_eq!((c.batches, c.queries), (0, 0), "{c:?}");
-    // (The member kernels compile at opening where the ridge runs on the device.)
+    // (The member kernels compile at opening where the ridge runs on the device, and the
+    // records kernel where the member lists are the device's too.)
     let eager: &[&str] = if gpu.fits_on_device() {
-        &["eval members", "members"]
+        &["eval members", "members", "records"]
     } else {
         &[]
     };

@@ -91,6 +91,7 @@ fn every_shader_is_valid_wgsl() {
             "fit.wgsl",
             "lists.wgsl",
             "members.wgsl",
+            "records.wgsl",
             "reduce.wgsl",
             "scan.wgsl",
             "walk.wgsl"
@@ -532,7 +533,7 @@ fn each_kind_of_batch_records_the_registrys_stages_in_order() {
             format!("stats: {head} > reduce"),
             format!("stats sides cover: {head} > reduce"),
             format!("nearest: {head} > cut > reduce"),
-            format!("members: {head} > members [mscan] > reduce"),
+            format!("members: {head} > members [mscan] > reduce > records [records]"),
             format!("list extent: {lists}"),
             format!("list fit: {lists}"),
         ]

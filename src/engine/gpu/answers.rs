@@ -237,7 +237,15 @@ impl GpuEngine {
             // Query after query, the device's sure members (as far as the list's capacity),
             // read in place: a copy was a fresh 4 bytes a member each sub-batch, and the
             // first sub-batch's fresh memory is page faults (see docs/benchmarks.md).
-            let members = super::device::pods::<u32>(&o.back);
+            // Records (`kernels/records.rs`) where the device holds the ids, else sorted
+            // indices: one entry a member either way.
+            let records = self.statics.ids.is_some();
+            let (members, recs) = if records {
+                (Default::default(), super::device::pods::<[u32; 4]>(&o.back))
+            } else {
+                (super::device::pods::<u32>(&o.back), Default::default())
+            };
+            let listed_len = if records { recs.len() } else { members.len() };
             let mut at = 0usize;
             let lists: Vec<std::ops::Range<usize>> = o
                 .results
@@ -252,20 +260,37 @@ impl GpuEngine {
                     at - c..at
                 })
                 .collect();
+            // Each list's room taken here, on one thread: taken by both threads at
+            // once, the allocations queue on the heap's lock.
+            let spans = host::spans(&o.flags, n);
+            for (i, m) in out[first..first + n].iter_mut().enumerate() {
+                *m = Vec::with_capacity(lists[i].len() + spans[i].len());
+            }
             per_query(&mut out[first..first + n], &o, 8, |i, flags, m| {
                 let q = &qs[i];
                 let device = o.results[i].status & layout::STATUS_HOST == 0
                     && !o.bad
-                    && lists[i].end <= members.len()
+                    && lists[i].end <= listed_len
                     && q.r.is_finite()
                     && q.r >= 0.0;
-                let list = device
-                    .then(|| host::members(grid, q, &members[lists[i].clone()], flags))
-                    .flatten();
-                *m = list.unwrap_or_else(|| {
+                let listed = device
+                    && if records {
+                        let got = (lists[i].len() <= layout::RECORD_MAX as usize)
+                            .then(|| {
+                                host::members_of_records(grid, q, &recs[lists[i].clone()], flags, m)
+                            })
+                            .flatten();
+                        if got == Some(true) {
+                            self.sorted_on_host.fetch_add(1, Ordering::Relaxed);
+                        }
+                        got.is_some()
+                    } else {
+                        host::members(grid, q, &members[lists[i].clone()], flags, m).is_some()
+                    };
+                if !listed {
                     self.to_host();
-                    self.cpu_members(q)
-                });
+                    *m = self.cpu_members(q);
+                }
             });
             Ok(())
         })?;

@@ -106,11 +106,23 @@ pub fn submit(
         b.item_cap = b.item_cap.max(guess);
         b.sized = true;
     }
-    let member_max = lim.member_max;
+    // A members batch whose members come back as records (`kernels/records.rs`) reads
+    // back 16 bytes an entry, not 4: its list holds a quarter as many at most.
+    let records = kind == Kind::Members && st.ids.is_some();
+    let per_member = if records {
+        super::layout::RECORD_BYTES
+    } else {
+        4
+    };
+    let member_max = if records {
+        lim.member_max / 4
+    } else {
+        lim.member_max
+    };
     b.member_cap = b.member_cap.min(member_max);
     let most_items = seq.most_items(kind, lim);
     loop {
-        let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun)?;
+        let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun, records)?;
         rerun = true;
         waited += got.waited;
         items_run += got.items.min(b.item_cap) as u64;
@@ -148,7 +160,7 @@ pub fn submit(
             };
             if kind == Kind::Members {
                 // The part of the member list past what came back with the answers.
-                let used = got.members.min(b.member_cap as u64) * 4;
+                let used = got.members.min(b.member_cap as u64) * per_member;
                 if let Some((list, read)) = got.rest.filter(|r| used > r.1) {
                     let (rest, w) = read_range(ctx, &list, read, used - read)?;
                     waited += w;
@@ -219,8 +231,10 @@ fn attempt(
     gq: &[GQuery],
     fit: &[FitQuery],
     rerun: bool,
+    records: bool,
 ) -> Result<Readback, EngineError> {
     let mut sz = Sizes::of(kind, gq.len() as u32, b);
+    sz.records = records;
     sz.own = seq.own_sizes(kind, &sz, lim);
     let base = Params {
         n: sz.n,
@@ -270,7 +284,12 @@ fn attempt(
     let whole = backs.first().map_or(0, |x| x.1);
     // A members batch reads back about as much of its member list as it will use.
     let tail = if kind == Kind::Members {
-        b.member_back(gq.len(), whole)
+        let per_member = if records {
+            super::layout::RECORD_BYTES
+        } else {
+            4
+        };
+        b.member_back(gq.len(), whole, per_member)
     } else {
         whole
     };

@@ -193,9 +193,16 @@ pub fn exact_nearest(grid: &Grid, q: &Query, k: u64) -> (NearestSum, u64) {
 /// working-set order instead read the grid's points at random (a cache miss a member at
 /// 10^7 points); sorting the 40-byte members instead of keys took a third of the host's
 /// time for the edge-fit gate's lists.
-pub fn members(grid: &Grid, q: &Query, sure: &[u32], flags: &[(u32, u32)]) -> Option<Vec<Member>> {
+pub fn members(
+    grid: &Grid,
+    q: &Query,
+    sure: &[u32],
+    flags: &[(u32, u32)],
+    out: &mut Vec<Member>,
+) -> Option<()> {
+    out.clear();
     if !q.seg.is_valid() {
-        return Some(Vec::new());
+        return Some(());
     }
     let cyl = Cylinder::new(&q.seg, q.r);
     let flagged = flags
@@ -216,19 +223,61 @@ pub fn members(grid: &Grid, q: &Query, sure: &[u32], flags: &[(u32, u32)]) -> Op
             }
         }
         keys.sort_unstable();
-        Some(
-            keys.iter()
-                .map(|&k| {
-                    let (t, offset) = measured[k as u32 as usize];
-                    Member {
-                        id: (k >> 32) as u32,
-                        t,
-                        offset,
-                    }
-                })
-                .collect(),
-        )
+        out.extend(keys.iter().map(|&k| {
+            let (t, offset) = measured[k as u32 as usize];
+            Member {
+                id: (k >> 32) as u32,
+                t,
+                offset,
+            }
+        }));
+        Some(())
     })
+}
+
+/// [`members`] from a members batch's records (`kernels/records.rs`: each sure member's
+/// working-set id and its centre's own f32 coordinates, in working-set order where the
+/// device ranked the list): each measured in f64 from its record as the CPU engine
+/// measures it, the flagged points decided from the grid, and the list sorted by id only
+/// where it is not in that order already (a list the device did not rank, or a flagged
+/// member; `Some(true)` where it sorted). `None` when a record or a flag names no point
+/// of the grid.
+pub fn members_of_records(
+    grid: &Grid,
+    q: &Query,
+    records: &[[u32; 4]],
+    flags: &[(u32, u32)],
+    out: &mut Vec<Member>,
+) -> Option<bool> {
+    out.clear();
+    if !q.seg.is_valid() {
+        return Some(false);
+    }
+    let cyl = Cylinder::new(&q.seg, q.r);
+    let n = grid.ids.len();
+    let (mut sorted, mut last) = (true, None::<u32>);
+    let mut add = |id: u32, p: [f32; 3], out: &mut Vec<Member>| {
+        if let Some((t, offset)) = cyl.test(p64(p)) {
+            sorted &= last.is_none_or(|l| l < id);
+            last = Some(id);
+            out.push(Member { id, t, offset });
+        }
+    };
+    for r in records {
+        if r[0] as usize >= n {
+            return None;
+        }
+        let p = [r[1], r[2], r[3]].map(f32::from_bits);
+        add(r[0], p, out);
+    }
+    for f in flags.iter().filter(|f| f.0 & FLAG_CANDIDATE == 0) {
+        let i = f.1 as usize;
+        add(*grid.ids.get(i)?, *grid.points.get(i)?, out);
+    }
+    if !sorted {
+        out.sort_unstable_by_key(|m| m.id);
+    }
+    Some(!sorted)
 }
 
 /// How many sure members ahead [`members`] asks the cache for: a list is a few dozen runs

@@ -62,6 +62,15 @@ pub const MODE_MEMBERS: u32 = 7;
 /// `ctl[2]` after a members batch: nonzero when an item found a different number of
 /// members than its stats pass counted (the host then answers the sub-batch itself).
 pub const CTL_MEMBERS_BAD: u32 = 2;
+/// A members batch's record of one sure member (`kernels/records.rs`): its working-set
+/// id and the f32 bits of its centre's own coordinates.
+pub const RECORD_BYTES: u64 = 16;
+/// Most members of a list the records kernel puts in working-set order (by rank, from the
+/// ids in workgroup memory: 4 KiB); the host sorts a longer one.
+pub const SORT_MAX: u32 = 1024;
+/// Most members of a list the records kernel writes records for (`RECORD_MAX / WG`
+/// iterations: 16,384); the host walks a query with more.
+pub const RECORD_MAX: u32 = 1 << 20;
 /// Lanes of the workgroup of a kernel over the member lists (one workgroup per query:
 /// `kernels/lists.rs`).
 pub const FIT_WG: u32 = 64;

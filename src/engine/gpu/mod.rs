@@ -172,6 +172,9 @@ pub struct GpuEngine {
     /// Queries answered wholly on the host (walks too long, or k-nearest sets with a
     /// boundary member); rare by design.
     fallbacks: AtomicU64,
+    /// Member lists that came back as records out of working-set order and were sorted on
+    /// the host (longer than the records kernel ranks, or with a flagged member).
+    sorted_on_host: AtomicU64,
     clock: Clock,
     /// The CPU engine over the same grid, used only through the [`Engine`] interface:
     /// the batches of at most `small_batch` queries, member lists on the host, and the
@@ -330,16 +333,14 @@ impl GpuDevice {
             software,
         } = self;
         let limits = resources::Limits::new(&ctx, &opts, grid.len());
-        let statics = resources::Statics::upload(&ctx, &grid, store, &limits, fit_wanted)?;
+        let members_on_host = members_on_host(&opts, software);
+        let statics =
+            resources::Statics::upload(&ctx, &grid, store, &limits, fit_wanted, !members_on_host)?;
         let buffers = ctx.scoped("allocating buffers", || Buffers::new(&ctx, &limits))?;
         Ok(GpuEngine {
             cpu: Box::new(super::cpu::CpuEngine::new(grid.clone())),
             small_batch: opts.small_batch,
-            members_on_host: match opts.members {
-                MembersOn::Device => false,
-                MembersOn::Host => true,
-                MembersOn::Auto => software,
-            },
+            members_on_host,
             cpu_batches: AtomicU64::new(0),
             cpu_queries: AtomicU64::new(0),
             device_fits: AtomicU64::new(0),
@@ -358,6 +359,7 @@ impl GpuDevice {
             batches: AtomicU64::new(0),
             queries: AtomicU64::new(0),
             fallbacks: AtomicU64::new(0),
+            sorted_on_host: AtomicU64::new(0),
             clock: Clock::default(),
         })
     }
@@ -408,6 +410,13 @@ impl GpuEngine {
     /// Queries answered wholly on the host; 0 on ordinary scenes.
     pub fn host_fallbacks(&self) -> u64 {
         self.fallbacks.load(Ordering::Relaxed)
+    }
+
+    /// Member lists of members batches that came back as records (the member lists and
+    /// the fit on the device) and that the host sorted by id: those longer than the
+    /// records kernel ranks, and those with a flagged member out of order.
+    pub fn lists_sorted_on_host(&self) -> u64 {
+        self.sorted_on_host.load(Ordering::Relaxed)
     }
 
     /// Former name of [`Self::host_fallbacks`].
@@ -652,6 +661,16 @@ impl Engine for GpuEngine {
 
     fn seconds(&self) -> Option<(f64, f64)> {
         Some(GpuEngine::seconds(self))
+    }
+}
+
+/// Whether member lists are the host's ([`GpuOptions::members`]; `auto`: on a software
+/// adapter).
+fn members_on_host(opts: &GpuOptions, software: bool) -> bool {
+    match opts.members {
+        MembersOn::Device => false,
+        MembersOn::Host => true,
+        MembersOn::Auto => software,
     }
 }
 

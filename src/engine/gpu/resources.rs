@@ -69,6 +69,10 @@ pub struct Statics {
     /// The sorted centers' own f32 coordinates (3 words each), for the fit kernel's f64
     /// geometry; uploaded only for the device fit, and only when one binding holds them.
     pub world: Option<(wgpu::Buffer, u64)>,
+    /// The sorted centers' working-set ids, for the members batches' records
+    /// (`kernels/records.rs`); uploaded only with `world`, where member lists are the
+    /// device's.
+    pub ids: Option<(wgpu::Buffer, u64)>,
 }
 
 /// The point store's contents: every sorted center as its offset from its own cell's
@@ -169,13 +173,14 @@ fn par_copy(mut dst: wgpu::WriteOnly<'_, [u8]>, src: &[u8]) {
 impl Statics {
     /// Uploads the cell table and the point store (computed now unless given for this
     /// very grid); with `world`, also the centers' own coordinates where one binding holds
-    /// them.
+    /// them, and with `ids` too, their working-set ids.
     pub fn upload(
         ctx: &Context,
         grid: &std::sync::Arc<Grid>,
         store: Option<PointStore>,
         lim: &Limits,
         world: bool,
+        ids: bool,
     ) -> Result<Statics, EngineError> {
         let cell_bytes = (grid.cell_start.len() * 4) as u64;
         if cell_bytes > lim.device_binding {
@@ -216,12 +221,20 @@ impl Statics {
                 });
                 (buf, world_bytes)
             });
+            let ids_bytes = (grid.ids.len() * 4).max(4) as u64;
+            let ids = (ids && world.is_some()).then(|| {
+                let buf = ctx.filled_buffer("ids", ids_bytes, |dst| {
+                    copy(dst, bytemuck::cast_slice(&grid.ids))
+                });
+                (buf, ids_bytes)
+            });
             ctx.queue.submit([]);
             Statics {
                 cell_start,
                 cell_bytes,
                 parts,
                 world,
+                ids,
                 dims: grid.dims,
             }
         })
@@ -263,15 +276,15 @@ pub struct Buffers {
 }
 
 impl Buffers {
-    /// Bytes of a members batch of `n` queries' member list to read back with the answers,
-    /// of `cap` there are: the whole list before any batch listed members, then a quarter
+    /// Bytes of a members batch of `n` queries' member list (`per_member` bytes an entry)
+    /// to read back with the answers, of `cap` there are: the whole list before any batch listed members, then a quarter
     /// more than [`Self::members_per_query`] would need (and 4 KiB). Where
     /// the list is longer, [`super::batch::submit`] reads the rest in a copy of its own;
     /// reading the whole capacity read back about nine times the members on the bench
     /// scene (the capacity is the largest batch's, the fit's, not this batch's).
-    pub fn member_back(&self, n: usize, cap: u64) -> u64 {
+    pub fn member_back(&self, n: usize, cap: u64, per_member: u64) -> u64 {
         match self.members_per_query {
-            Some(m) => (((n as f64 * m * 1.25) as u64 + 1024) * 4).min(cap),
+            Some(m) => (((n as f64 * m * 1.25) as u64 + 1024) * per_member).min(cap),
             None => cap,
         }
     }

@@ -98,6 +98,8 @@ pub struct Sizes {
     /// The bytes of every stage's own buffer (`stages::Sequence::buffers`, in order;
     /// `None` where its stage does not run in this kind of batch).
     pub own: Vec<Option<u64>>,
+    /// A members batch whose members come back as records (`kernels/records.rs`).
+    pub records: bool,
 }
 
 impl Sizes {
@@ -131,6 +133,7 @@ impl Sizes {
             members,
             aux,
             own: Vec::new(),
+            records: false,
         }
     }
 }

@@ -112,8 +112,9 @@ impl GpuEngine {
         let p = ask.spec;
         // The host's own values (`Cylinder::new`, `basis`, `ridge`'s widths).
         let frames: Vec<FitQuery> = queries
-            .iter()
+            .par_iter()
             .enumerate()
+            .with_min_len(1024)
             .map(|(i, q)| {
                 let (e1, e2) = crate::geom::fit::basis(q.seg.dir());
                 FitQuery {
@@ -135,7 +136,8 @@ impl GpuEngine {
             .collect();
         let min_points = p.min_points as f64;
         let mut out: Vec<FitAnswer> = vec![(None, How::Unclear); queries.len()];
-        let (device_fits, refitted) = (&self.device_fits, &self.device_fits_refitted);
+        // Counted once for the batch, not by every answer on both threads.
+        let mut on_device = vec![false; queries.len()];
         self.run_list(b, &FIT, queries, &frames, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -143,9 +145,10 @@ impl GpuEngine {
             let fits: Vec<FitOut> = o.list_out();
             out[first..first + n]
                 .par_iter_mut()
+                .zip(&mut on_device[first..first + n])
                 .enumerate()
                 .with_min_len(8)
-                .for_each(|(i, a)| {
+                .for_each(|(i, (a, dev))| {
                     let q = &qs[i];
                     let device = o.results[i].status & STATUS_HOST == 0
                         && !o.bad
@@ -178,25 +181,23 @@ impl GpuEngine {
                         }
                         _ => None,
                     });
-                    *a = match answer {
-                        Some(a) => {
-                            device_fits.fetch_add(1, Ordering::Relaxed);
-                            a
-                        }
-                        None => {
-                            self.to_host();
-                            refitted.fetch_add(1, Ordering::Relaxed);
-                            let m = self.cpu_members(q);
-                            let one = FitAsk {
-                                warm: ask.warm.get(first + i..=first + i).unwrap_or(&[]),
-                                ..*ask
-                            };
-                            crate::engine::fit::steps(std::slice::from_ref(q), &[m], &one)[0]
-                        }
-                    };
+                    *dev = answer.is_some();
+                    *a = answer.unwrap_or_else(|| {
+                        self.to_host();
+                        let m = self.cpu_members(q);
+                        let one = FitAsk {
+                            warm: ask.warm.get(first + i..=first + i).unwrap_or(&[]),
+                            ..*ask
+                        };
+                        crate::engine::fit::steps(std::slice::from_ref(q), &[m], &one)[0]
+                    });
                 });
             Ok(())
         })?;
+        let fitted = on_device.iter().filter(|&&d| d).count() as u64;
+        self.device_fits.fetch_add(fitted, Ordering::Relaxed);
+        self.device_fits_refitted
+            .fetch_add(queries.len() as u64 - fitted, Ordering::Relaxed);
         Ok(out)
     }
 }

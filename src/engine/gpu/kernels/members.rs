@@ -40,7 +40,9 @@ pub static STAGE: StageSpec = StageSpec {
     max_items: member_scan_max,
     slots: |sz, lim, parts| 2 + scan::slots(&levels(sz, lim).0) + parts,
     record: |s, rec| s.members(rec),
-    back: |s| (s.kind == Kind::Members).then_some((&s.bd.aux, s.sz.members)),
+    back: |s| {
+        (s.kind == Kind::Members && !super::records::on(s)).then_some((&s.bd.aux, s.sz.members))
+    },
     prepare: |k, ctx, _| {
         k.eval(ctx, MODE_MEMBERS, false)?;
         k.members(ctx)?;

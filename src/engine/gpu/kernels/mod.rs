@@ -15,6 +15,7 @@ mod extent;
 mod fit;
 mod lists;
 mod members;
+pub(super) mod records;
 mod reduce;
 mod scan;
 mod walk;
@@ -36,6 +37,7 @@ pub static KERNELS: &[&[KernelSpec]] = &[
     &reduce::KERNELS,
     &fit::KERNELS,
     &extent::KERNELS,
+    &records::KERNELS,
 ];
 
 /// The stages of a device batch, in the order a try records them: each a launcher's
@@ -50,6 +52,7 @@ pub static STAGES: &[&StageSpec] = &[
     &members::STAGE,
     &cut::STAGE,
     &reduce::STAGE,
+    &records::STAGE,
     &lists::STAGE,
 ];
 
