@@ -237,9 +237,9 @@ impl GpuEngine {
             // Query after query, the device's sure members (as far as the list's capacity),
             // read in place: a copy was a fresh 4 bytes a member each sub-batch, and the
             // first sub-batch's fresh memory is page faults (see docs/benchmarks.md).
-            // Records (`kernels/records.rs`) where the device holds the ids, else sorted
+            // Records (`kernels/records.rs`) where the batch sent them, else sorted
             // indices: one entry a member either way.
-            let records = self.statics.ids.is_some();
+            let records = o.records;
             let (members, recs) = if records {
                 (Default::default(), super::device::pods::<[u32; 4]>(&o.back))
             } else {

@@ -21,7 +21,8 @@ use rayon::prelude::*;
 /// back (`StageSpec::back`): a nearest batch's plans (one [`Plan`] a query), a members
 /// batch's member list (the sure members' sorted indices, query after query,
 /// `results[i].count` each, none for a query answered on the host, as far as the list's
-/// capacity), a list kernel's output (one [`super::pipelines::ListKernel::out`] a query).
+/// capacity; with `records`, each as its record instead, [`RECORD_BYTES`]), a list
+/// kernel's output (one [`super::pipelines::ListKernel::out`] a query).
 /// Members and list batches also have `bad` when the device miscounted the members.
 #[derive(Default)]
 pub struct Output {
@@ -29,6 +30,8 @@ pub struct Output {
     pub flags: Vec<(u32, u32)>,
     pub bad: bool,
     pub back: Vec<u8>,
+    /// A members batch whose member list came back as records (`kernels/records.rs`).
+    pub records: bool,
     /// Work items the device evaluated and points it read from the point store, over
     /// every try of the sub-batch.
     pub items_run: u64,
@@ -106,22 +109,16 @@ pub fn submit(
         b.item_cap = b.item_cap.max(guess);
         b.sized = true;
     }
-    // A members batch whose members come back as records (`kernels/records.rs`) reads
-    // back 16 bytes an entry, not 4: its list holds a quarter as many at most.
-    let records = kind == Kind::Members && st.ids.is_some();
-    let per_member = if records {
-        super::layout::RECORD_BYTES
-    } else {
-        4
-    };
-    let member_max = if records {
-        lim.member_max / 4
-    } else {
-        lim.member_max
-    };
+    let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
     let most_items = seq.most_items(kind, lim);
     loop {
+        // A members batch's members come back as records (`kernels/records.rs`) where the
+        // device holds the ids and the records of the list's whole capacity (16 bytes an
+        // entry, not 4) fit where the list does; a try with a larger list sends the list.
+        let records =
+            kind == Kind::Members && st.ids.is_some() && b.member_cap <= lim.member_max / 4;
+        let per_member = if records { RECORD_BYTES } else { 4 };
         let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun, records)?;
         rerun = true;
         waited += got.waited;
@@ -156,6 +153,7 @@ pub fn submit(
             let mut out = Output {
                 items_run,
                 points_read,
+                records,
                 ..got.out
             };
             if kind == Kind::Members {
@@ -284,11 +282,7 @@ fn attempt(
     let whole = backs.first().map_or(0, |x| x.1);
     // A members batch reads back about as much of its member list as it will use.
     let tail = if kind == Kind::Members {
-        let per_member = if records {
-            super::layout::RECORD_BYTES
-        } else {
-            4
-        };
+        let per_member = if records { RECORD_BYTES } else { 4 };
         b.member_back(gq.len(), whole, per_member)
     } else {
         whole

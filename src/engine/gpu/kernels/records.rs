@@ -1,7 +1,8 @@
 //! `records.wgsl`: a members batch's sure members as records (working-set id and the
 //! centre's own f32 coordinates, 16 bytes), each list in working-set order where it has at
 //! most [`SORT_MAX`] members; what comes back from a members batch wherever the device
-//! holds the centers' coordinates and ids ([`super::super::resources::Statics::ids`]).
+//! holds the centers' coordinates and ids ([`super::super::resources::Statics::ids`]) and
+//! the records of the member list's capacity fit one binding ([`Sizes::records`]).
 //! The host then measures each member in f64 from its record, in the order its answer
 //! keeps: it reads neither the grid's ids nor its points, and sorts only the longer lists.
 
@@ -28,8 +29,8 @@ pub static KERNELS: [KernelSpec; 1] = [KernelSpec {
     structs: &[],
 }];
 
-/// The records of every try of a members batch where the device holds the ids; they come
-/// back instead of the member list.
+/// The records of every try of a members batch that sends them ([`Sizes::records`]); they
+/// come back instead of the member list.
 pub static STAGE: StageSpec = StageSpec {
     name: "records",
     runs_in: |kind| kind == Kind::Members,
