@@ -821,18 +821,13 @@ fn the_gpu_benchmark_script_runs() {
 /// opening took and how much of it came after the build, and the CPU run opens nothing.
 #[test]
 fn bench_opens_the_device_while_the_scene_is_built() {
-    let o = run(&[
-        "bench",
-        "-n",
-        "20000",
-        "--num-segments",
-        "200",
-        "--backend",
-        "cpu,gpu",
-        "--repeat",
-        "2",
-        "--json",
-    ]);
+    // The bench at 20,000 x 200 with these arguments after the size.
+    let bench = |more: &[&str]| {
+        let mut args = vec!["bench", "-n", "20000", "--num-segments", "200"];
+        args.extend_from_slice(more);
+        run(&args)
+    };
+    let o = bench(&["--backend", "cpu,gpu", "--repeat", "2", "--json"]);
     let err = stderr(&o);
     if common::no_adapter_skip(&o, &err) {
         return;
@@ -849,16 +844,7 @@ fn bench_opens_the_device_while_the_scene_is_built() {
     assert_eq!(cpu["segments_out"], gpu["segments_out"]);
     // `auto` reports an opening only where it ran on a GPU (without a hardware adapter it
     // takes the CPU engine and opens nothing).
-    let o = run(&[
-        "bench",
-        "-n",
-        "20000",
-        "--num-segments",
-        "200",
-        "--backend",
-        "auto",
-        "--json",
-    ]);
+    let o = bench(&["--backend", "auto", "--json"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let r = &v["cases"][0]["runs"][0];
@@ -868,15 +854,7 @@ fn bench_opens_the_device_while_the_scene_is_built() {
         "{r}"
     );
     // The run's setup stages are the grid and the upload: the host-share line says so.
-    let o = run(&[
-        "bench",
-        "-n",
-        "20000",
-        "--num-segments",
-        "200",
-        "--backend",
-        "cpu,gpu",
-    ]);
+    let o = bench(&["--backend", "cpu,gpu"]);
     let out = stdout(&o);
     assert!(
         out.contains("  gpu: device opened in ") && out.contains("while the scene was built"),

@@ -21,7 +21,17 @@ pub(super) fn per_query<T: Send>(
     min_len: usize,
     answer: impl Fn(usize, &[(u32, u32)], &mut T) + Sync + Send,
 ) {
-    let spans = host::spans(&o.flags, out.len());
+    per_query_in(out, o, &host::spans(&o.flags, out.len()), min_len, answer)
+}
+
+/// [`per_query`] with the sub-batch's flag spans already found ([`host::spans`]).
+fn per_query_in<T: Send>(
+    out: &mut [T],
+    o: &Output,
+    spans: &[std::ops::Range<usize>],
+    min_len: usize,
+    answer: impl Fn(usize, &[(u32, u32)], &mut T) + Sync + Send,
+) {
     out.par_iter_mut()
         .enumerate()
         .with_min_len(min_len)
@@ -266,7 +276,7 @@ impl GpuEngine {
             for (i, m) in out[first..first + n].iter_mut().enumerate() {
                 *m = Vec::with_capacity(lists[i].len() + spans[i].len());
             }
-            per_query(&mut out[first..first + n], &o, 8, |i, flags, m| {
+            per_query_in(&mut out[first..first + n], &o, &spans, 8, |i, flags, m| {
                 let q = &qs[i];
                 let device = o.results[i].status & layout::STATUS_HOST == 0
                     && !o.bad

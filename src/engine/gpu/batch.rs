@@ -118,7 +118,7 @@ pub fn submit(
         // entry, not 4) fit where the list does; a try with a larger list sends the list.
         let records =
             kind == Kind::Members && st.ids.is_some() && b.member_cap <= lim.member_max / 4;
-        let per_member = if records { RECORD_BYTES } else { 4 };
+        let per_member = entry_bytes(records);
         let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun, records)?;
         rerun = true;
         waited += got.waited;
@@ -174,6 +174,16 @@ pub fn submit(
             }
             return Ok(Attempt::Done(out, waited));
         }
+    }
+}
+
+/// Bytes of a members batch's member-list entry: a record ([`RECORD_BYTES`]) or a sorted
+/// index.
+fn entry_bytes(records: bool) -> u64 {
+    if records {
+        RECORD_BYTES
+    } else {
+        4
     }
 }
 
@@ -282,8 +292,7 @@ fn attempt(
     let whole = backs.first().map_or(0, |x| x.1);
     // A members batch reads back about as much of its member list as it will use.
     let tail = if kind == Kind::Members {
-        let per_member = if records { RECORD_BYTES } else { 4 };
-        b.member_back(gq.len(), whole, per_member)
+        b.member_back(gq.len(), whole, entry_bytes(records))
     } else {
         whole
     };
