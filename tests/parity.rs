@@ -656,6 +656,36 @@ fn member_lists_come_back_from_the_device_in_working_set_order() {
 }
 
 #[test]
+fn member_lists_come_back_as_records_after_a_batch_too_large_for_them() {
+    // A batch listing more members than the records' binding holds (a quarter of the
+    // member list's most entries) grows the shared member capacity past it and lists
+    // its members without records; a later, smaller batch comes back as records again.
+    let pts = random_scene(20_000, 94);
+    let Some((_, cpu, gpu)) = engines(&pts, 0.2, GpuOptions::default()) else {
+        return;
+    };
+    if !gpu.fits_on_device() {
+        return;
+    }
+    // Every point is a member of each of these.
+    let all = Query::new(
+        Segment::new(DVec3::new(-1.0, 0.5, 0.5), DVec3::new(2.0, 0.5, 0.5)),
+        1.0,
+    );
+    let big = vec![all; 220];
+    let lists = gpu.members(&big).unwrap();
+    assert!(lists.iter().all(|l| l.len() == pts.len()));
+    assert_eq!(lists[0], cpu.members(&big[..1]).unwrap()[0]);
+    // 4.4 million members: more than the records of a 128 MiB binding (lavapipe's),
+    // 4.2 million.
+    let with_records = gpu.record_batches();
+    let qs = random_queries(300, 92, 0.04);
+    assert_eq!(gpu.members(&qs).unwrap(), cpu.members(&qs).unwrap());
+    assert_eq!(gpu.record_batches(), with_records + 1);
+    assert_eq!(gpu.host_fallbacks(), 0);
+}
+
+#[test]
 fn the_edge_fit_runs_where_the_option_says() {
     use linegs_gpu::engine::gpu::FitOn;
     use linegs_gpu::engine::FitAsk;

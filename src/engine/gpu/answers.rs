@@ -250,6 +250,8 @@ impl GpuEngine {
             // Records (`kernels/records.rs`) where the batch sent them, else sorted
             // indices: one entry a member either way.
             let records = o.records;
+            self.record_batches
+                .fetch_add(records as u64, Ordering::Relaxed);
             let (members, recs) = if records {
                 (Default::default(), super::device::pods::<[u32; 4]>(&o.back))
             } else {

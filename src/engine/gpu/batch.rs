@@ -29,7 +29,7 @@ pub struct Output {
     pub results: Vec<QResult>,
     pub flags: Vec<(u32, u32)>,
     pub bad: bool,
-    pub back: Vec<u8>,
+    pub back: Back,
     /// A members batch whose member list came back as records (`kernels/records.rs`).
     pub records: bool,
     /// Work items the device evaluated and points it read from the point store, over
@@ -50,6 +50,30 @@ impl Output {
                 n
             ],
             ..Default::default()
+        }
+    }
+}
+
+/// A sub-batch's bytes past its results and counters (a list kernel's outputs, the
+/// members, the nearest plans): where they lie in the mapped staging buffer, or a copy
+/// where part of them came back in a round trip of their own.
+pub enum Back {
+    Mapped(device::Mapped),
+    Owned(Vec<u8>),
+}
+
+impl Default for Back {
+    fn default() -> Back {
+        Back::Owned(Vec::new())
+    }
+}
+
+impl std::ops::Deref for Back {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        match self {
+            Back::Mapped(m) => m,
+            Back::Owned(v) => v,
         }
     }
 }
@@ -112,14 +136,22 @@ pub fn submit(
     let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
     let most_items = seq.most_items(kind, lim);
+    // A members batch's members come back as records (`kernels/records.rs`) where the
+    // device holds the ids, as many as fit one binding (16 bytes an entry, not 4: a
+    // quarter of the list's most entries). A try with records lists at most that many
+    // members; a batch with more lists them without records.
+    let record_max = member_max / 4;
+    let mut records = kind == Kind::Members && st.ids.is_some();
     loop {
-        // A members batch's members come back as records (`kernels/records.rs`) where the
-        // device holds the ids and the records of the list's whole capacity (16 bytes an
-        // entry, not 4) fit where the list does; a try with a larger list sends the list.
-        let records =
-            kind == Kind::Members && st.ids.is_some() && b.member_cap <= lim.member_max / 4;
+        // This try's member capacity: the shared one (which the fit's list batches grow
+        // beyond what records may hold at 10^7 Gaussians), within the records' most.
+        let cap = if records {
+            b.member_cap.min(record_max)
+        } else {
+            b.member_cap
+        };
         let per_member = entry_bytes(records);
-        let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun, records)?;
+        let got = attempt(ctx, k, seq, st, lim, b, kind, &gq, fit, rerun, records, cap)?;
         rerun = true;
         waited += got.waited;
         items_run += got.items.min(b.item_cap) as u64;
@@ -134,12 +166,15 @@ pub fn submit(
             }
             b.item_cap = grow(got.items, lim.item_max);
             again = true;
-        } else if got.members > b.member_cap as u64 {
+        } else if got.members > cap as u64 {
             // (Counted only when every item was evaluated.)
             if got.members > member_max as u64 {
                 return Ok(Attempt::TooLarge(waited, items_run, points_read));
             }
-            b.member_cap = grow(got.members as u32, member_max);
+            records &= got.members <= record_max as u64;
+            if got.members > b.member_cap as u64 {
+                b.member_cap = grow(got.members as u32, member_max);
+            }
             again = true;
         }
         if got.flags > b.flag_cap {
@@ -158,11 +193,11 @@ pub fn submit(
             };
             if kind == Kind::Members {
                 // The part of the member list past what came back with the answers.
-                let used = got.members.min(b.member_cap as u64) * per_member;
+                let used = got.members.min(cap as u64) * per_member;
                 if let Some((list, read)) = got.rest.filter(|r| used > r.1) {
                     let (rest, w) = read_range(ctx, &list, read, used - read)?;
                     waited += w;
-                    out.back.extend_from_slice(&rest);
+                    out.back = Back::Owned([&out.back[..], &rest].concat());
                 }
             }
             if kind.lists() {
@@ -240,8 +275,9 @@ fn attempt(
     fit: &[FitQuery],
     rerun: bool,
     records: bool,
+    member_cap: u32,
 ) -> Result<Readback, EngineError> {
-    let mut sz = Sizes::of(kind, gq.len() as u32, b);
+    let mut sz = Sizes::of(kind, gq.len() as u32, b, member_cap);
     sz.records = records;
     sz.own = seq.own_sizes(kind, &sz, lim);
     let base = Params {
@@ -255,7 +291,7 @@ fn attempt(
         max_x: lim.max_x,
         total: sz.total_idx,
         cover: matches!(kind, Kind::Stats { cover: true, .. }) as u32,
-        member_cap: b.member_cap,
+        member_cap,
         ..Default::default()
     };
     let slots = seq.most_slots(kind, &sz, lim, st.parts.len());
@@ -325,9 +361,8 @@ fn attempt(
     if let Some(&(buf, _)) = backs.first().filter(|_| tail > 0) {
         enc.copy_buffer_to_buffer(buf, 0, &staging, after, tail);
     }
-    let (got, waited) = ctx.submit_and_map(enc, &staging, staging_bytes, |bytes| {
-        read(bytes, kind, &sz, flag_cap)
-    })?;
+    let (bytes, waited) = ctx.submit_mapped(enc, &staging, staging_bytes)?;
+    let got = read(bytes, kind, &sz, flag_cap);
     Ok(Readback {
         waited,
         rest,
@@ -335,40 +370,43 @@ fn attempt(
     })
 }
 
-/// The staging buffer's bytes as one try's [`Readback`] (its wait not yet set).
-fn read(bytes: &[u8], kind: Kind, sz: &Sizes, flag_cap: u32) -> Readback {
-    let (r, rest) = bytes.split_at(sz.results as usize);
-    let (c, tail) = rest.split_at(sz.ctl as usize);
-    let results: Vec<QResult> = bytemuck::pod_collect_to_vec(r);
-    let ctlw: &[u32] = &device::pods::<u32>(c);
+/// The staging buffer's bytes as one try's [`Readback`] (its wait not yet set); the bytes
+/// past the counters stay where they are.
+fn read(bytes: device::Mapped, kind: Kind, sz: &Sizes, flag_cap: u32) -> Readback {
+    let (r, c) = (sz.results as usize, sz.ctl as usize);
+    let results: Vec<QResult> = bytemuck::pod_collect_to_vec(&bytes[..r]);
+    let ctlw = device::pods::<u32>(&bytes[r..r + c]);
     let (items, n_flags) = (ctlw[0], ctlw[1]);
     let head = CTL_HEAD as usize;
     let mut flags: Vec<(u32, u32)> = (0..n_flags.min(flag_cap) as usize)
         .map(|i| (ctlw[head + 2 * i], ctlw[head + 2 * i + 1]))
         .collect();
     flags.sort_unstable_by_key(|&(q, p)| ((q & !FLAG_CANDIDATE), q >> 31, p));
-    let mut out = Output {
-        flags,
-        back: tail.to_vec(),
-        ..Default::default()
-    };
     let mut members = 0u64;
+    let mut bad = false;
     if kind.lists() {
         members = results
             .iter()
             .filter(|r| r.status & STATUS_HOST == 0)
             .map(|r| r.count as u64)
             .sum();
-        out.bad = ctlw[CTL_MEMBERS_BAD as usize] != 0;
+        bad = ctlw[CTL_MEMBERS_BAD as usize] != 0;
     }
-    out.results = results;
+    let points = ctlw[CTL_POINTS as usize] as u64 | (ctlw[CTL_POINTS as usize + 1] as u64) << 32;
+    drop(ctlw);
     Readback {
-        out,
+        out: Output {
+            results,
+            flags,
+            bad,
+            back: Back::Mapped(bytes.from(r + c)),
+            ..Default::default()
+        },
         waited: 0.0,
         items,
         flags: n_flags,
         members,
-        points: ctlw[CTL_POINTS as usize] as u64 | (ctlw[CTL_POINTS as usize + 1] as u64) << 32,
+        points,
         rest: None,
     }
 }

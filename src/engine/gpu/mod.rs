@@ -175,6 +175,8 @@ pub struct GpuEngine {
     /// Member lists that came back as records out of working-set order and were sorted on
     /// the host (longer than the records kernel ranks, or with a flagged member).
     sorted_on_host: AtomicU64,
+    /// Sub-batches of members batches whose lists came back as records.
+    record_batches: AtomicU64,
     clock: Clock,
     /// The CPU engine over the same grid, used only through the [`Engine`] interface:
     /// the batches of at most `small_batch` queries, member lists on the host, and the
@@ -360,6 +362,7 @@ impl GpuDevice {
             queries: AtomicU64::new(0),
             fallbacks: AtomicU64::new(0),
             sorted_on_host: AtomicU64::new(0),
+            record_batches: AtomicU64::new(0),
             clock: Clock::default(),
         })
     }
@@ -417,6 +420,13 @@ impl GpuEngine {
     /// records kernel ranks, and those with a flagged member out of order.
     pub fn lists_sorted_on_host(&self) -> u64 {
         self.sorted_on_host.load(Ordering::Relaxed)
+    }
+
+    /// Sub-batches of members batches whose lists came back as records
+    /// (`kernels/records.rs`): every one whose members fit the records' binding, where
+    /// the member lists and the fit are on the device.
+    pub fn record_batches(&self) -> u64 {
+        self.record_batches.load(Ordering::Relaxed)
     }
 
     /// Former name of [`Self::host_fallbacks`].

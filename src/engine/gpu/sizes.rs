@@ -103,7 +103,9 @@ pub struct Sizes {
 }
 
 impl Sizes {
-    pub(super) fn of(kind: Kind, n: u32, b: &Buffers) -> Sizes {
+    /// A try of `kind` over `n` queries with the buffers' capacities and, for the member
+    /// list, `member_cap` entries (at most the buffers' own).
+    pub(super) fn of(kind: Kind, n: u32, b: &Buffers, member_cap: u32) -> Sizes {
         let n64 = n as u64;
         let (levels, total_idx, scan_len) = scan_levels(n);
         let size_of = |bytes: usize, count: u64| count * bytes as u64;
@@ -111,7 +113,7 @@ impl Sizes {
         let ctl = (CTL_HEAD as u64 + 2 * b.flag_cap as u64) * 4;
         let hist = n64 * NBINS as u64 * 4;
         let plans = size_of(std::mem::size_of::<Plan>(), n64);
-        let members = b.member_cap as u64 * 4;
+        let members = member_cap as u64 * 4;
         let aux = match kind {
             Kind::Nearest => hist,
             Kind::Stats { cover: true, .. } => b.aux_len,

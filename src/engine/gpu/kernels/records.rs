@@ -2,7 +2,8 @@
 //! centre's own f32 coordinates, 16 bytes), each list in working-set order where it has at
 //! most [`SORT_MAX`] members; what comes back from a members batch wherever the device
 //! holds the centers' coordinates and ids ([`super::super::resources::Statics::ids`]) and
-//! the records of the member list's capacity fit one binding ([`Sizes::records`]).
+//! the batch's records fit one binding ([`Sizes::records`]; a try with records lists at
+//! most a quarter of the member list's most entries, `batch::submit`).
 //! The host then measures each member in f64 from its record, in the order its answer
 //! keeps: it reads neither the grid's ids nor its points, and sorts only the longer lists.
 
