@@ -37,33 +37,69 @@ pub fn by_batches<E: Engine + ?Sized>(
     engine: &E,
     job: &FitJob<'_>,
 ) -> Result<FitResult, EngineError> {
+    by_batches_in(engine, job, None)
+}
+
+/// `order(segments)`: the order an engine asks segments in ([`by_batches_in`]).
+pub type OrderOf<'a> = dyn Fn(&[Segment]) -> SpatialOrder + Sync + 'a;
+
+/// [`by_batches`] with the segments asked in `order(segments)` ([`FitAsk::in_order`]),
+/// where the engine gives one: its own batches' order ([`SpatialOrder`]), kept over the
+/// iterations (the segments still moving, in the same order), so that the engine need
+/// not order each batch again. The per-iteration work of the tracks (their queries, each
+/// step's advance) is parallel. The answers are the same in any order.
+pub fn by_batches_in<E: Engine + ?Sized>(
+    engine: &E,
+    job: &FitJob<'_>,
+    order: Option<&OrderOf<'_>>,
+) -> Result<FitResult, EngineError> {
     super::dedup::fit_distinct(job, |job| {
         let r = job.r;
         let spec = job.spec;
         let mut tracks: Vec<Track> = job.segments.iter().map(|s| Track::new(*s)).collect();
-        let mut active: Vec<usize> = (0..tracks.len()).filter(|&i| tracks[i].starts()).collect();
+        let mut active: Vec<usize> = match order {
+            Some(order) => {
+                let o = order(job.segments);
+                (0..tracks.len()).map(|j| o.index(j)).collect()
+            }
+            None => (0..tracks.len()).collect(),
+        };
+        active.retain(|&i| tracks[i].starts());
         let mut iterations = 0;
         while !active.is_empty() && iterations < spec.iterations {
             iterations += 1;
-            let queries: Vec<Query> = active
-                .iter()
-                .map(|&i| Query::new(tracks[i].cur, r))
-                .collect();
+            let (queries, warm): (Vec<Query>, Vec<bool>) = active
+                .par_iter()
+                .with_min_len(4096)
+                .map(|&i| (Query::new(tracks[i].cur, r), tracks[i].warm))
+                .unzip();
             let near = |j: usize, f: &LineFit| {
                 let t = &tracks[active[j]];
                 near_threshold(&t.cur, f, &t.origin, r, spec)
             };
-            let warm: Vec<bool> = active.iter().map(|&i| tracks[i].warm).collect();
             let ask = FitAsk {
                 spec,
                 points: job.points,
                 sensitive: Some(&near),
                 warm: &warm,
+                in_order: order.is_some(),
             };
             let steps = engine.fit_lines(&queries, &ask)?;
+            // Each track's advance on a copy, in parallel; then the copies put back.
+            let advanced: Vec<(Track, bool)> = active
+                .par_iter()
+                .zip(&steps)
+                .with_min_len(4096)
+                .map(|(&i, &d)| {
+                    let mut t = tracks[i];
+                    let more = t.advance(d, r, spec);
+                    (t, more)
+                })
+                .collect();
             let mut next = Vec::with_capacity(active.len());
-            for (&i, &d) in active.iter().zip(&steps) {
-                if tracks[i].advance(d, r, spec) {
+            for (&i, (t, more)) in active.iter().zip(advanced) {
+                tracks[i] = t;
+                if more {
                     next.push(i);
                 }
             }

@@ -192,6 +192,11 @@ pub struct FitAsk<'a> {
     /// Per query, whether its ridge starts warm, at the final kernel width
     /// ([`crate::geom::fit::Track::warm`]); empty: none does.
     pub warm: &'a [bool],
+    /// The queries come in an order that keeps near ones together (the edge fit's
+    /// segments in the GPU engine's own batch order, [`fit::by_batches_in`]): an engine
+    /// may send them as they come instead of ordering them itself. The answers are the
+    /// same either way.
+    pub in_order: bool,
 }
 
 impl<'a> FitAsk<'a> {
@@ -202,6 +207,7 @@ impl<'a> FitAsk<'a> {
             points,
             sensitive: None,
             warm: &[],
+            in_order: false,
         }
     }
 }

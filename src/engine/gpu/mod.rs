@@ -605,6 +605,10 @@ impl Engine for GpuEngine {
             return Ok(out);
         };
         self.count_batch(queries.len());
+        if ask.in_order {
+            // The caller keeps this engine's order (the edge fit's iterations).
+            return (route.answer)(self, &mut self.lock(), queries, ask);
+        }
         let (order, sent) = self.on_host(|| {
             let order = SpatialOrder::new(&self.grid, queries);
             let sent = order.apply(queries);
@@ -629,7 +633,9 @@ impl Engine for GpuEngine {
     }
 
     /// With the ridge on the device ([`GpuOptions::fit`], a fit that
-    /// `kernels::ROUTES.fit_lines` takes), one batch per iteration ([`super::fit::by_batches`]: each batch's ridge on the device);
+    /// `kernels::ROUTES.fit_lines` takes), one batch per iteration
+    /// ([`super::fit::by_batches_in`], the segments in this engine's spatial order: each
+    /// batch's ridge on the device);
     /// otherwise the CPU engine's [`Engine::fit_edges`] over the same grid (each
     /// neighbourhood gathered once), as one host batch.
     fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
@@ -638,7 +644,8 @@ impl Engine for GpuEngine {
             // advance) counts as host work too, beside the batches' (counted inside).
             let t = std::time::Instant::now();
             let (h0, d0) = GpuEngine::seconds(self);
-            let out = super::fit::by_batches(self, job);
+            let order = |s: &[crate::geom::Segment]| SpatialOrder::of_segments(&self.grid, s);
+            let out = super::fit::by_batches_in(self, job, Some(&order));
             let (h1, d1) = GpuEngine::seconds(self);
             let own = t.elapsed().as_secs_f64() - (h1 - h0) - (d1 - d0);
             self.clock.add(own.max(0.0), 0.0);
