@@ -57,53 +57,57 @@ pub fn by_batches_in<E: Engine + ?Sized>(
         let r = job.r;
         let spec = job.spec;
         let mut tracks: Vec<Track> = job.segments.iter().map(|s| Track::new(*s)).collect();
-        let mut active: Vec<usize> = match order {
+        // The tracks still moving (with their segment's index), in the order asked.
+        let mut live: Vec<(usize, Track)> = match order {
             Some(order) => {
                 let o = order(job.segments);
-                (0..tracks.len()).map(|j| o.index(j)).collect()
+                (0..tracks.len()).map(|j| o.index(j)).collect::<Vec<_>>()
             }
             None => (0..tracks.len()).collect(),
-        };
-        active.retain(|&i| tracks[i].starts());
+        }
+        .into_iter()
+        .filter(|&i| tracks[i].starts())
+        .map(|i| (i, tracks[i]))
+        .collect();
         let mut iterations = 0;
-        while !active.is_empty() && iterations < spec.iterations {
+        while !live.is_empty() && iterations < spec.iterations {
             iterations += 1;
-            let (queries, warm): (Vec<Query>, Vec<bool>) = active
-                .par_iter()
-                .with_min_len(4096)
-                .map(|&i| (Query::new(tracks[i].cur, r), tracks[i].warm))
-                .unzip();
-            let near = |j: usize, f: &LineFit| {
-                let t = &tracks[active[j]];
-                near_threshold(&t.cur, f, &t.origin, r, spec)
+            let steps = {
+                let (queries, warm): (Vec<Query>, Vec<bool>) = live
+                    .par_iter()
+                    .with_min_len(4096)
+                    .map(|(_, t)| (Query::new(t.cur, r), t.warm))
+                    .unzip();
+                let near = |j: usize, f: &LineFit| {
+                    let t = &live[j].1;
+                    near_threshold(&t.cur, f, &t.origin, r, spec)
+                };
+                let ask = FitAsk {
+                    spec,
+                    points: job.points,
+                    sensitive: Some(&near),
+                    warm: &warm,
+                    in_order: order.is_some(),
+                };
+                engine.fit_lines(&queries, &ask)?
             };
-            let ask = FitAsk {
-                spec,
-                points: job.points,
-                sensitive: Some(&near),
-                warm: &warm,
-                in_order: order.is_some(),
-            };
-            let steps = engine.fit_lines(&queries, &ask)?;
-            // Each track's advance on a copy, in parallel; then the copies put back.
-            let advanced: Vec<(Track, bool)> = active
-                .par_iter()
+            let more: Vec<bool> = live
+                .par_iter_mut()
                 .zip(&steps)
                 .with_min_len(4096)
-                .map(|(&i, &d)| {
-                    let mut t = tracks[i];
-                    let more = t.advance(d, r, spec);
-                    (t, more)
-                })
+                .map(|((_, t), &d)| t.advance(d, r, spec))
                 .collect();
-            let mut next = Vec::with_capacity(active.len());
-            for (&i, (t, more)) in active.iter().zip(advanced) {
-                tracks[i] = t;
-                if more {
-                    next.push(i);
+            let mut k = 0;
+            live.retain(|&(i, t)| {
+                k += 1;
+                if !more[k - 1] {
+                    tracks[i] = t;
                 }
-            }
-            active = next;
+                more[k - 1]
+            });
+        }
+        for (i, t) in live {
+            tracks[i] = t;
         }
         Ok(FitResult::of_tracks(&tracks))
     })
