@@ -686,6 +686,69 @@ fn member_lists_come_back_as_records_after_a_batch_too_large_for_them() {
 }
 
 #[test]
+fn member_lists_come_in_parts_of_whole_groups() {
+    // `members_in_parts` hands every query's list out once, the CPU engine's list, in
+    // whole groups (here a segment's two lines), at most `part` queries a part. The GPU
+    // engine answers the whole batch in one device batch, also where its sub-batches
+    // (7 queries here) end inside a group, and the receiver's time is not its host time.
+    let pts = random_scene(20_000, 95);
+    let qs = random_queries(300, 96, 0.04);
+    let Some((_, cpu, gpu)) = engines(&pts, 0.03, GpuOptions::default()) else {
+        return;
+    };
+    let small = GpuOptions {
+        max_queries: 7,
+        ..GpuOptions::default()
+    };
+    let Some((_, _, gpu7)) = engines(&pts, 0.03, small) else {
+        return;
+    };
+    let want = cpu.members(&qs).unwrap();
+    for (name, e) in [
+        ("cpu", &cpu as &dyn Engine),
+        ("gpu", &gpu),
+        ("gpu, sub-batches of 7", &gpu7),
+    ] {
+        let before = e.counters().batches;
+        let host_before = e.seconds().map_or(0.0, |s| s.0);
+        let mut seen = vec![false; qs.len()];
+        let mut parts = 0;
+        e.members_in_parts(&qs, 2, 64, &mut |idx, lists| {
+            assert!(
+                idx.len() <= 64 && idx.len() % 2 == 0,
+                "{name}: {}",
+                idx.len()
+            );
+            assert_eq!(idx.len(), lists.len());
+            for pair in idx.chunks(2) {
+                assert!(
+                    pair[0] % 2 == 0 && pair[1] == pair[0] + 1,
+                    "{name}: {pair:?}"
+                );
+            }
+            for (&i, l) in idx.iter().zip(&lists) {
+                assert!(!seen[i], "{name}: query {i} twice");
+                seen[i] = true;
+                assert_eq!(l, &want[i], "{name}: query {i}");
+            }
+            parts += 1;
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            Ok(())
+        })
+        .unwrap();
+        assert!(seen.iter().all(|&s| s), "{name}");
+        assert!(parts >= 5, "{name}: {parts} parts");
+        if name != "cpu" {
+            assert_eq!(e.counters().batches - before, 1, "{name}");
+            // 100 ms and more asleep in the receiver, none of it the engine's.
+            let host = e.seconds().unwrap().0 - host_before;
+            assert!(host < 0.05, "{name}: {host} s of host time");
+        }
+    }
+    assert_eq!(gpu.host_fallbacks() + gpu7.host_fallbacks(), 0);
+}
+
+#[test]
 fn the_edge_fit_runs_where_the_option_says() {
     use linegs_gpu::engine::gpu::FitOn;
     use linegs_gpu::engine::FitAsk;

@@ -259,6 +259,24 @@ impl Engine for Dedup {
         self.per_distinct(queries, |e, q| e.members(q))
     }
 
+    /// The inner engine's parts where the queries are distinct; otherwise the distinct
+    /// queries' lists, copied to the copies, handed out in the caller's order.
+    fn members_in_parts(
+        &self,
+        queries: &[Query],
+        group: usize,
+        part: usize,
+        f: &mut super::Parts<'_>,
+    ) -> Result<(), EngineError> {
+        match Groups::of(queries, None) {
+            None => {
+                self.count(queries.len());
+                self.inner.members_in_parts(queries, group, part, f)
+            }
+            Some(_) => super::hand_out(self.members(queries)?, group, part, f),
+        }
+    }
+
     fn occupied(&self, queries: &[Query]) -> Result<Vec<bool>, EngineError> {
         self.per_distinct(queries, |e, q| e.occupied(q))
     }

@@ -219,6 +219,37 @@ pub type Sensitive<'a> = dyn Fn(usize, &LineFit) -> bool + Sync + 'a;
 /// and how it was decided.
 pub type FitAnswer = (Option<LineFit>, How);
 
+/// [`Engine::members_in_parts`]' receiver: `(indices, their lists)`.
+pub type Parts<'a> = dyn FnMut(&[usize], Vec<Vec<Member>>) -> Result<(), EngineError> + 'a;
+
+/// Queries a part of [`Engine::members_in_parts`]: whole groups of `group`, at most
+/// `part` (at least one group).
+pub fn part_len(group: usize, part: usize) -> usize {
+    let g = group.max(1);
+    (part / g).max(1) * g
+}
+
+/// `lists` (one a query, in the caller's order) handed to `f` in the parts of
+/// [`Engine::members_in_parts`].
+pub fn hand_out(
+    lists: Vec<Vec<Member>>,
+    group: usize,
+    part: usize,
+    f: &mut Parts<'_>,
+) -> Result<(), EngineError> {
+    let per = part_len(group, part);
+    let n = lists.len();
+    let mut lists = lists.into_iter();
+    let mut at = 0;
+    while at < n {
+        let len = per.min(n - at);
+        let indices: Vec<usize> = (at..at + len).collect();
+        f(&indices, lists.by_ref().take(len).collect())?;
+        at += len;
+    }
+    Ok(())
+}
+
 /// [`Engine::axial`] of member lists (`members[i]` those of `queries[i]`).
 pub fn axial_of_members(members: &[Vec<Member>], queries: &[Query]) -> Vec<Vec<f64>> {
     members
@@ -456,6 +487,24 @@ pub trait Engine: Send + Sync {
     /// same for every thread count, both engines and every grid layout). Per-point output is O(members), not O(queries): use it only
     /// where sums cannot answer (the edge fit's robust estimates).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<Member>>, EngineError>;
+    /// [`Self::members`] of `queries` handed to `f` a part at a time, so that the caller
+    /// holds one part's lists only: `f(indices, lists)`, `lists[k]` the members of
+    /// `queries[indices[k]]`. Every query comes once, in whole groups of `group`
+    /// consecutive queries (each group's own order kept), at most `part` queries a part
+    /// (at least one group); `queries.len()` is a multiple of `group`. `f` must not ask
+    /// this engine anything. An engine may answer the whole batch at once and make each
+    /// part's lists as it hands them out (the GPU engine: one device batch, the lists
+    /// made from its readback part by part, in the engine's own order). By default
+    /// [`Self::members`] of the whole batch, handed out in the caller's order.
+    fn members_in_parts(
+        &self,
+        queries: &[Query],
+        group: usize,
+        part: usize,
+        f: &mut Parts<'_>,
+    ) -> Result<(), EngineError> {
+        hand_out(self.members(queries)?, group, part, f)
+    }
     /// Every query's members' axial positions `t`, each clamped to `[0, length]` and
     /// sorted ascending (what `--split-gaps` reads): by default from [`Self::members`].
     fn axial(&self, queries: &[Query]) -> Result<Vec<Vec<f64>>, EngineError> {

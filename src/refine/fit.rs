@@ -321,6 +321,10 @@ pub const MOVE_MARGIN: f64 = 3.5;
 /// its fitted and its input line): what it holds at once stays bounded at any scene size.
 pub const DECIDE_CHUNK: usize = 4096;
 
+/// The decision rule weighs the lists of at most this many queries at a time, as the
+/// engine hands them out ([`crate::engine::Engine::members_in_parts`]).
+pub const DECIDE_PART: usize = 512;
+
 /// The ridge's floor counts how far its mode moves with a kernel twice as wide this many
 /// times.
 pub const RIDGE_WIDE: f64 = 2.0;
@@ -1243,32 +1247,44 @@ pub fn decide_in_chunks(
     };
     let chunks = moved.len().div_ceil(chunk.max(1));
     let size = moved.len().div_ceil(chunks);
-    let mut decided: Vec<(Decision, Option<Segment>)> = Vec::with_capacity(moved.len());
-    for chunk in moved.chunks(size) {
-        // The input lines' members serve the face end and the colour change only, both
-        // read off normals: a model without normals lists the fitted lines alone.
-        let at_input_too = attrs.normals.is_some();
+    let mut decided: Vec<Option<(Decision, Option<Segment>)>> = vec![None; moved.len()];
+    // The input lines' members serve the face end and the colour change only, both read
+    // off normals: a model without normals lists the fitted lines alone.
+    let at_input_too = attrs.normals.is_some();
+    let group = 1 + at_input_too as usize;
+    for (c, chunk) in moved.chunks(size).enumerate() {
+        // Each segment's fitted line, then (with normals) its input line: one group.
         let queries: Vec<Query> = chunk
             .iter()
-            .map(|&i| Query::new(fitted_ref.segments[i], r))
-            .chain(
-                chunk
-                    .iter()
-                    .filter(|_| at_input_too)
-                    .map(|&i| Query::new(input[i], r)),
-            )
+            .flat_map(|&i| {
+                let fit = Query::new(fitted_ref.segments[i], r);
+                std::iter::once(fit).chain(at_input_too.then(|| Query::new(input[i], r)))
+            })
             .collect();
-        let mut members = engine.members(&queries)?;
-        let mut at_input = members.split_off(chunk.len());
-        at_input.resize_with(chunk.len(), Vec::new);
-        use rayon::prelude::*;
-        decided.par_extend(
-            chunk
-                .par_iter()
-                .zip(members.par_iter().zip(&at_input))
-                .map(|(&i, (m, m_in))| weigh(i, m, m_in)),
-        );
+        // The lists come a part at a time and are weighed as they come: the lists held
+        // at once are one part's (a few MB, in cache), not the chunk's.
+        let slots = &mut decided[c * size..c * size + chunk.len()];
+        engine.members_in_parts(&queries, group, DECIDE_PART, &mut |idx, lists| {
+            use rayon::prelude::*;
+            let weighed: Vec<(usize, (Decision, Option<Segment>))> = idx
+                .par_chunks(group)
+                .zip(lists.par_chunks(group))
+                .map(|(ix, ls)| {
+                    let k = ix[0] / group;
+                    let m_in = ls.get(1).map_or(&[][..], |l| &l[..]);
+                    (k, weigh(chunk[k], &ls[0], m_in))
+                })
+                .collect();
+            for (k, w) in weighed {
+                slots[k] = Some(w);
+            }
+            Ok(())
+        })?;
     }
+    let decided: Vec<(Decision, Option<Segment>)> = decided
+        .into_iter()
+        .collect::<Option<_>>()
+        .ok_or_else(|| EngineError::Gpu("the engine left a member list out".into()))?;
     for (&i, &d) in all.iter().zip(&of) {
         let (dec, seg) = &decided[d];
         match (dec.verdict, seg) {

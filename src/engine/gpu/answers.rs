@@ -115,7 +115,10 @@ impl GpuEngine {
                 }
             }
         }
-        self.clock.add(t.elapsed().as_secs_f64() - waited, waited);
+        // The caller's own work inside `each` (a part's receiver) is not the engine's.
+        let callers = self.callers_ns.swap(0, Ordering::Relaxed) as f64 * 1e-9;
+        self.clock
+            .add(t.elapsed().as_secs_f64() - waited - callers, waited);
         Ok(())
     }
 
@@ -239,8 +242,26 @@ impl GpuEngine {
         b: &mut Buffers,
         queries: &[Query],
     ) -> Result<Vec<Vec<Member>>, EngineError> {
-        let mut out: Vec<Vec<Member>> = vec![Vec::new(); queries.len()];
+        let mut out: Vec<Vec<Member>> = Vec::with_capacity(queries.len());
+        self.members_batch_parts(b, queries, usize::MAX, &mut |_, lists| {
+            out.extend(lists);
+            Ok(())
+        })?;
+        Ok(out)
+    }
+
+    /// [`Self::members_batch`] handed to `give(first query, lists)` in order, at most
+    /// `part` queries at a time: each part's lists are made from the sub-batch's readback
+    /// as they are handed out, so that only one part's lists are new memory at a time.
+    pub(super) fn members_batch_parts(
+        &self,
+        b: &mut Buffers,
+        queries: &[Query],
+        part: usize,
+        give: &mut dyn FnMut(usize, Vec<Vec<Member>>) -> Result<(), EngineError>,
+    ) -> Result<(), EngineError> {
         let grid = &*self.grid;
+        let part = part.max(1);
         self.run(b, Kind::Members, queries, &[], &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -272,40 +293,52 @@ impl GpuEngine {
                     at - c..at
                 })
                 .collect();
-            // Each list's room taken here, on one thread: taken by both threads at
-            // once, the allocations queue on the heap's lock.
             let spans = host::spans(&o.flags, n);
-            for (i, m) in out[first..first + n].iter_mut().enumerate() {
-                *m = Vec::with_capacity(lists[i].len() + spans[i].len());
+            let mut p = 0;
+            while p < n {
+                let len = part.min(n - p);
+                // Each list's room taken here, on one thread: taken by both threads at
+                // once, the allocations queue on the heap's lock.
+                let mut out: Vec<Vec<Member>> = (p..p + len)
+                    .map(|i| Vec::with_capacity(lists[i].len() + spans[i].len()))
+                    .collect();
+                per_query_in(&mut out, &o, &spans[p..p + len], 8, |k, flags, m| {
+                    let i = p + k;
+                    let q = &qs[i];
+                    let device = o.results[i].status & layout::STATUS_HOST == 0
+                        && !o.bad
+                        && lists[i].end <= listed_len
+                        && q.r.is_finite()
+                        && q.r >= 0.0;
+                    let listed = device
+                        && if records {
+                            let got = (lists[i].len() <= layout::RECORD_MAX as usize)
+                                .then(|| {
+                                    host::members_of_records(
+                                        grid,
+                                        q,
+                                        &recs[lists[i].clone()],
+                                        flags,
+                                        m,
+                                    )
+                                })
+                                .flatten();
+                            if got == Some(true) {
+                                self.sorted_on_host.fetch_add(1, Ordering::Relaxed);
+                            }
+                            got.is_some()
+                        } else {
+                            host::members(grid, q, &members[lists[i].clone()], flags, m).is_some()
+                        };
+                    if !listed {
+                        self.to_host();
+                        *m = self.cpu_members(q);
+                    }
+                });
+                give(first + p, out)?;
+                p += len;
             }
-            per_query_in(&mut out[first..first + n], &o, &spans, 8, |i, flags, m| {
-                let q = &qs[i];
-                let device = o.results[i].status & layout::STATUS_HOST == 0
-                    && !o.bad
-                    && lists[i].end <= listed_len
-                    && q.r.is_finite()
-                    && q.r >= 0.0;
-                let listed = device
-                    && if records {
-                        let got = (lists[i].len() <= layout::RECORD_MAX as usize)
-                            .then(|| {
-                                host::members_of_records(grid, q, &recs[lists[i].clone()], flags, m)
-                            })
-                            .flatten();
-                        if got == Some(true) {
-                            self.sorted_on_host.fetch_add(1, Ordering::Relaxed);
-                        }
-                        got.is_some()
-                    } else {
-                        host::members(grid, q, &members[lists[i].clone()], flags, m).is_some()
-                    };
-                if !listed {
-                    self.to_host();
-                    *m = self.cpu_members(q);
-                }
-            });
             Ok(())
-        })?;
-        Ok(out)
+        })
     }
 }

@@ -177,6 +177,9 @@ pub struct GpuEngine {
     sorted_on_host: AtomicU64,
     /// Sub-batches of members batches whose lists came back as records.
     record_batches: AtomicU64,
+    /// Nanoseconds of the running batch spent in the caller's own work (a part's
+    /// receiver, [`Engine::members_in_parts`]), left out of its host seconds.
+    callers_ns: AtomicU64,
     clock: Clock,
     /// The CPU engine over the same grid, used only through the [`Engine`] interface:
     /// the batches of at most `small_batch` queries, member lists on the host, and the
@@ -363,6 +366,7 @@ impl GpuDevice {
             fallbacks: AtomicU64::new(0),
             sorted_on_host: AtomicU64::new(0),
             record_batches: AtomicU64::new(0),
+            callers_ns: AtomicU64::new(0),
             clock: Clock::default(),
         })
     }
@@ -577,6 +581,58 @@ impl Engine for GpuEngine {
         let (order, sent) = self.in_order(queries);
         let lists = self.members_batch(&mut self.lock(), &sent)?;
         Ok(self.on_host(|| order.restore(lists)))
+    }
+
+    /// One members batch for all of `queries` (the groups in this engine's spatial order,
+    /// each group's queries together), each part's lists made from the readback as it is
+    /// handed out. The receiver's time is the caller's, not the engine's host time.
+    fn members_in_parts(
+        &self,
+        queries: &[Query],
+        group: usize,
+        part: usize,
+        f: &mut super::Parts<'_>,
+    ) -> Result<(), EngineError> {
+        let group = group.max(1);
+        if queries.is_empty()
+            || queries.len() <= self.small_batch
+            || self.members_on_host
+            || !queries.len().is_multiple_of(group)
+        {
+            return super::hand_out(self.members(queries)?, group, part, f);
+        }
+        self.count_batch(queries.len());
+        let (sent_idx, sent) = self.on_host(|| {
+            let leaders: Vec<Query> = queries.iter().step_by(group).copied().collect();
+            let order = SpatialOrder::new(&self.grid, &leaders);
+            let idx: Vec<usize> = (0..leaders.len())
+                .flat_map(|j| {
+                    let g = order.index(j) * group;
+                    g..g + group
+                })
+                .collect();
+            let sent: Vec<Query> = idx.iter().map(|&i| queries[i]).collect();
+            (idx, sent)
+        });
+        let per = super::part_len(group, part);
+        // Whole groups only: a sub-batch may end inside one, whose lists wait here.
+        let (mut held_idx, mut held) = (Vec::new(), Vec::new());
+        let mut give = |first: usize, lists: Vec<Vec<super::Member>>| {
+            held_idx.extend_from_slice(&sent_idx[first..first + lists.len()]);
+            held.extend(lists);
+            let whole = held.len() / group * group;
+            if whole == 0 {
+                return Ok(());
+            }
+            let (rest_idx, rest) = (held_idx.split_off(whole), held.split_off(whole));
+            let t = std::time::Instant::now();
+            let got = f(&held_idx, std::mem::replace(&mut held, rest));
+            held_idx = rest_idx;
+            self.callers_ns
+                .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+            got
+        };
+        self.members_batch_parts(&mut self.lock(), &sent, per, &mut give)
     }
 
     /// With [`GpuOptions::fit`] on the device, the kernel of `kernels::ROUTES.fit_lines`
