@@ -632,7 +632,10 @@ impl Engine for GpuEngine {
                 .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
             got
         };
-        self.members_batch_parts(&mut self.lock(), &sent, per, &mut give)
+        let out = self.members_batch_parts(&mut self.lock(), &sent, per, &mut give);
+        // (A batch that failed inside a part leaves its receiver's time here.)
+        self.callers_ns.store(0, Ordering::Relaxed);
+        out
     }
 
     /// With [`GpuOptions::fit`] on the device, the kernel of `kernels::ROUTES.fit_lines`
