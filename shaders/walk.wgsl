@@ -12,12 +12,23 @@
 // flagged STATUS_HOST and answered on the host.
 
 @group(0) @binding(1) var queries: texture_2d<u32>;
-@group(0) @binding(2) var<storage, read> cell_start: array<u32>;
+// The cell table (`CellTable` in resources.rs): per block of 32 cells, its non-empty cells'
+// bits and the non-empty cells before it; and each non-empty cell's first point.
+@group(0) @binding(2) var<storage, read> cell_blocks: array<vec2<u32>>;
 @group(0) @binding(3) var<storage, read_write> scan: array<u32>;
 // Items written as one vec4 each (query, cell, start, count: `Item`'s fields in order,
 // which tests/shaders.rs checks): one 16-byte store instead of four.
 @group(0) @binding(4) var<storage, read_write> items: array<vec4<u32>>;
 @group(0) @binding(5) var<storage, read_write> results: array<QResult>;
+@group(0) @binding(6) var<storage, read> cell_firsts: array<u32>;
+
+// The first point of cell c, or of the next non-empty cell when c is empty (the points
+// before it in the store): the first point of the non-empty cells' number rank(c).
+fn cell_start(c: u32) -> u32 {
+    let b = cell_blocks[c >> 5u];
+    let below = b.x & ((1u << (c & 31u)) - 1u);
+    return cell_firsts[b.y + countOneBits(below)];
+}
 
 // Range of p + t d over t in [t0, t1], grown by `grow`.
 fn axis_span(p: f32, d: f32, t: vec2<f32>, grow: f32) -> vec2<f32> {
@@ -99,8 +110,8 @@ fn main(
                     let x1 = min(x + ROW_CELLS - 1u, xs.y);
                     // The run's middle cell: the frame the evaluation kernel works in.
                     let c = row + (x + x1) / 2u;
-                    var s = cell_start[row + x];
-                    let e = cell_start[row + x1 + 1u];
+                    var s = cell_start(row + x);
+                    let e = cell_start(row + x1 + 1u);
                     loop {
                         if s >= e || steps >= MAX_WALK {
                             break;

@@ -61,8 +61,8 @@ fn walk_source(emit: bool) -> String {
 }
 
 impl Stage<'_> {
-    /// The walk's bindings: the queries, the cell table, the counts' scan, the items and
-    /// the per-query results.
+    /// The walk's bindings: the queries, the cell table's blocks, the counts' scan, the
+    /// items, the per-query results and the cell table's first points.
     fn walk(&self, rec: &mut Recorder<'_>, spec: &KernelSpec, mode: u32) {
         let (sz, bd, h) = (self.sz, self.bd, device::head);
         let p = Params { mode, ..rec.base };
@@ -72,10 +72,11 @@ impl Stage<'_> {
             p,
             &[
                 wgpu::BindingResource::TextureView(&bd.qtex),
-                h(&self.st.cell_start, self.st.cell_bytes),
+                h(&self.st.cell_blocks.0, self.st.cell_blocks.1),
                 h(&bd.scan, sz.scan),
                 h(&bd.items, sz.items),
                 h(&bd.results, sz.results),
+                h(&self.st.cell_firsts.0, self.st.cell_firsts.1),
             ],
         );
     }
