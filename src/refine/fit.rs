@@ -1285,6 +1285,10 @@ pub fn decide_in_chunks(
         .into_iter()
         .collect::<Option<_>>()
         .ok_or_else(|| EngineError::Gpu("the engine left a member list out".into()))?;
+    // One decision per moved segment on top of the unclear ones: room taken once (a
+    // decision is 720 bytes; growing by doubling copied and took fresh pages
+    // again at each step).
+    out.reserve(all.len());
     for (&i, &d) in all.iter().zip(&of) {
         let (dec, seg) = &decided[d];
         match (dec.verdict, seg) {
