@@ -278,7 +278,7 @@ impl Statics {
         log::debug!(
             "cell table: {} cells, {} of them non-empty, {} bytes to upload (the full \
              table: {})",
-            grid.cell_start.len() - 1,
+            grid.cell_start.len().saturating_sub(1),
             cells.firsts.len() - 1,
             block_bytes + first_bytes,
             grid.cell_start.len() * 4
