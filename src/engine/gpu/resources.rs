@@ -196,7 +196,23 @@ impl CellTable {
         let n_cells = cell_start.len().saturating_sub(1);
         // One block more than whole blocks: `c == n_cells` (the end) has a block too.
         let mut blocks = vec![[0u32; 2]; n_cells / 32 + 1];
-        let non_empty = |c: usize| c < n_cells && cell_start[c + 1] > cell_start[c];
+        // Block `b`'s bits: which of its cells hold points (where the next cell starts
+        // elsewhere: the starts never decrease). A whole block compares two slices of
+        // 32 starts, with no bounds checked a cell; the last, partial one goes cell by
+        // cell. Checking each cell's bounds, the table took 6.5 ms at 10^6 points (6.1
+        // million cells) against 2.1 ms so (probes, not committed).
+        let bits_of = |b: usize| -> u32 {
+            let first = b * 32;
+            match cell_start.get(first..first + 33) {
+                Some(w) => {
+                    let (lo, hi) = (&w[..32], &w[1..33]);
+                    (0..32).fold(0u32, |acc, i| acc | ((hi[i] != lo[i]) as u32) << i)
+                }
+                None => (first..n_cells.max(first)).fold(0u32, |acc, c| {
+                    acc | ((cell_start[c + 1] > cell_start[c]) as u32) << (c - first)
+                }),
+            }
+        };
         // Each block's bits and the non-empty cells before it in its run; each run's count.
         let counts: Vec<u32> = blocks
             .par_chunks_mut(BLOCK_RUN)
@@ -204,8 +220,7 @@ impl CellTable {
             .map(|(k, run)| {
                 let mut total = 0;
                 for (j, b) in run.iter_mut().enumerate() {
-                    let first = (k * BLOCK_RUN + j) * 32;
-                    let bits = (0..32).fold(0u32, |w, i| w | ((non_empty(first + i) as u32) << i));
+                    let bits = bits_of(k * BLOCK_RUN + j);
                     *b = [bits, total];
                     total += bits.count_ones();
                 }
