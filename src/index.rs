@@ -265,11 +265,18 @@ impl Grid {
     /// Linear index (x fastest) of the cell holding `p` (clamped into the grid).
     #[inline]
     pub fn cell_of(&self, p: DVec3) -> u32 {
-        self.linear(
+        let [x, y, z] = self.cell_xyz(p);
+        self.linear(x, y, z)
+    }
+
+    /// The column, row and layer of [`Self::cell_of`]`(p)`.
+    #[inline]
+    pub fn cell_xyz(&self, p: DVec3) -> [u32; 3] {
+        [
             self.axis_cell(p.x, 0),
             self.axis_cell(p.y, 1),
             self.axis_cell(p.z, 2),
-        )
+        ]
     }
 
     #[inline]

@@ -34,7 +34,6 @@ impl SpatialOrder {
 
     /// `n` items in the order of their points `mid(i)` along the curve.
     fn by_midpoints(grid: &Grid, n: usize, mid: impl Fn(usize) -> DVec3 + Sync) -> SpatialOrder {
-        let (dx, dy) = (grid.dims[0], grid.dims[1]);
         // One u64 per query: the Morton code (its top 40 bits where the grid needs more)
         // above the query's index (24 bits), sorted as plain integers; ties keep the
         // caller's order.
@@ -43,9 +42,12 @@ impl SpatialOrder {
             32 - (grid.dims.iter().max().copied().unwrap_or(1).max(1) - 1).leading_zeros();
         let shift = (3 * axis_bits).saturating_sub(64 - INDEX_BITS);
         let code = |i: usize| {
-            // `cell_of` clamps into the grid (an invalid segment's NaN midpoint: cell 0).
-            let c = grid.cell_of(mid(i));
-            morton3(c % dx, (c / dx) % dy, c / (dx * dy))
+            // `cell_xyz` clamps into the grid (an invalid segment's NaN midpoint: cell
+            // 0). The cell's own coordinates, not its linear index taken apart by four
+            // integer divisions: the GPU engine's orderings at 10^6 x 10^4 took 3.2 ms
+            // of host time that way against 2.5 ms so (probes, not committed).
+            let [x, y, z] = grid.cell_xyz(mid(i));
+            morton3(x, y, z)
         };
         if n >= 1 << INDEX_BITS {
             let mut keys: Vec<(u64, u32)> = (0..n)
