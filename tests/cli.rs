@@ -787,6 +787,12 @@ fn the_gpu_benchmark_script_runs() {
         return;
     }
     assert!(o.status.success(), "{out}\n{err}");
+    // Each engine's fastest of two runs (the first engine in a process pays alone for the
+    // process's first use of its memory).
+    assert!(
+        out.contains("== linegs-gpu bench --num-gaussians 20000 --num-segments 200 --backend cpu,gpu --repeat 2\n"),
+        "{out}"
+    );
     assert!(out.contains("20000 Gaussians x 200 segments"), "{out}");
     assert!(
         out.contains("\n  cpu: ") && out.contains("\n  gpu: "),

@@ -48,7 +48,9 @@ pub struct BenchArgs {
     /// Refinement profile.
     #[arg(long, default_value_t = Profile::default().name().to_string(), value_parser = choices(Profile::CHOICES))]
     pub profile: String,
-    /// Repetitions per case; the fastest total is kept.
+    /// Repetitions per case; the fastest total is kept. With 2 or more, an engine's kept
+    /// run is not normally the process's first use of its memory, which the first engine
+    /// in a process pays for alone (docs/benchmarks.md#host-share-of-the-gpu-engine).
     #[arg(long, default_value_t = 1)]
     pub repeat: usize,
     /// Seed of the synthetic scenes.
