@@ -33,9 +33,9 @@ if command -v nvidia-smi >/dev/null; then
 fi
 
 # Each size in one process (CPU then GPU), each engine's fastest of two runs: the first
-# engine in a process pays alone for the memory the process had not used before, which
-# moves the CPU run's total, and so the share, by about a quarter on the development machine
-# (docs/benchmarks.md#host-share-of-the-gpu-engine). A --repeat among the options
+# engine in a process pays alone for the memory the process had not used before (on the
+# development machine nearly half of the CPU run's index stage at 10^6, about an eighth of
+# its total: docs/benchmarks.md#host-share-of-the-gpu-engine). A --repeat among the options
 # replaces the two. The time limits keep the script under 5 minutes.
 extra=("$@")
 repeat=(--repeat 2)
