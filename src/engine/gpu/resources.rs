@@ -208,7 +208,7 @@ impl CellTable {
                     let (lo, hi) = (&w[..32], &w[1..33]);
                     (0..32).fold(0u32, |acc, i| acc | ((hi[i] != lo[i]) as u32) << i)
                 }
-                None => (first..n_cells.max(first)).fold(0u32, |acc, c| {
+                None => (first..n_cells).fold(0u32, |acc, c| {
                     acc | ((cell_start[c + 1] > cell_start[c]) as u32) << (c - first)
                 }),
             }
