@@ -446,7 +446,7 @@ fn prefetch<T>(x: &T) {
 /// bucket sorted by the rest of its bits on its own, in parallel: a bucket (about 25,000
 /// items at 10^8 points) sorts in the cache, where a pass over the whole array scatters
 /// into 4,096 places of a 0.8 GB array at random.
-fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
+pub(crate) fn radix_sort_high(items: &mut Vec<u64>, bound: usize) {
     let bits = usize::BITS - bound.saturating_sub(1).leading_zeros();
     if items.len() < 2 || bits == 0 {
         return;

@@ -342,6 +342,8 @@ fn attempt(
     let staging = b.staging.get(ctx, staging_bytes).clone();
 
     let mut enc = ctx.encoder();
+    // The queries and frames staged by `Bound::take`, first.
+    b.uploads.record(&mut enc);
     enc.clear_buffer(&bd.ctl, 0, Some(CTL_HEAD as u64 * 4));
     for x in seq.running(kind, rerun) {
         (x.before)(&s, &mut enc);

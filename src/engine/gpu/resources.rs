@@ -1,7 +1,7 @@
 //! What the engine keeps on the device: the sizes it works within, the cell table and
 //! point store uploaded once, and the per-batch buffers reused and grown across batches.
 
-use super::device::{Context, QueryTexture, Reusable};
+use super::device::{Context, QueryTexture, Reusable, Uploads};
 use super::layout::*;
 use super::GpuOptions;
 use crate::engine::EngineError;
@@ -156,7 +156,7 @@ fn write_store(grid: &Grid, dst: wgpu::WriteOnly<'_, [u8]>, first: usize) {
 /// touch of its pages, which the cores then share (the upload of 10^6 Gaussians, 28 MB
 /// with the centers' coordinates, took about 44 ms on one core of the development
 /// machine, 22–41 ms on its two).
-fn par_copy(mut dst: wgpu::WriteOnly<'_, [u8]>, src: &[u8]) {
+pub(super) fn par_copy(mut dst: wgpu::WriteOnly<'_, [u8]>, src: &[u8]) {
     const PIECE: usize = 1 << 18;
     let (whole, mut tail) = dst.slice(..src.len()).into_chunks::<PIECE>();
     let pieces: Vec<wgpu::WriteOnly<'_, [u8; PIECE]>> = whole.into_iter().collect();
@@ -359,6 +359,8 @@ pub struct Buffers {
     pub params: Reusable,
     /// The batch's queries, as texels: what the walk, the evaluation and the cut read.
     pub qtex: QueryTexture,
+    /// The staging buffer of the queries and frames a batch uploads.
+    pub uploads: Uploads,
     pub scan: Reusable,
     pub items: Reusable,
     pub partials: Reusable,
@@ -412,6 +414,7 @@ impl Buffers {
         Buffers {
             params: Reusable::new("params", wgpu::BufferUsages::UNIFORM),
             qtex: QueryTexture::default(),
+            uploads: Uploads::default(),
             scan: Reusable::new("scan", storage),
             items: Reusable::new("items", storage),
             partials: Reusable::new("partials", storage),

@@ -4,7 +4,7 @@
 //! launchers). [`super::batch`] sizes and binds a try; [`super::stages`] records its
 //! dispatches over them.
 
-use super::device::{Context, Reusable};
+use super::device::{Context, Reusable, Upload};
 use super::layout::*;
 use super::pipelines::ListKernel;
 use super::resources::{Buffers, Limits};
@@ -182,6 +182,8 @@ impl Bound {
         while b.own.len() < own.len() {
             b.own.push(Reusable::new(own[b.own.len()].name, storage));
         }
+        // The buffer that takes the fit's frames, where one runs.
+        let mut frames = None;
         let own: Vec<Option<wgpu::Buffer>> = own
             .iter()
             .zip(&sz.own)
@@ -189,13 +191,23 @@ impl Bound {
             .map(|((spec, bytes), r)| {
                 let buf = r.get(ctx, (*bytes)?).clone();
                 if spec.frames && !rerun {
-                    ctx.queue.write_buffer(&buf, 0, bytemuck::cast_slice(fit));
+                    frames = Some(buf.clone());
                 }
                 Some(buf)
             })
             .collect();
         if !rerun {
-            b.qtex.write(ctx, gq);
+            // Staged for the try's encoder ([`Uploads::record`]), else through the queue.
+            let tex = b.qtex.holding(ctx, gq.len()).clone();
+            let fit = bytemuck::cast_slice(fit);
+            let mut parts = vec![(Upload::Texture(&tex), bytemuck::cast_slice(gq))];
+            parts.extend(frames.as_ref().map(|f| (Upload::Buffer(f), fit)));
+            if !b.uploads.stage(ctx, &parts) {
+                b.qtex.write(ctx, gq);
+                if let Some(f) = &frames {
+                    ctx.queue.write_buffer(f, 0, fit);
+                }
+            }
         }
         Bound {
             params: b.params.get(ctx, params_bytes).clone(),
