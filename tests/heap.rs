@@ -30,6 +30,16 @@ fn heap_huge_bytes() -> u64 {
 }
 
 fn main() {
+    // One heap for every thread on a machine of at most four threads (glibc), and the
+    // engines take many small blocks on one thread then (`mem::one_heap`).
+    assert!(!linegs_gpu::mem::one_heap(), "one heap before huge_heap");
+    linegs_gpu::mem::huge_heap();
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    assert_eq!(
+        linegs_gpu::mem::one_heap(),
+        cfg!(all(target_os = "linux", target_env = "gnu")) && threads <= 4,
+        "one heap with {threads} threads"
+    );
     let thp =
         std::fs::read_to_string("/sys/kernel/mm/transparent_hugepage/enabled").unwrap_or_default();
     if !cfg!(all(target_os = "linux", target_env = "gnu")) || !thp.contains("[madvise]") {
@@ -37,7 +47,6 @@ fn main() {
         println!("heap: skipped (transparent huge pages not in madvise mode: {thp:?})");
         return;
     }
-    linegs_gpu::mem::huge_heap();
     // Blocks of 1 MiB: far under the 4 MiB from which each block is advised on its own,
     // so only the heap's advice can put them on huge pages.
     let blocks: Vec<Vec<u8>> = (0..40).map(|i| vec![i as u8 + 1; 1 << 20]).collect();
