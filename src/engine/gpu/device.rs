@@ -665,40 +665,19 @@ impl QueryTexture {
     /// Writes `queries` at the texture's start (grown first when they do not fit) through
     /// the queue: where [`Uploads::stage`] could not map its buffer.
     pub fn write(&mut self, ctx: &Context, queries: &[super::layout::GQuery]) {
-        use super::layout::{QUERY_TEXELS, STORE_W};
-        let w = STORE_W as usize;
-        let texels = queries.len() * QUERY_TEXELS as usize;
+        let texels = queries.len() * super::layout::QUERY_TEXELS as usize;
         let tex = self.holding(ctx, queries.len());
         let bytes: &[u8] = bytemuck::cast_slice(queries);
-        // The whole rows, then what is left in one more row.
-        let full = (texels / w) as u32;
-        let rest = (texels % w) as u32;
-        let row_bytes = w * 16;
-        for (y, width, height, from) in [
-            (0, STORE_W, full, 0),
-            (full, rest, 1, full as usize * row_bytes),
-        ] {
-            if width == 0 || height == 0 {
-                continue;
-            }
+        for (y, extent, from) in row_pieces(texels as u32) {
             ctx.queue.write_texture(
-                wgpu::TexelCopyTextureInfo {
-                    texture: tex,
-                    mip_level: 0,
-                    origin: wgpu::Origin3d { x: 0, y, z: 0 },
-                    aspect: wgpu::TextureAspect::All,
-                },
-                &bytes[from..],
+                texture_at(tex, y),
+                &bytes[from as usize..],
                 wgpu::TexelCopyBufferLayout {
                     offset: 0,
-                    bytes_per_row: Some(row_bytes as u32),
-                    rows_per_image: Some(height),
+                    bytes_per_row: Some(ROW_BYTES),
+                    rows_per_image: Some(extent.height),
                 },
-                wgpu::Extent3d {
-                    width,
-                    height,
-                    depth_or_array_layers: 1,
-                },
+                extent,
             );
         }
     }
@@ -793,43 +772,59 @@ impl Uploads {
         let Some(buf) = self.buf.as_ref() else {
             return;
         };
-        let w = super::layout::STORE_W;
-        let row_bytes = w * 16;
         for (at, target) in self.pending.drain(..) {
             match target {
                 Target::Buffer(dst, n) => enc.copy_buffer_to_buffer(buf, at, &dst, 0, n),
                 Target::Texture(tex, texels) => {
-                    // The whole rows, then what is left in one more row.
-                    let (full, rest) = (texels / w, texels % w);
-                    for (y, width, height) in [(0, w, full), (full, rest, 1)] {
-                        if width == 0 || height == 0 {
-                            continue;
-                        }
+                    for (y, extent, from) in row_pieces(texels) {
                         enc.copy_buffer_to_texture(
                             wgpu::TexelCopyBufferInfo {
                                 buffer: buf,
                                 layout: wgpu::TexelCopyBufferLayout {
-                                    offset: at + u64::from(y) * u64::from(row_bytes),
-                                    bytes_per_row: Some(row_bytes),
-                                    rows_per_image: Some(height),
+                                    offset: at + from,
+                                    bytes_per_row: Some(ROW_BYTES),
+                                    rows_per_image: Some(extent.height),
                                 },
                             },
-                            wgpu::TexelCopyTextureInfo {
-                                texture: &tex,
-                                mip_level: 0,
-                                origin: wgpu::Origin3d { x: 0, y, z: 0 },
-                                aspect: wgpu::TextureAspect::All,
-                            },
-                            wgpu::Extent3d {
-                                width,
-                                height,
-                                depth_or_array_layers: 1,
-                            },
+                            texture_at(&tex, y),
+                            extent,
                         );
                     }
                 }
             }
         }
+    }
+}
+
+/// Bytes of a row of a `STORE_W`-wide texture of 16-byte texels.
+const ROW_BYTES: u32 = super::layout::STORE_W * 16;
+
+/// The pieces that put `texels` packed texels at the start of a `STORE_W`-wide texture:
+/// the whole rows, then what is left in one more row; each its first row, its extent and
+/// where its bytes start among the packed ones.
+fn row_pieces(texels: u32) -> impl Iterator<Item = (u32, wgpu::Extent3d, u64)> {
+    let w = super::layout::STORE_W;
+    let (full, rest) = (texels / w, texels % w);
+    [(0, w, full), (full, rest, 1)]
+        .into_iter()
+        .filter(|&(_, width, height)| width > 0 && height > 0)
+        .map(|(y, width, height)| {
+            let extent = wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            };
+            (y, extent, u64::from(y) * u64::from(ROW_BYTES))
+        })
+}
+
+/// Row `y` of `texture` (from its first column), as a copy's destination.
+fn texture_at(texture: &wgpu::Texture, y: u32) -> wgpu::TexelCopyTextureInfo<'_> {
+    wgpu::TexelCopyTextureInfo {
+        texture,
+        mip_level: 0,
+        origin: wgpu::Origin3d { x: 0, y, z: 0 },
+        aspect: wgpu::TextureAspect::All,
     }
 }
 
