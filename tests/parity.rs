@@ -1062,6 +1062,39 @@ fn a_warmed_up_device_answers_like_the_cpu_and_counts_none_of_its_warm_up() {
 }
 
 #[test]
+fn the_first_member_lists_get_room_for_the_members_the_counts_before_them_found() {
+    // 800,000 members: far more than the 65,536 a new engine's member list holds.
+    let pts = random_scene(200_000, 91);
+    let qs = random_queries(3_000, 92, 0.05);
+    let Some((_, cpu, counted)) = engines(&pts, 0.03, GpuOptions::default()) else {
+        return;
+    };
+    let (_, _, listed) = engines(&pts, 0.03, GpuOptions::default()).unwrap();
+    let members: u64 = counted
+        .stats(&qs, Want::COUNT)
+        .unwrap()
+        .iter()
+        .map(|s| s.count)
+        .sum();
+    assert!(members > 8 * 65_536, "{members}");
+    // The work items of one members batch: the second of an engine that listed these
+    // members before (its list has the room they need).
+    let items = |e: &GpuEngine| e.counters().device_items;
+    listed.members(&qs).unwrap();
+    let first_try = items(&listed);
+    listed.members(&qs).unwrap();
+    let one = items(&listed) - first_try;
+    // The engine that listed first ran its batch more than once (its first try's
+    // buffers were a new engine's).
+    assert!(first_try > one, "{first_try} {one}");
+    // The engine that counted first lists them in one try, and lists them right.
+    let before = items(&counted);
+    let lists = counted.members(&qs).unwrap();
+    assert_eq!(items(&counted) - before, one);
+    assert_eq!(lists, cpu.members(&qs).unwrap());
+}
+
+#[test]
 fn a_batch_needing_more_items_than_the_first_guess_is_rerun_with_room_for_them() {
     // Fine cells and long segments: hundreds of work items a query, far above the guess
     // of 24 a query that a fresh engine's buffers start from.

@@ -135,6 +135,11 @@ pub fn submit(
     }
     let member_max = lim.member_max;
     b.member_cap = b.member_cap.min(member_max);
+    if kind.lists() {
+        if let Some(cap) = b.first_member_cap(n, member_max) {
+            b.member_cap = b.member_cap.max(cap);
+        }
+    }
     let most_items = seq.most_items(kind, lim);
     // A members batch's members come back as records (`kernels/records.rs`) where the
     // device holds the ids, as many as fit one binding (16 bytes an entry, not 4: a
@@ -206,6 +211,11 @@ pub fn submit(
                 // members a query than the decision rule's first batch needs.
                 let m = got.members as f64 / n as f64;
                 b.members_per_query = Some(b.members_per_query.map_or(m, |p| p.max(m)));
+            }
+            if let Kind::Stats { .. } = kind {
+                let sum: u64 = out.results.iter().map(|r| r.count as u64).sum();
+                let c = sum as f64 / n as f64;
+                b.count_per_query = Some(b.count_per_query.map_or(c, |p| p.max(c)));
             }
             return Ok(Attempt::Done(out, waited));
         }

@@ -388,6 +388,10 @@ pub struct Buffers {
     /// before the first): how much of the member list the next members batch reads back
     /// with its answers ([`Self::member_back`]).
     pub members_per_query: Option<f64>,
+    /// Points a query's cylinder held, on average, in the stats batch that counted the
+    /// most a query so far (`None` before the first): the first listing batch's member
+    /// capacity ([`Self::first_member_cap`]).
+    pub count_per_query: Option<f64>,
 }
 
 impl Buffers {
@@ -402,6 +406,21 @@ impl Buffers {
             Some(m) => (((n as f64 * m * 1.25) as u64 + 1024) * per_member).min(cap),
             None => cap,
         }
+    }
+
+    /// The member capacity for a listing batch of `n` queries before any batch listed
+    /// members: a quarter more than [`Self::count_per_query`] says they hold (and 1,024),
+    /// at most `max`; `None` without a count, or where a batch listed members before (its
+    /// capacity is what they needed). The edge fit's first batch asks the segments whose
+    /// cylinders the evaluation before it counted: sized from the 65,536 members of a new
+    /// engine it listed a million members at 10^6 Gaussians, overran, and ran again
+    /// (about 250 ms more on lavapipe, and a round trip more on any device).
+    pub fn first_member_cap(&self, n: usize, max: u32) -> Option<u32> {
+        if self.members_per_query.is_some() {
+            return None;
+        }
+        let c = self.count_per_query?;
+        Some(((n as f64 * c * 1.25) as u64 + 1024).min(max as u64) as u32)
     }
 
     /// See [`super::GpuEngine::item_capacity`].
@@ -435,6 +454,7 @@ impl Buffers {
             flag_cap: lim.flag_max.min(1 << 14),
             member_cap: lim.member_max.min(1 << 16),
             members_per_query: None,
+            count_per_query: None,
         }
     }
 }
