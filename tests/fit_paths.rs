@@ -1,13 +1,15 @@
 //! The edge fit two ways, bit for bit: the CPU engine's `fit_edges` (each segment's
 //! neighbourhood gathered once, every step on it in cache) against one engine batch of
 //! member lists per iteration (`engine::fit::by_batches`, the fit as it ran before the
-//! gathering), on the toy scene, NEF lines on the ABC mesh, the real Line3D++ output and
+//! gathering), and one batch per iteration until a few segments are left that then go
+//! on as the gathered fit takes them (`engine::fit::Tail`, the GPU engine's last
+//! iterations on the host), on the toy scene, NEF lines on the ABC mesh, the real Line3D++ output and
 //! the real trained pairs (normals: the two-face fit; opacities: the weighted fit).
 
 mod common;
 
 use common::*;
-use linegs_gpu::engine::fit::{by_batches, GATHER_MARGIN};
+use linegs_gpu::engine::fit::{by_batches, by_batches_in, finish_gathered, Tail, GATHER_MARGIN};
 use linegs_gpu::engine::{Engine, FitJob};
 use linegs_gpu::geom::Segment;
 use linegs_gpu::io;
@@ -33,6 +35,18 @@ fn both(
     r: f64,
     spec: &FitSpec,
 ) -> FitResult {
+    both_with_tails(points, segments, attrs, r, spec).0
+}
+
+/// [`both`], and how many segments each of its tails took: of at most 1, a twentieth of
+/// the segments, and all of them.
+fn both_with_tails(
+    points: &[[f32; 3]],
+    segments: &[Segment],
+    attrs: &Attributes,
+    r: f64,
+    spec: &FitSpec,
+) -> (FitResult, Vec<usize>) {
     let e = cpu_engine(points, segments, r);
     let job = FitJob {
         segments,
@@ -54,7 +68,45 @@ fn both(
     assert_eq!(once.how, per_iteration.how);
     assert_eq!(once.iterations, per_iteration.iterations);
     assert_eq!(once.steps, per_iteration.steps);
-    once
+    // Batches until at most `at_most` segments are still moving, then the rest of each
+    // one's steps gathered: the same bits wherever the batches stop (all of them from the
+    // start where `at_most` covers every segment).
+    let mut handed = Vec::new();
+    for at_most in [1, segments.len() / 20, usize::MAX] {
+        let taken = std::sync::Mutex::new(0);
+        let finish = |j: &FitJob<'_>, rest: &mut [linegs_gpu::geom::fit::Track]| {
+            *taken.lock().unwrap() += rest.len();
+            finish_gathered(e.grid(), j, rest);
+            Ok(())
+        };
+        let tail = Tail {
+            at_most,
+            finish: &finish,
+        };
+        let with_tail = by_batches_in(&e, &job, None, Some(&tail)).unwrap();
+        let c = bits(&with_tail.segments);
+        if let Some(i) = (0..a.len()).find(|&i| a[i] != c[i]) {
+            panic!(
+                "segment {i} of {} (tail of at most {at_most}): {:?} gathered once, {:?} with the tail",
+                a.len(),
+                once.segments[i],
+                with_tail.segments[i]
+            );
+        }
+        assert_eq!(once.how, with_tail.how);
+        assert_eq!(once.iterations, with_tail.iterations);
+        assert_eq!(once.steps, with_tail.steps);
+        handed.push(taken.into_inner().unwrap());
+    }
+    // Every segment that steps at all went to the tail of any size (exact copies once).
+    let input = bits(segments);
+    let stepping = (0..segments.len())
+        .filter(|&i| once.steps[i] > 0)
+        .map(|i| input[i])
+        .collect::<std::collections::HashSet<_>>()
+        .len();
+    assert_eq!(handed[2], stepping, "{handed:?}");
+    (once, handed)
 }
 
 /// How many segments moved, and by more than `GATHER_MARGIN` r from their start (their
@@ -81,11 +133,18 @@ fn the_toy_scene_fits_alike_both_ways() {
     let scene = synth::toy_scene(&synth::ToyParams::default());
     let segs = &scene.lines.segments;
     let r = 0.03;
-    let f = both(&scene.gaussians, segs, &Attributes::default(), r, &spec());
+    let (f, handed) = both_with_tails(&scene.gaussians, segs, &Attributes::default(), r, &spec());
     let (any, far) = moved(segs, &f, r);
     assert!(any > segs.len() / 2, "{any} of {} moved", segs.len());
     assert!(far > 10, "{far} moved beyond the gathering margin");
     assert!(f.iterations > 2, "{}", f.iterations);
+    // The tail of a twentieth took over after some batches, with some segments still
+    // moving.
+    let stepping = f.steps.iter().filter(|&&s| s > 0).count();
+    assert!(
+        handed[1] > 0 && handed[1] < stepping,
+        "{handed:?} of {stepping}"
+    );
     // A wider allowed move and more, shorter-kernel steps: lines travel further.
     let wide = FitSpec {
         max_move: 4.0,

@@ -1062,6 +1062,76 @@ fn a_warmed_up_device_answers_like_the_cpu_and_counts_none_of_its_warm_up() {
 }
 
 #[test]
+fn the_device_fits_last_few_segments_go_on_on_the_host() {
+    use linegs_gpu::engine::gpu::{FitOn, MembersOn};
+    use linegs_gpu::engine::FitJob;
+    use linegs_gpu::refine::fit::FitSpec;
+    let r = 0.03;
+    let (pts, qs) = ridge_scene(r);
+    let segs: Vec<Segment> = qs.iter().map(|q| q.seg).collect();
+    let spec = FitSpec::from(&linegs_gpu::refine::Params::default().fit);
+    let job = FitJob {
+        segments: &segs,
+        r,
+        spec: &spec,
+        points: Default::default(),
+    };
+    let at_most = |fit_tail| GpuOptions {
+        fit: FitOn::Device,
+        members: MembersOn::Device,
+        fit_tail,
+        ..GpuOptions::default()
+    };
+    let Some((_, cpu, _)) = engines(&pts, r, at_most(0)) else {
+        return;
+    };
+    let want = cpu.fit_edges(&job).unwrap();
+    let still_moving = |k: u32| want.steps.iter().filter(|&&s| s > k).count();
+    // (The scene's fit: every segment takes a first step, a few take a third.)
+    assert!(
+        still_moving(2) > 0 && still_moving(2) < still_moving(1),
+        "{:?}",
+        want.steps
+    );
+    let tail = still_moving(2);
+    let mut runs = Vec::new();
+    for fit_tail in [0, tail, usize::MAX] {
+        let (_, _, gpu) = engines(&pts, r, at_most(fit_tail)).unwrap();
+        let got = gpu.fit_edges(&job).unwrap();
+        let c = gpu.counters();
+        // The iterations the device ran, and one host batch for the rest where a tail
+        // took over.
+        assert_eq!(c.cpu_batches, u64::from(fit_tail > 0), "{fit_tail}: {c:?}");
+        assert_eq!(
+            c.device_fits > 0,
+            fit_tail < segs.len(),
+            "{fit_tail}: {c:?}"
+        );
+        assert_eq!(got.how, want.how, "{fit_tail}");
+        assert_eq!(got.steps, want.steps, "{fit_tail}");
+        for (i, (a, b)) in want.segments.iter().zip(&got.segments).enumerate() {
+            let d = (a.p1 - b.p1).length().max((a.p2 - b.p2).length());
+            assert!(d <= 1e-9 * r, "{fit_tail}: segment {i} {a:?} vs {b:?}");
+        }
+        runs.push((got, c));
+    }
+    // All on the host: the CPU engine's fit, bit for bit, and its steps counted as the
+    // host's.
+    let (all, c) = &runs[2];
+    assert_eq!(all.segments, want.segments);
+    let steps: u64 = want.steps.iter().map(|&s| u64::from(s)).sum();
+    assert_eq!((c.cpu_queries, c.host_lists), (steps, steps), "{c:?}");
+    // The tail's: the steps after the device's second iteration.
+    let (_, c) = &runs[1];
+    let late: u64 = want
+        .steps
+        .iter()
+        .map(|&s| u64::from(s.saturating_sub(2)))
+        .sum();
+    assert_eq!(c.cpu_queries, late, "{c:?}");
+}
+
+#[test]
 fn the_first_member_lists_get_room_for_the_members_the_counts_before_them_found() {
     // 800,000 members: far more than the 65,536 a new engine's member list holds.
     let pts = random_scene(200_000, 91);

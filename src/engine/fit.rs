@@ -37,11 +37,24 @@ pub fn by_batches<E: Engine + ?Sized>(
     engine: &E,
     job: &FitJob<'_>,
 ) -> Result<FitResult, EngineError> {
-    by_batches_in(engine, job, None)
+    by_batches_in(engine, job, None, None)
 }
 
 /// `order(segments)`: the order an engine asks segments in ([`by_batches_in`]).
 pub type OrderOf<'a> = dyn Fn(&[Segment]) -> SpatialOrder + Sync + 'a;
+
+/// The fit's last iterations somewhere else than in batches ([`by_batches_in`]): once at
+/// most `at_most` segments are still moving, `finish(job, tracks)` takes each of those
+/// tracks on from where it is to where it settles (or takes the job's last iteration).
+/// [`finish_gathered`] does that as the gathered fit would: the same answers as more
+/// batches of an exact engine.
+pub struct Tail<'a> {
+    pub at_most: usize,
+    pub finish: &'a Finish<'a>,
+}
+
+/// A [`Tail`]'s `finish(job, tracks)`.
+pub type Finish<'a> = dyn Fn(&FitJob<'_>, &mut [Track]) -> Result<(), EngineError> + Sync + 'a;
 
 /// Tracks a task of the fit loop's parallel passes (each track's query, each step's
 /// advance: 0.1–0.2 µs a track). Small enough that a machine of 16 threads gets work for
@@ -51,12 +64,14 @@ const TRACKS_A_TASK: usize = 512;
 /// [`by_batches`] with the segments asked in `order(segments)` ([`FitAsk::in_order`]),
 /// where the engine gives one: its own batches' order ([`SpatialOrder`]), kept over the
 /// iterations (the segments still moving, in the same order), so that the engine need
-/// not order each batch again. The per-iteration work of the tracks (their queries, each
-/// step's advance) is parallel. The answers are the same in any order.
+/// not order each batch again; and with the last iterations' few segments handed to
+/// `tail` where one is given ([`Tail`]). The per-iteration work of the tracks (their
+/// queries, each step's advance) is parallel. The answers are the same in any order.
 pub fn by_batches_in<E: Engine + ?Sized>(
     engine: &E,
     job: &FitJob<'_>,
     order: Option<&OrderOf<'_>>,
+    tail: Option<&Tail<'_>>,
 ) -> Result<FitResult, EngineError> {
     super::dedup::fit_distinct(job, |job| {
         let r = job.r;
@@ -76,6 +91,17 @@ pub fn by_batches_in<E: Engine + ?Sized>(
         .collect();
         let mut iterations = 0;
         while !live.is_empty() && iterations < spec.iterations {
+            if let Some(tail) = tail.filter(|t| live.len() <= t.at_most) {
+                // Every live track has taken each iteration so far: its own steps
+                // count them, and it goes on until it settles or takes the last.
+                let mut rest: Vec<Track> = live.iter().map(|&(_, t)| t).collect();
+                (tail.finish)(job, &mut rest)?;
+                for (&(i, _), t) in live.iter().zip(rest) {
+                    tracks[i] = t;
+                }
+                live.clear();
+                break;
+            }
             iterations += 1;
             let steps = {
                 let (queries, warm): (Vec<Query>, Vec<bool>) = live
@@ -569,11 +595,17 @@ fn covers(at: &Segment, cur: &Segment, margin: f64) -> bool {
 /// points of a neighbourhood that pass a step's cylinder test, in the neighbourhood's
 /// working-set order, so which covering neighbourhood they come from changes nothing.
 fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) -> Track {
-    let (r, spec) = (job.r, job.spec);
     let mut t = Track::new(seg);
-    if !t.starts() {
-        return t;
+    if t.starts() {
+        go_on_gathered(grid, job, &mut t, s);
     }
+    t
+}
+
+/// Takes the track `t` on, step by step over its gathered neighbourhood, until it settles
+/// or has taken `job.spec.iterations` steps.
+fn go_on_gathered(grid: &Grid, job: &FitJob<'_>, t: &mut Track, s: &mut Scratch) {
+    let (r, spec) = (job.r, job.spec);
     let margin = GATHER_MARGIN * r;
     // Radii the capsule argument does not cover (not a positive finite r) walk per step.
     let direct = !(r.is_finite() && r > 0.0);
@@ -608,7 +640,21 @@ fn track_gathered(grid: &Grid, job: &FitJob<'_>, seg: Segment, s: &mut Scratch) 
             break;
         }
     }
-    t
+}
+
+/// A [`Tail`]'s `finish` over `grid`: each track taken on as the gathered fit takes a
+/// segment ([`gathered`]), in parallel and in the order given (the caller's spatial
+/// order). Returns the steps taken (cylinders answered), all tracks together.
+pub fn finish_gathered(grid: &Grid, job: &FitJob<'_>, tracks: &mut [Track]) -> u64 {
+    tracks
+        .par_iter_mut()
+        .with_min_len(4)
+        .map_init(Scratch::default, |s, t| {
+            let before = t.steps;
+            go_on_gathered(grid, job, t, s);
+            u64::from(t.steps - before)
+        })
+        .sum()
 }
 
 /// The fit over `grid`, each segment's neighbourhood gathered once and iterated on in

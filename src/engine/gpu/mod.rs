@@ -186,6 +186,8 @@ pub struct GpuEngine {
     /// queries the device leaves to the host.
     cpu: Box<dyn Engine>,
     small_batch: usize,
+    /// [`GpuOptions::fit_tail`].
+    fit_tail: usize,
     /// [`GpuOptions::members`] resolved for this adapter.
     members_on_host: bool,
     cpu_batches: AtomicU64,
@@ -345,6 +347,7 @@ impl GpuDevice {
         Ok(GpuEngine {
             cpu: Box::new(super::cpu::CpuEngine::new(grid.clone())),
             small_batch: opts.small_batch,
+            fit_tail: opts.fit_tail,
             members_on_host,
             cpu_batches: AtomicU64::new(0),
             cpu_queries: AtomicU64::new(0),
@@ -568,7 +571,7 @@ impl Engine for GpuEngine {
     /// One device batch: the walk and the stats pass, a scan of the items' member counts
     /// and a member pass that writes each query's sure members contiguously; the host
     /// measures them (and decides the flagged points) in f64, as the CPU engine does.
-    /// Batches of at most `small_batch` queries (the fit's last iterations) are answered
+    /// Batches of at most `small_batch` queries (a host fit's last iterations) are answered
     /// on the host, like small [`Engine::query`] batches, and so is every batch where
     /// [`GpuOptions::members`] resolved to the host (a software adapter, for the commands).
     fn members(&self, queries: &[Query]) -> Result<Vec<Vec<super::Member>>, EngineError> {
@@ -694,7 +697,9 @@ impl Engine for GpuEngine {
     /// With the ridge on the device ([`GpuOptions::fit`], a fit that
     /// `kernels::ROUTES.fit_lines` takes), one batch per iteration
     /// ([`super::fit::by_batches_in`], the segments in this engine's spatial order: each
-    /// batch's ridge on the device);
+    /// batch's ridge on the device) until at most [`GpuOptions::fit_tail`] segments are
+    /// still moving, which the host then takes on to the end as the CPU engine's fit
+    /// does (one host batch: [`super::fit::finish_gathered`]);
     /// otherwise the CPU engine's [`Engine::fit_edges`] over the same grid (each
     /// neighbourhood gathered once), as one host batch.
     fn fit_edges(&self, job: &FitJob<'_>) -> Result<FitResult, EngineError> {
@@ -704,7 +709,22 @@ impl Engine for GpuEngine {
             let t = std::time::Instant::now();
             let (h0, d0) = GpuEngine::seconds(self);
             let order = |s: &[crate::geom::Segment]| SpatialOrder::of_segments(&self.grid, s);
-            let out = super::fit::by_batches_in(self, job, Some(&order));
+            // The last iterations' few segments: the host's, counted as host batches and
+            // walks (a step a query, as for the CPU engine's fit below).
+            let finish = |job: &FitJob<'_>, rest: &mut [crate::geom::fit::Track]| {
+                self.count_batch(0);
+                let steps = self.on_cpu(0, || super::fit::finish_gathered(&self.grid, job, rest));
+                self.queries.fetch_add(steps, Ordering::Relaxed);
+                self.cpu_queries.fetch_add(steps, Ordering::Relaxed);
+                self.host_lists.fetch_add(steps, Ordering::Relaxed);
+                Ok(())
+            };
+            let tail = super::fit::Tail {
+                at_most: self.fit_tail,
+                finish: &finish,
+            };
+            let tail = (self.fit_tail > 0).then_some(&tail);
+            let out = super::fit::by_batches_in(self, job, Some(&order), tail);
             let (h1, d1) = GpuEngine::seconds(self);
             let own = t.elapsed().as_secs_f64() - (h1 - h0) - (d1 - d0);
             self.clock.add(own.max(0.0), 0.0);

@@ -28,6 +28,13 @@ pub struct GpuOptions {
     /// than such a batch. 0 (the default here, so that tests exercise the kernels with
     /// any batch): never. The commands use [`SMALL_BATCH`].
     pub small_batch: usize,
+    /// Once the device fit's iterations have at most this many segments still moving,
+    /// the host takes those on to the end as the CPU engine's fit does (each
+    /// neighbourhood gathered once, [`crate::engine::fit::finish_gathered`]): every
+    /// iteration is a device round trip, and the last few carry a few dozen segments
+    /// each. 0 (the default here, so that tests run the kernel to the end): never. The
+    /// commands use [`FIT_TAIL`].
+    pub fit_tail: usize,
     /// Where [`Engine::members`] lists are built (the edge fit, `--split-gaps`), and so
     /// where [`Engine::extent`] walks (the end gaps: on the host with the lists, else on
     /// the device's member pass).
@@ -91,6 +98,14 @@ pub enum FitOn {
 /// costs a fraction of a millisecond on a real GPU (about one on lavapipe).
 pub const SMALL_BATCH: usize = 16;
 
+/// The commands' [`GpuOptions::fit_tail`]. On the bench scene at 10^6 Gaussians x 10^4
+/// segments the device fit's iterations carried 10,000, 8,998, 7,011, 1,381 segments and
+/// then 109, 43, 28, 25, 23, 22, 20 and 19: eight round trips for the last 109 segments,
+/// whose remaining steps the host takes in about a millisecond on two threads (each
+/// segment's neighbourhood gathered once, every step in cache). At most 256 segments
+/// cost the host at most a few milliseconds of one thread.
+pub const FIT_TAIL: usize = 256;
+
 impl GpuOptions {
     /// The options the commands use: the defaults, with batches of at most
     /// [`SMALL_BATCH`] queries on the host, member lists and the edge fit by adapter
@@ -99,6 +114,7 @@ impl GpuOptions {
     pub fn for_commands() -> Self {
         GpuOptions {
             small_batch: SMALL_BATCH,
+            fit_tail: FIT_TAIL,
             fit: FitOn::Auto,
             members: MembersOn::Auto,
             warm_up: true,
@@ -142,6 +158,8 @@ impl GpuSetup {
     /// - `LINEGS_GPU_PCI_BUS_ID`: [`GpuSetup::adapter_pci_bus_id`];
     /// - `LINEGS_GPU_SMALL_BATCH=N`: [`GpuOptions::small_batch`] (0 sends every batch to
     ///   the device);
+    /// - `LINEGS_GPU_FIT_TAIL=N`: [`GpuOptions::fit_tail`] (0 runs every iteration of the
+    ///   device fit on the device);
     /// - `LINEGS_GPU_FIT=device|host`: [`GpuOptions::fit`] (else by adapter);
     /// - `LINEGS_GPU_MEMBERS=device|host`: [`GpuOptions::members`] (else by adapter);
     /// - `LINEGS_GPU_UPLOADS=mapped|staged`: [`GpuOptions::mapped_uploads`] (`mapped`,
@@ -164,6 +182,15 @@ impl GpuSetup {
                     "LINEGS_GPU_SMALL_BATCH",
                     &v,
                     "a whole number >= 0 (0 sends every batch to the device)",
+                )
+            })?;
+        }
+        if let Some(v) = set("LINEGS_GPU_FIT_TAIL") {
+            options.fit_tail = v.trim().parse().map_err(|_| {
+                bad(
+                    "LINEGS_GPU_FIT_TAIL",
+                    &v,
+                    "a whole number >= 0 (0 runs every iteration on the device)",
                 )
             })?;
         }
@@ -214,6 +241,7 @@ impl Default for GpuOptions {
             max_queries: 1 << 16,
             fit: FitOn::Device,
             small_batch: 0,
+            fit_tail: 0,
             members: MembersOn::Device,
             warm_up: false,
             mapped_uploads: true,
@@ -231,10 +259,12 @@ mod tests {
         let none = GpuSetup::from_vars(|_| None).unwrap();
         assert_eq!(none, GpuSetup::default());
         assert_eq!(none.options.small_batch, SMALL_BATCH);
+        assert_eq!(none.options.fit_tail, FIT_TAIL);
         let vars = |k: &str| {
             match k {
                 "WGPU_ADAPTER_NAME" => Some("llvmpipe"),
                 "LINEGS_GPU_SMALL_BATCH" => Some(" 0 "),
+                "LINEGS_GPU_FIT_TAIL" => Some("7"),
                 "LINEGS_GPU_FIT" => Some("host"),
                 "LINEGS_GPU_MEMBERS" => Some("device"),
                 "LINEGS_GPU_UPLOADS" => Some("staged"),
@@ -246,6 +276,7 @@ mod tests {
         let s = GpuSetup::from_vars(vars).unwrap();
         assert_eq!(s.adapter_name.as_deref(), Some("llvmpipe"));
         assert_eq!(s.options.small_batch, 0);
+        assert_eq!(s.options.fit_tail, 7);
         assert_eq!(s.options.fit, FitOn::Host);
         assert_eq!(s.options.members, MembersOn::Device);
         assert!(!s.options.mapped_uploads && none.options.mapped_uploads);
@@ -260,6 +291,7 @@ mod tests {
         for (k, v, accepted) in [
             ("LINEGS_GPU_SMALL_BATCH", "x", "a whole number >= 0"),
             ("LINEGS_GPU_SMALL_BATCH", "-1", "a whole number >= 0"),
+            ("LINEGS_GPU_FIT_TAIL", "many", "a whole number >= 0"),
             ("LINEGS_GPU_FIT", "gpu", "`device` or `host`"),
             ("LINEGS_GPU_MEMBERS", "Device", "`device` or `host`"),
             ("LINEGS_GPU_UPLOADS", "host", "`mapped` or `staged`"),
