@@ -55,19 +55,7 @@ fn both_with_tails(
         points: attrs.fit_points(),
     };
     let once = e.fit_edges(&job).unwrap();
-    let per_iteration = by_batches(&e, &job).unwrap();
-    let (a, b) = (bits(&once.segments), bits(&per_iteration.segments));
-    if let Some(i) = (0..a.len()).find(|&i| a[i] != b[i]) {
-        panic!(
-            "segment {i} of {}: {:?} gathered once, {:?} per iteration",
-            a.len(),
-            once.segments[i],
-            per_iteration.segments[i]
-        );
-    }
-    assert_eq!(once.how, per_iteration.how);
-    assert_eq!(once.iterations, per_iteration.iterations);
-    assert_eq!(once.steps, per_iteration.steps);
+    same_fit(&once, &by_batches(&e, &job).unwrap(), "per iteration");
     // Batches until at most `at_most` segments are still moving, then the rest of each
     // one's steps gathered: the same bits wherever the batches stop (all of them from the
     // start where `at_most` covers every segment).
@@ -84,18 +72,11 @@ fn both_with_tails(
             finish: &finish,
         };
         let with_tail = by_batches_in(&e, &job, None, Some(&tail)).unwrap();
-        let c = bits(&with_tail.segments);
-        if let Some(i) = (0..a.len()).find(|&i| a[i] != c[i]) {
-            panic!(
-                "segment {i} of {} (tail of at most {at_most}): {:?} gathered once, {:?} with the tail",
-                a.len(),
-                once.segments[i],
-                with_tail.segments[i]
-            );
-        }
-        assert_eq!(once.how, with_tail.how);
-        assert_eq!(once.iterations, with_tail.iterations);
-        assert_eq!(once.steps, with_tail.steps);
+        same_fit(
+            &once,
+            &with_tail,
+            &format!("with a tail of at most {at_most}"),
+        );
         handed.push(taken.into_inner().unwrap());
     }
     // Every segment that steps at all went to the tail of any size (exact copies once).
@@ -107,6 +88,23 @@ fn both_with_tails(
         .len();
     assert_eq!(handed[2], stepping, "{handed:?}");
     (once, handed)
+}
+
+/// Asserts that `other` (fitted `how`) is the gathered fit `once` bit for bit: its
+/// segments, how each moved, its iterations and steps.
+fn same_fit(once: &FitResult, other: &FitResult, how: &str) {
+    let (a, b) = (bits(&once.segments), bits(&other.segments));
+    if let Some(i) = (0..a.len()).find(|&i| a[i] != b[i]) {
+        panic!(
+            "segment {i} of {}: {:?} gathered once, {:?} {how}",
+            a.len(),
+            once.segments[i],
+            other.segments[i]
+        );
+    }
+    assert_eq!(once.how, other.how, "{how}");
+    assert_eq!(once.iterations, other.iterations, "{how}");
+    assert_eq!(once.steps, other.steps, "{how}");
 }
 
 /// How many segments moved, and by more than `GATHER_MARGIN` r from their start (their

@@ -714,9 +714,7 @@ impl Engine for GpuEngine {
             let finish = |job: &FitJob<'_>, rest: &mut [crate::geom::fit::Track]| {
                 self.count_batch(0);
                 let steps = self.on_cpu(0, || super::fit::finish_gathered(&self.grid, job, rest));
-                self.queries.fetch_add(steps, Ordering::Relaxed);
-                self.cpu_queries.fetch_add(steps, Ordering::Relaxed);
-                self.host_lists.fetch_add(steps, Ordering::Relaxed);
+                self.host_steps(steps);
                 Ok(())
             };
             let tail = super::fit::Tail {
@@ -733,10 +731,7 @@ impl Engine for GpuEngine {
         self.count_batch(0);
         let before = self.cpu.counters().queries;
         let out = self.on_cpu(0, || self.cpu.fit_edges(job))?;
-        let steps = self.cpu.counters().queries - before;
-        self.queries.fetch_add(steps, Ordering::Relaxed);
-        self.cpu_queries.fetch_add(steps, Ordering::Relaxed);
-        self.host_lists.fetch_add(steps, Ordering::Relaxed);
+        self.host_steps(self.cpu.counters().queries - before);
         Ok(out)
     }
 
@@ -803,6 +798,14 @@ impl GpuEngine {
         // As [`Self::cpu_members`].
         let e = self.cpu.extent(std::slice::from_ref(q));
         e.ok().and_then(|mut e| e.pop()).unwrap_or_default()
+    }
+
+    /// Counts `steps` edge-fit steps taken on the host: each a query answered there, whose
+    /// members the host walked.
+    fn host_steps(&self, steps: u64) {
+        self.queries.fetch_add(steps, Ordering::Relaxed);
+        self.cpu_queries.fetch_add(steps, Ordering::Relaxed);
+        self.host_lists.fetch_add(steps, Ordering::Relaxed);
     }
 
     /// `f()`, its time counted as the engine's host work (`host_seconds`).

@@ -179,24 +179,28 @@ impl GpuSetup {
             value: v.to_string(),
             accepted,
         };
+        // A count variable's value, where it is set.
+        let whole = |var: &'static str, accepted: &'static str| {
+            set(var)
+                .map(|v| {
+                    v.trim()
+                        .parse::<usize>()
+                        .map_err(|_| bad(var, &v, accepted))
+                })
+                .transpose()
+        };
         let mut options = GpuOptions::for_commands();
-        if let Some(v) = set("LINEGS_GPU_SMALL_BATCH") {
-            options.small_batch = v.trim().parse().map_err(|_| {
-                bad(
-                    "LINEGS_GPU_SMALL_BATCH",
-                    &v,
-                    "a whole number >= 0 (0 sends every batch to the device)",
-                )
-            })?;
+        if let Some(n) = whole(
+            "LINEGS_GPU_SMALL_BATCH",
+            "a whole number >= 0 (0 sends every batch to the device)",
+        )? {
+            options.small_batch = n;
         }
-        if let Some(v) = set("LINEGS_GPU_FIT_TAIL") {
-            options.fit_tail = v.trim().parse().map_err(|_| {
-                bad(
-                    "LINEGS_GPU_FIT_TAIL",
-                    &v,
-                    "a whole number >= 0 (0 runs every iteration on the device)",
-                )
-            })?;
+        if let Some(n) = whole(
+            "LINEGS_GPU_FIT_TAIL",
+            "a whole number >= 0 (0 runs every iteration on the device)",
+        )? {
+            options.fit_tail = n;
         }
         options.fit = match set("LINEGS_GPU_FIT").as_deref().map(str::trim) {
             None => FitOn::Auto,
