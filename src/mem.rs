@@ -97,50 +97,34 @@ fn advise_range(start: usize, end: usize) {
 /// The main heap's start of the part not yet advised ([`huge_heap`]); 0 while off.
 static HEAP_FROM: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 
-/// Threads that share one heap at most (beyond it glibc's per-thread heaps, which the
-/// advice does not reach, serve the rest).
-const ONE_HEAP_THREADS: usize = 4;
-
-/// Whether [`huge_heap`] made every thread allocate from one heap ([`one_heap`]).
-static ONE_HEAP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// Whether every thread allocates from one heap, under one lock ([`huge_heap`] on a
-/// machine of at most [`ONE_HEAP_THREADS`] threads). Many small blocks are then better
-/// taken on one thread: taken by two at once they queue on the lock (the GPU engine's
-/// member lists at 10^6 x 10^4 on the development machine: 11.5–12 ms for their room
-/// and filling against 8.1–8.3 ms). With a heap per thread (glibc's default, and the
-/// Python module's) they are taken in parallel as fast (7.4–8.4 ms) and leave nothing
-/// to one thread.
-pub fn one_heap() -> bool {
-    ONE_HEAP.load(std::sync::atomic::Ordering::Relaxed)
-}
-
 /// The command line's heap (Linux with glibc): every block under 32 MiB from the main
 /// heap, which grows 64 MiB at a time, keeps up to 256 MiB it freed for the next blocks
 /// instead of handing it back, and lies on transparent huge pages ([`HugeBlocks`] advises
 /// each part as the heap grows; larger blocks are mapped on their own and advised by
-/// [`advise_huge`]). With at most [`ONE_HEAP_THREADS`] threads every thread allocates
-/// from that one heap (glibc's per-thread heaps would be on 4 KiB pages).
+/// [`advise_huge`]). Other threads keep glibc's heaps of their own (on 4 KiB pages, which
+/// the advice does not reach): one heap for every thread would put each allocation of
+/// every thread under one lock, and parallel work that takes many small blocks would
+/// queue on it. The decision rule's weighing of the moved segments (its cross-sections,
+/// a few small blocks a segment) took as long on two threads as on one that way
+/// (0.070 s on one and 0.085 s on two at 10^6 x 10^4, against 0.037 s on two threads
+/// with a heap each), and the CPU engine's whole run took 0.32–0.34 s against
+/// 0.27–0.29 s (`linegs-gpu bench -n 1000000 --num-segments 10000 --backend cpu`, three
+/// interleaved pairs on the 2-core development machine).
 ///
 /// A run is short and touches most pages once: on 4 KiB pages the kernel's page faults
 /// took about a quarter of the s200k-like scene's CPU time (8,500 faults in a 0.13 s run;
 /// 700 with this). The settings are glibc's `mallopt` knobs, the same as its tunables
-/// `glibc.malloc.top_pad`, `trim_threshold`, `mmap_threshold`, `arena_max` and
-/// `hugetlb=1`, which only the environment can set. Call it first thing in `main`, once;
-/// elsewhere (another C library, another system) nothing changes.
+/// `glibc.malloc.top_pad`, `trim_threshold`, `mmap_threshold` and `hugetlb=1`, which
+/// only the environment can set. Call it first thing in `main`, once; elsewhere (another C library, another system) nothing changes.
 pub fn huge_heap() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         // SAFETY: mallopt changes how later blocks are placed, never live ones; sbrk(0)
         // only reads the current end of the heap.
         unsafe {
             libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
             libc::mallopt(libc::M_TOP_PAD, 64 << 20);
             libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
-            if threads <= ONE_HEAP_THREADS && libc::mallopt(libc::M_ARENA_MAX, 1) == 1 {
-                ONE_HEAP.store(true, std::sync::atomic::Ordering::Relaxed);
-            }
             let end = libc::sbrk(0) as usize;
             if end != usize::MAX {
                 HEAP_FROM.store(

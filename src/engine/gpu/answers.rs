@@ -297,19 +297,11 @@ impl GpuEngine {
             let mut p = 0;
             while p < n {
                 let len = part.min(n - p);
-                // Each list's room: taken here, on one thread, where every thread shares
-                // one heap (the allocations would queue on its lock), else by the thread
-                // that fills the list (`mem::one_heap`).
-                let room = |i: usize| Vec::with_capacity(lists[i].len() + spans[i].len());
-                let here = crate::mem::one_heap();
-                let mut out: Vec<Vec<Member>> = (p..p + len)
-                    .map(|i| if here { room(i) } else { Vec::new() })
-                    .collect();
+                // Each list's room: taken by the thread that fills it.
+                let mut out: Vec<Vec<Member>> = vec![Vec::new(); len];
                 per_query_in(&mut out, &o, &spans[p..p + len], 8, |k, flags, m| {
                     let i = p + k;
-                    if !here {
-                        *m = room(i);
-                    }
+                    *m = Vec::with_capacity(lists[i].len() + spans[i].len());
                     let q = &qs[i];
                     let device = o.results[i].status & layout::STATUS_HOST == 0
                         && !o.bad
