@@ -101,15 +101,18 @@ static HEAP_FROM: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsiz
 /// heap, which grows 64 MiB at a time, keeps up to 256 MiB it freed for the next blocks
 /// instead of handing it back, and lies on transparent huge pages ([`HugeBlocks`] advises
 /// each part as the heap grows; larger blocks are mapped on their own and advised by
-/// [`advise_huge`]). Other threads keep glibc's heaps of their own (on 4 KiB pages, which
-/// the advice does not reach): one heap for every thread would put each allocation of
-/// every thread under one lock, and parallel work that takes many small blocks would
-/// queue on it. The decision rule's weighing of the moved segments (its cross-sections,
+/// [`advise_huge`]). Other threads keep glibc's heaps of their own, each advised whole
+/// as a thread first allocates from it ([`advise_thread_heap`]): one heap for every
+/// thread would put each allocation of every thread under one lock, and parallel work
+/// that takes many small blocks would queue on it. The decision rule's weighing of the moved segments (its cross-sections,
 /// a few small blocks a segment) took as long on two threads as on one that way
 /// (0.070 s on one and 0.085 s on two at 10^6 x 10^4, against 0.037 s on two threads
 /// with a heap each), and the CPU engine's whole run took 0.32–0.34 s against
 /// 0.27–0.29 s (`linegs-gpu bench -n 1000000 --num-segments 10000 --backend cpu`, three
-/// interleaved pairs on the 2-core development machine).
+/// interleaved pairs on the 2-core development machine). The thread heaps' advice took
+/// the s200k-like process (`bash benches/s200k.sh 15`, interleaved) from 2–12 % slower
+/// than under one heap back to 0.89–1.02 of its time, and the whole run at 10^6 x 10^4 to
+/// 0.26–0.27 s.
 ///
 /// A run is short and touches most pages once: on 4 KiB pages the kernel's page faults
 /// took about a quarter of the s200k-like scene's CPU time (8,500 faults in a 0.13 s run;
@@ -127,6 +130,9 @@ pub fn huge_heap() {
             libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
             let end = libc::sbrk(0) as usize;
             if end != usize::MAX {
+                // The main heap's start: its mapping's, where it has one already.
+                let start = main_heap_start().unwrap_or(end).min(end);
+                MAIN_FROM.store(start.max(1), std::sync::atomic::Ordering::Relaxed);
                 HEAP_FROM.store(
                     end.next_multiple_of(HUGE_PAGE),
                     std::sync::atomic::Ordering::Relaxed,
@@ -134,6 +140,15 @@ pub fn huge_heap() {
             }
         }
     }
+}
+
+/// The start of the mapping named `[heap]` (the main heap), from `/proc/self/maps`.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn main_heap_start() -> Option<usize> {
+    let maps = std::fs::read_to_string("/proc/self/maps").ok()?;
+    let line = maps.lines().find(|l| l.trim_end().ends_with("[heap]"))?;
+    let (start, _) = line.split_whitespace().next()?.split_once('-')?;
+    usize::from_str_radix(start, 16).ok()
 }
 
 /// After an allocation: advises the main heap's whole 2 MiB pages that it grew by since
@@ -162,6 +177,63 @@ fn advise_heap_growth() {
     }
 }
 
+/// The main heap's start ([`huge_heap`]; 0 while off): blocks from `MAIN_FROM` to the
+/// heap's end are the main heap's, which [`advise_heap_growth`] advises.
+static MAIN_FROM: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// The size and alignment of glibc's heaps for threads other than the main one
+/// (`HEAP_MAX_SIZE` on 64-bit targets): each is a reservation of its own, made readable
+/// and writable as it grows.
+#[cfg(all(target_os = "linux", target_env = "gnu", target_pointer_width = "64"))]
+const THREAD_HEAP: usize = 64 << 20;
+
+#[cfg(all(target_os = "linux", target_env = "gnu", target_pointer_width = "64"))]
+thread_local! {
+    /// The thread heap this thread advised last ([`advise_thread_heap`]).
+    static ADVISED: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+/// After an allocation of `size` bytes at `p` outside the main heap: advises the whole
+/// glibc thread heap holding it onto huge pages, once per thread and heap ([`huge_heap`];
+/// nothing while it is off). Threads other than the main one allocate from heaps of their
+/// own, which the main heap's advice does not reach: on 4 KiB pages a short run pays a
+/// page fault for each page its workers touch (what glibc's `hugetlb=1` tunable would do,
+/// which only the environment can set). Blocks of [`HUGE_FROM`] and more are advised on
+/// their own.
+#[inline]
+fn advise_thread_heap(p: *mut u8, size: usize) {
+    #[cfg(all(target_os = "linux", target_env = "gnu", target_pointer_width = "64"))]
+    {
+        use std::sync::atomic::Ordering::Relaxed;
+        let main = MAIN_FROM.load(Relaxed);
+        if main == 0 || p.is_null() || size >= HUGE_FROM {
+            return;
+        }
+        let at = p as usize;
+        let base = at & !(THREAD_HEAP - 1);
+        // `try_with`: nothing while the thread's locals are being torn down.
+        let _ = ADVISED.try_with(|last| {
+            if last.get() == base {
+                return;
+            }
+            last.set(base);
+            // SAFETY: sbrk(0) reads the current end of the heap and changes nothing.
+            let end = unsafe { libc::sbrk(0) } as usize;
+            if (main..end).contains(&at) {
+                return;
+            }
+            // SAFETY: `base..base + THREAD_HEAP` is the thread heap glibc reserved for the
+            // block (mapped whole, aligned to its size); the advice changes how its pages
+            // are backed, never their contents, and a refusal is harmless.
+            unsafe {
+                libc::madvise(base as *mut libc::c_void, THREAD_HEAP, libc::MADV_HUGEPAGE);
+            }
+        });
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu", target_pointer_width = "64")))]
+    let _ = (p, size);
+}
+
 /// The system allocator with large blocks on huge pages ([`advise_huge`]), and the heap
 /// too once [`huge_heap`] is called: the Python module's and the benchmarks' global
 /// allocator, and the one the command line's wraps with an out-of-memory message.
@@ -173,6 +245,7 @@ unsafe impl std::alloc::GlobalAlloc for HugeBlocks {
         let p = unsafe { std::alloc::System.alloc(layout) };
         advise_huge(p, layout.size());
         advise_heap_growth();
+        advise_thread_heap(p, layout.size());
         p
     }
 
@@ -180,6 +253,7 @@ unsafe impl std::alloc::GlobalAlloc for HugeBlocks {
         let p = unsafe { std::alloc::System.alloc_zeroed(layout) };
         advise_huge(p, layout.size());
         advise_heap_growth();
+        advise_thread_heap(p, layout.size());
         p
     }
 
@@ -187,6 +261,7 @@ unsafe impl std::alloc::GlobalAlloc for HugeBlocks {
         let p = unsafe { std::alloc::System.realloc(ptr, layout, new) };
         advise_huge(p, new);
         advise_heap_growth();
+        advise_thread_heap(p, new);
         p
     }
 

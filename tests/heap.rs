@@ -5,16 +5,19 @@
 #[global_allocator]
 static ALLOCATOR: linegs_gpu::mem::HugeBlocks = linegs_gpu::mem::HugeBlocks;
 
-/// Bytes on huge pages (`AnonHugePages`) in the mappings named `[heap]`.
-fn heap_huge_bytes() -> u64 {
+/// Bytes on huge pages (`AnonHugePages`) in the mappings that `take(start, end, line)`
+/// picks (`line`: the mapping's line of `/proc/self/smaps`).
+fn huge_bytes(take: impl Fn(usize, usize, &str) -> bool) -> u64 {
     let smaps = std::fs::read_to_string("/proc/self/smaps").expect("/proc/self/smaps");
-    let mut in_heap = false;
+    let mut taken = false;
     let mut total = 0;
     for line in smaps.lines() {
         let first = line.split_whitespace().next().unwrap_or("");
         if first.contains('-') && !first.ends_with(':') {
-            in_heap = line.trim_end().ends_with("[heap]");
-        } else if in_heap {
+            let (a, b) = first.split_once('-').unwrap();
+            let hex = |x: &str| usize::from_str_radix(x, 16).unwrap();
+            taken = take(hex(a), hex(b), line);
+        } else if taken {
             if let Some(kb) = line.strip_prefix("AnonHugePages:") {
                 total += kb
                     .trim()
@@ -27,6 +30,20 @@ fn heap_huge_bytes() -> u64 {
         }
     }
     total
+}
+
+/// Bytes on huge pages in the mappings named `[heap]` (the main heap).
+fn heap_huge_bytes() -> u64 {
+    huge_bytes(|_, _, line| line.trim_end().ends_with("[heap]"))
+}
+
+/// 40 blocks of 1 MiB, written: far under the 4 MiB from which each block is advised on
+/// its own, so only the advice of the heap they come from can put them on huge pages.
+fn blocks() -> Vec<Vec<u8>> {
+    let blocks: Vec<Vec<u8>> = (0..40).map(|i| vec![i as u8 + 1; 1 << 20]).collect();
+    let sum: u64 = blocks.iter().map(|b| u64::from(b[b.len() - 1])).sum();
+    assert_eq!(sum, (1..=40).sum::<u64>());
+    blocks
 }
 
 /// The address ranges of the mappings named `[heap]` (the main heap).
@@ -71,16 +88,29 @@ fn main() {
         println!("heap: skipped (transparent huge pages not in madvise mode: {thp:?})");
         return;
     }
-    // Blocks of 1 MiB: far under the 4 MiB from which each block is advised on its own,
-    // so only the heap's advice can put them on huge pages.
-    let blocks: Vec<Vec<u8>> = (0..40).map(|i| vec![i as u8 + 1; 1 << 20]).collect();
+    let main = blocks();
     let huge = heap_huge_bytes();
-    let sum: u64 = blocks.iter().map(|b| u64::from(b[b.len() - 1])).sum();
-    assert_eq!(sum, (1..=40).sum::<u64>());
     // 40 MiB written: about 19 whole 2 MiB pages; the kernel may fail to find some free.
     assert!(
         huge >= 8 << 20,
         "{huge} bytes of the heap on huge pages, 40 MiB written"
     );
-    println!("heap: ok ({} MiB of the heap on huge pages)", huge >> 20);
+    // Another thread's blocks, from its own heap: that heap on huge pages too.
+    let worker = std::thread::spawn(|| {
+        let b = blocks();
+        let at = b[20].as_ptr() as usize;
+        let huge = huge_bytes(|start, end, _| (start..end).contains(&at));
+        (huge, b)
+    });
+    let (worker_huge, _worker_blocks) = worker.join().unwrap();
+    assert!(
+        worker_huge >= 8 << 20,
+        "{worker_huge} bytes of a worker thread's heap on huge pages, 40 MiB written"
+    );
+    drop(main);
+    println!(
+        "heap: ok ({} MiB of the main heap and {} MiB of a worker's on huge pages)",
+        huge >> 20,
+        worker_huge >> 20
+    );
 }
