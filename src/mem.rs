@@ -104,10 +104,10 @@ static HEAP_FROM: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsiz
 /// [`advise_huge`]). Other threads keep glibc's heaps of their own, each advised whole
 /// as a thread first allocates from it ([`advise_thread_heap`]): one heap for every
 /// thread would put each allocation of every thread under one lock, and parallel work
-/// that takes many small blocks would queue on it. The decision rule's weighing of the moved segments (its cross-sections,
-/// a few small blocks a segment) took as long on two threads as on one that way
-/// (0.070 s on one and 0.085 s on two at 10^6 x 10^4, against 0.037 s on two threads
-/// with a heap each), and the CPU engine's whole run took 0.32–0.34 s against
+/// that takes many small blocks would queue on it. The decision rule's weighing of the
+/// moved segments (its cross-sections, a few small blocks a segment) took as long on two
+/// threads as on one that way (0.070 s on one and 0.085 s on two at 10^6 x 10^4, against
+/// 0.037 s on two threads with a heap each), and the CPU engine's whole run took 0.32–0.34 s against
 /// 0.27–0.29 s (`linegs-gpu bench -n 1000000 --num-segments 10000 --backend cpu`, three
 /// interleaved pairs on the 2-core development machine). The thread heaps' advice took
 /// the s200k-like process (`bash benches/s200k.sh 15`, interleaved) from 2–12 % slower
@@ -118,7 +118,8 @@ static HEAP_FROM: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsiz
 /// took about a quarter of the s200k-like scene's CPU time (8,500 faults in a 0.13 s run;
 /// 700 with this). The settings are glibc's `mallopt` knobs, the same as its tunables
 /// `glibc.malloc.top_pad`, `trim_threshold`, `mmap_threshold` and `hugetlb=1`, which
-/// only the environment can set. Call it first thing in `main`, once; elsewhere (another C library, another system) nothing changes.
+/// only the environment can set. Call it first thing in `main`, once; elsewhere (another
+/// C library, another system) nothing changes.
 pub fn huge_heap() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
@@ -195,11 +196,11 @@ thread_local! {
 
 /// After an allocation of `size` bytes at `p` outside the main heap: advises the whole
 /// glibc thread heap holding it onto huge pages, once per thread and heap ([`huge_heap`];
-/// nothing while it is off). Threads other than the main one allocate from heaps of their
+/// nothing while it is off), as glibc's `hugetlb=1` tunable would (which only the
+/// environment can set). Threads other than the main one allocate from heaps of their
 /// own, which the main heap's advice does not reach: on 4 KiB pages a short run pays a
-/// page fault for each page its workers touch (what glibc's `hugetlb=1` tunable would do,
-/// which only the environment can set). Blocks of [`HUGE_FROM`] and more are advised on
-/// their own.
+/// page fault for each page its workers touch. Blocks of [`HUGE_FROM`] and more are
+/// advised on their own.
 #[inline]
 fn advise_thread_heap(p: *mut u8, size: usize) {
     #[cfg(all(target_os = "linux", target_env = "gnu", target_pointer_width = "64"))]

@@ -14,9 +14,8 @@ fn huge_bytes(take: impl Fn(usize, usize, &str) -> bool) -> u64 {
     for line in smaps.lines() {
         let first = line.split_whitespace().next().unwrap_or("");
         if first.contains('-') && !first.ends_with(':') {
-            let (a, b) = first.split_once('-').unwrap();
-            let hex = |x: &str| usize::from_str_radix(x, 16).unwrap();
-            taken = take(hex(a), hex(b), line);
+            let (a, b) = range(line);
+            taken = take(a, b, line);
         } else if taken {
             if let Some(kb) = line.strip_prefix("AnonHugePages:") {
                 total += kb
@@ -46,17 +45,24 @@ fn blocks() -> Vec<Vec<u8>> {
     blocks
 }
 
+/// The address range a mapping's line (of `/proc/self/maps` or `smaps`) starts with.
+fn range(line: &str) -> (usize, usize) {
+    let (a, b) = line
+        .split_whitespace()
+        .next()
+        .unwrap()
+        .split_once('-')
+        .unwrap();
+    let hex = |x: &str| usize::from_str_radix(x, 16).unwrap();
+    (hex(a), hex(b))
+}
+
 /// The address ranges of the mappings named `[heap]` (the main heap).
 fn main_heap() -> Vec<(usize, usize)> {
     let maps = std::fs::read_to_string("/proc/self/maps").expect("/proc/self/maps");
     maps.lines()
         .filter(|l| l.trim_end().ends_with("[heap]"))
-        .map(|l| {
-            let range = l.split_whitespace().next().unwrap();
-            let (a, b) = range.split_once('-').unwrap();
-            let hex = |x: &str| usize::from_str_radix(x, 16).unwrap();
-            (hex(a), hex(b))
-        })
+        .map(range)
         .collect()
 }
 
