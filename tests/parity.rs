@@ -726,7 +726,7 @@ fn member_lists_come_in_parts_of_whole_groups() {
                     "{name}: {pair:?}"
                 );
             }
-            for (&i, l) in idx.iter().zip(&lists) {
+            for (&i, l) in idx.iter().zip(lists) {
                 assert!(!seen[i], "{name}: query {i} twice");
                 seen[i] = true;
                 assert_eq!(l, &want[i], "{name}: query {i}");

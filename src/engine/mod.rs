@@ -219,8 +219,9 @@ pub type Sensitive<'a> = dyn Fn(usize, &LineFit) -> bool + Sync + 'a;
 /// and how it was decided.
 pub type FitAnswer = (Option<LineFit>, How);
 
-/// [`Engine::members_in_parts`]' receiver: `(indices, their lists)`.
-pub type Parts<'a> = dyn FnMut(&[usize], Vec<Vec<Member>>) -> Result<(), EngineError> + 'a;
+/// [`Engine::members_in_parts`]' receiver: `(indices, their lists)`. The lists are lent:
+/// an engine may make the next part's in the same memory.
+pub type Parts<'a> = dyn FnMut(&[usize], &[Vec<Member>]) -> Result<(), EngineError> + 'a;
 
 /// Queries a part of [`Engine::members_in_parts`]: whole groups of `group`, at most
 /// `part` (at least one group).
@@ -238,13 +239,11 @@ pub fn hand_out(
     f: &mut Parts<'_>,
 ) -> Result<(), EngineError> {
     let per = part_len(group, part);
-    let n = lists.len();
-    let mut lists = lists.into_iter();
     let mut at = 0;
-    while at < n {
-        let len = per.min(n - at);
+    while at < lists.len() {
+        let len = per.min(lists.len() - at);
         let indices: Vec<usize> = (at..at + len).collect();
-        f(&indices, lists.by_ref().take(len).collect())?;
+        f(&indices, &lists[at..at + len])?;
         at += len;
     }
     Ok(())

@@ -38,6 +38,10 @@ fn per_query_in<T: Send>(
         .for_each(|(i, a)| answer(i, &o.flags[spans[i].clone()], a));
 }
 
+/// [`GpuEngine::members_batch_parts`]' receiver: `(first query, its part's lists)`; the
+/// lists it leaves in place lend their memory to the next part's.
+pub(super) type Give<'a> = dyn FnMut(usize, &mut [Vec<Member>]) -> Result<(), EngineError> + 'a;
+
 impl GpuEngine {
     /// Counts a query the device left to the host, which the host answers from its own
     /// walk (`host_fallbacks`, `host_lists`).
@@ -244,7 +248,7 @@ impl GpuEngine {
     ) -> Result<Vec<Vec<Member>>, EngineError> {
         let mut out: Vec<Vec<Member>> = Vec::with_capacity(queries.len());
         self.members_batch_parts(b, queries, usize::MAX, &mut |_, lists| {
-            out.extend(lists);
+            out.extend(lists.iter_mut().map(std::mem::take));
             Ok(())
         })?;
         Ok(out)
@@ -252,16 +256,20 @@ impl GpuEngine {
 
     /// [`Self::members_batch`] handed to `give(first query, lists)` in order, at most
     /// `part` queries at a time: each part's lists are made from the sub-batch's readback
-    /// as they are handed out, so that only one part's lists are new memory at a time.
+    /// as they are handed out, in the memory of the part before (the lists `give` leaves
+    /// in place), so that one part's lists are all the memory they take, and it stays
+    /// in cache.
     pub(super) fn members_batch_parts(
         &self,
         b: &mut Buffers,
         queries: &[Query],
         part: usize,
-        give: &mut dyn FnMut(usize, Vec<Vec<Member>>) -> Result<(), EngineError>,
+        give: &mut Give<'_>,
     ) -> Result<(), EngineError> {
         let grid = &*self.grid;
         let part = part.max(1);
+        // Each part's lists, made where the part before left its lists.
+        let mut lists_of_part: Vec<Vec<Member>> = Vec::new();
         self.run(b, Kind::Members, queries, &[], &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
@@ -297,11 +305,16 @@ impl GpuEngine {
             let mut p = 0;
             while p < n {
                 let len = part.min(n - p);
-                // Each list's room: taken by the thread that fills it.
-                let mut out: Vec<Vec<Member>> = vec![Vec::new(); len];
-                per_query_in(&mut out, &o, &spans[p..p + len], 8, |k, flags, m| {
+                if lists_of_part.len() < len {
+                    lists_of_part.resize_with(len, Vec::new);
+                }
+                let out = &mut lists_of_part[..len];
+                // Each list's room: taken by the thread that fills it (where the list
+                // before in this place had less).
+                per_query_in(out, &o, &spans[p..p + len], 8, |k, flags, m| {
                     let i = p + k;
-                    *m = Vec::with_capacity(lists[i].len() + spans[i].len());
+                    m.clear();
+                    m.reserve(lists[i].len() + spans[i].len());
                     let q = &qs[i];
                     let device = o.results[i].status & layout::STATUS_HOST == 0
                         && !o.bad

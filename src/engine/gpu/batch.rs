@@ -7,14 +7,13 @@
 use super::device::{self, Context};
 use super::layout::*;
 use super::pipelines::Kernels;
-use super::query::gquery;
+use super::query::GQueries;
 use super::resources::{Buffers, Limits, Statics};
 pub use super::sizes::Kind;
 use super::sizes::{Bound, Sizes};
 use super::stages::{Recorder, Sequence, Stage};
 use crate::engine::{EngineError, Query};
 use crate::index::Grid;
-use rayon::prelude::*;
 
 /// One sub-batch's answers: per query its result, and the flagged points as (query slot
 /// | kind, sorted point index), sorted; and the bytes of what the batch's stages send
@@ -26,7 +25,7 @@ use rayon::prelude::*;
 /// Members and list batches also have `bad` when the device miscounted the members.
 #[derive(Default)]
 pub struct Output {
-    pub results: Vec<QResult>,
+    pub results: Results,
     pub flags: Vec<(u32, u32)>,
     pub bad: bool,
     pub back: Back,
@@ -42,14 +41,39 @@ impl Output {
     /// `n` queries for the host to answer.
     pub fn host_only(n: usize) -> Output {
         Output {
-            results: vec![
+            results: Results::Owned(vec![
                 QResult {
                     status: STATUS_HOST,
                     ..Default::default()
                 };
                 n
-            ],
+            ]),
             ..Default::default()
+        }
+    }
+}
+
+/// A sub-batch's results, one a query: where they lie in the mapped staging buffer (read
+/// in place, as [`Back`]: a copy was 48 bytes a query of fresh writes), or made on the
+/// host.
+pub enum Results {
+    Mapped(device::Mapped),
+    Owned(Vec<QResult>),
+}
+
+impl Default for Results {
+    fn default() -> Results {
+        Results::Owned(Vec::new())
+    }
+}
+
+impl std::ops::Deref for Results {
+    type Target = [QResult];
+    fn deref(&self) -> &[QResult] {
+        match self {
+            // (Checked aligned where it was made.)
+            Results::Mapped(m) => bytemuck::cast_slice(m),
+            Results::Owned(v) => v,
         }
     }
 }
@@ -114,12 +138,8 @@ pub fn submit(
     if n == 0 {
         return Ok(Attempt::Done(Output::default(), 0.0));
     }
-    let gq: Vec<GQuery> = qs
-        .par_iter()
-        .enumerate()
-        .with_min_len(256)
-        .map(|(i, q)| gquery(grid, q, ks.get(i).copied().unwrap_or(0)))
-        .collect();
+    // Made where they are uploaded, at the first try ([`Bound::take`]).
+    let gq = GQueries { grid, qs, ks };
     let mut waited = 0.0;
     let (mut items_run, mut points_read) = (0u64, 0u64);
     let mut rerun = false;
@@ -281,7 +301,7 @@ fn attempt(
     lim: &Limits,
     b: &mut Buffers,
     kind: Kind,
-    gq: &[GQuery],
+    gq: &GQueries,
     fit: &[FitQuery],
     rerun: bool,
     records: bool,
@@ -386,7 +406,12 @@ fn attempt(
 /// past the counters stay where they are.
 fn read(bytes: device::Mapped, kind: Kind, sz: &Sizes, flag_cap: u32) -> Readback {
     let (r, c) = (sz.results as usize, sz.ctl as usize);
-    let results: Vec<QResult> = bytemuck::pod_collect_to_vec(&bytes[..r]);
+    // In place where the mapping is aligned for them (it always is: wgpu maps at 8 bytes
+    // or more, and they start the buffer).
+    let results = match bytemuck::try_cast_slice::<u8, QResult>(&bytes[..r]) {
+        Ok(_) => Results::Mapped(bytes.part(0..r)),
+        Err(_) => Results::Owned(bytemuck::pod_collect_to_vec(&bytes[..r])),
+    };
     let ctlw = device::pods::<u32>(&bytes[r..r + c]);
     let (items, n_flags) = (ctlw[0], ctlw[1]);
     let head = CTL_HEAD as usize;

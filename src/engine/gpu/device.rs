@@ -561,7 +561,10 @@ impl Context {
         };
         let len = view.len();
         let mapped = Mapped {
-            view: Some((view, staging.clone())),
+            view: Some(Arc::new(MappedView {
+                view: Some(view),
+                buffer: staging.clone(),
+            })),
             range: 0..len,
         };
         Ok((mapped, waited))
@@ -715,11 +718,11 @@ impl Uploads {
     /// Stages `parts` (each its destination and bytes) at 256-byte offsets; `false` (and
     /// nothing staged) where the staging buffer could not be mapped, for the caller to
     /// write them otherwise.
-    pub fn stage(&mut self, ctx: &Context, parts: &[(Upload, &[u8])]) -> bool {
+    pub fn stage(&mut self, ctx: &Context, parts: &[(Upload, Source)]) -> bool {
         // Copies staged for a batch that never recorded them (it failed) are dropped: this
         // stage overwrites their bytes.
         self.pending.clear();
-        let parts: Vec<&(Upload, &[u8])> = parts.iter().filter(|p| !p.1.is_empty()).collect();
+        let parts: Vec<&(Upload, Source)> = parts.iter().filter(|p| p.1.len() > 0).collect();
         let place = |n: usize| (n as u64).next_multiple_of(256);
         let total: u64 = parts.iter().map(|(_, b)| place(b.len())).sum();
         if total == 0 {
@@ -752,15 +755,19 @@ impl Uploads {
             return false;
         };
         let mut at = 0u64;
-        for &(to, bytes) in parts {
-            let n = bytes.len() as u64;
-            super::resources::par_copy(view.slice(at as usize..(at + n) as usize), bytes);
+        for (to, from) in parts {
+            let n = from.len() as u64;
+            let dst = view.slice(at as usize..(at + n) as usize);
+            match *from {
+                Source::Bytes(bytes) => super::resources::par_copy(dst, bytes),
+                Source::Fill { unit, fill, .. } => par_fill(dst, unit, fill),
+            }
             let target = match to {
                 Upload::Buffer(b) => Target::Buffer((*b).clone(), n),
                 Upload::Texture(t) => Target::Texture((*t).clone(), (n / 16) as u32),
             };
             self.pending.push((at, target));
-            at += place(bytes.len());
+            at += place(from.len());
         }
         drop(view);
         buf.unmap();
@@ -828,6 +835,57 @@ fn texture_at(texture: &wgpu::Texture, y: u32) -> wgpu::TexelCopyTextureInfo<'_>
     }
 }
 
+/// What one part of [`Uploads::stage`] writes: bytes to copy, or `len` bytes that
+/// `fill(at, dst)` writes itself, piece by piece in parallel (`dst` the piece, `at` its
+/// offset in the part, both multiples of `unit` bytes).
+#[derive(Clone, Copy)]
+pub enum Source<'a> {
+    Bytes(&'a [u8]),
+    Fill {
+        len: usize,
+        unit: usize,
+        fill: &'a Fill<'a>,
+    },
+}
+
+/// [`Source::Fill`]'s writer.
+pub type Fill<'a> = dyn Fn(usize, wgpu::WriteOnly<'_, [u8]>) + Sync + 'a;
+
+impl Source<'_> {
+    /// Bytes the part writes.
+    pub fn len(&self) -> usize {
+        match self {
+            Source::Bytes(b) => b.len(),
+            Source::Fill { len, .. } => *len,
+        }
+    }
+}
+
+/// Bytes of a piece of [`par_fill`]: a whole number of queries (96 bytes) and of texels
+/// (16), small enough that a batch of a few thousand queries is shared by the threads.
+pub const FILL_PIECE: usize = 96 * 512;
+
+/// `fill` over `dst` piece by piece in parallel ([`Source::Fill`]; `unit` divides
+/// [`FILL_PIECE`]).
+fn par_fill(dst: wgpu::WriteOnly<'_, [u8]>, unit: usize, fill: &Fill<'_>) {
+    use rayon::prelude::*;
+    assert!(
+        unit > 0 && FILL_PIECE.is_multiple_of(unit),
+        "a fill's unit divides its pieces"
+    );
+    // (Pieces of a fixed size: wgpu's `WriteOnly` of an unsized slice is not `Send`.)
+    let (whole, tail) = dst.into_chunks::<FILL_PIECE>();
+    let pieces: Vec<wgpu::WriteOnly<'_, [u8; FILL_PIECE]>> = whole.into_iter().collect();
+    let n = pieces.len();
+    pieces
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(k, p)| fill(k * FILL_PIECE, p.into()));
+    if !tail.is_empty() {
+        fill(n * FILL_PIECE, tail);
+    }
+}
+
 /// The destination of one part of [`Uploads::stage`]: a buffer (from its start), or a
 /// texture of `STORE_W` texels a row (16 bytes a texel, from its first row).
 #[derive(Clone, Copy)]
@@ -884,10 +942,26 @@ pub fn head(buf: &wgpu::Buffer, size: u64) -> wgpu::BindingResource<'_> {
 /// over the bench scene's decisions at 10^6 Gaussians).
 #[derive(Default)]
 pub struct Mapped {
-    /// The mapped range and its buffer (none for an empty read-back).
-    view: Option<(wgpu::BufferView, wgpu::Buffer)>,
+    /// The mapping (none for an empty read-back), shared by the parts taken of it
+    /// ([`Mapped::part`]).
+    view: Option<Arc<MappedView>>,
     /// The part of the view these bytes are.
     range: std::ops::Range<usize>,
+}
+
+/// A staging buffer's mapped range, unmapped when the last [`Mapped`] of it is dropped.
+struct MappedView {
+    /// (Taken only by `drop`.)
+    view: Option<wgpu::BufferView>,
+    buffer: wgpu::Buffer,
+}
+
+impl Drop for MappedView {
+    fn drop(&mut self) {
+        // The view first: a buffer with a view still open cannot be unmapped.
+        drop(self.view.take());
+        self.buffer.unmap();
+    }
 }
 
 impl Mapped {
@@ -896,6 +970,16 @@ impl Mapped {
         self.range.start = (self.range.start + at).min(self.range.end);
         self
     }
+
+    /// The bytes `range` of these (clamped to their end), in place: the mapping stays
+    /// until both are dropped.
+    pub fn part(&self, range: std::ops::Range<usize>) -> Mapped {
+        let end = (self.range.start + range.end).min(self.range.end);
+        Mapped {
+            view: self.view.clone(),
+            range: (self.range.start + range.start).min(end)..end,
+        }
+    }
 }
 
 impl std::ops::Deref for Mapped {
@@ -903,17 +987,8 @@ impl std::ops::Deref for Mapped {
     fn deref(&self) -> &[u8] {
         self.view
             .as_ref()
-            .map_or(&[], |(v, _)| &v[self.range.clone()])
-    }
-}
-
-impl Drop for Mapped {
-    fn drop(&mut self) {
-        // The view first: a buffer with a view still open cannot be unmapped.
-        if let Some((view, buffer)) = self.view.take() {
-            drop(view);
-            buffer.unmap();
-        }
+            .and_then(|v| v.view.as_ref())
+            .map_or(&[], |v| &v[self.range.clone()])
     }
 }
 

@@ -619,18 +619,27 @@ impl Engine for GpuEngine {
         });
         let per = super::part_len(group, part);
         // Whole groups only: a sub-batch may end inside one, whose lists wait here.
-        let (mut held_idx, mut held) = (Vec::new(), Vec::new());
-        let mut give = |first: usize, lists: Vec<Vec<super::Member>>| {
-            held_idx.extend_from_slice(&sent_idx[first..first + lists.len()]);
-            held.extend(lists);
-            let whole = held.len() / group * group;
-            if whole == 0 {
-                return Ok(());
-            }
-            let (rest_idx, rest) = (held_idx.split_off(whole), held.split_off(whole));
+        let (mut held_idx, mut held): (Vec<usize>, Vec<Vec<super::Member>>) =
+            (Vec::new(), Vec::new());
+        let mut give = |first: usize, lists: &mut [Vec<super::Member>]| {
+            let idx = &sent_idx[first..first + lists.len()];
             let t = std::time::Instant::now();
-            let got = f(&held_idx, std::mem::replace(&mut held, rest));
-            held_idx = rest_idx;
+            let got = if held.is_empty() && lists.len().is_multiple_of(group) {
+                // A part of whole groups (all but a sub-batch's last): handed out as made.
+                f(idx, lists)
+            } else {
+                held_idx.extend_from_slice(idx);
+                held.extend(lists.iter_mut().map(std::mem::take));
+                let whole = held.len() / group * group;
+                let got = if whole > 0 {
+                    f(&held_idx[..whole], &held[..whole])
+                } else {
+                    Ok(())
+                };
+                held_idx.drain(..whole);
+                held.drain(..whole);
+                got
+            };
             self.callers_ns
                 .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
             got

@@ -97,6 +97,58 @@ pub fn gquery(grid: &Grid, q: &Query, k: u64) -> GQuery {
     }
 }
 
+/// A sub-batch's queries as the kernels read them ([`gquery`], query `i` with `ks[i]`,
+/// 0 past its end), made where they are uploaded: straight into the staging memory
+/// ([`Self::fill`]), not into a vector first and copied.
+pub struct GQueries<'a> {
+    pub grid: &'a Grid,
+    pub qs: &'a [Query],
+    pub ks: &'a [u64],
+}
+
+/// Queries [`GQueries::fill`] makes at a time, in a buffer of its own (6 KiB) that it
+/// then copies to the staging memory in one piece.
+const FILL_RUN: usize = 64;
+
+impl GQueries<'_> {
+    /// Bytes of one query.
+    pub const SIZE: usize = std::mem::size_of::<GQuery>();
+
+    pub fn len(&self) -> usize {
+        self.qs.len()
+    }
+
+    /// Query `first + j` in `out[j]`.
+    fn write(&self, first: usize, out: &mut [GQuery]) {
+        for (j, g) in out.iter_mut().enumerate() {
+            let i = first + j;
+            *g = gquery(self.grid, &self.qs[i], self.ks.get(i).copied().unwrap_or(0));
+        }
+    }
+
+    /// Every query, in a vector (for an upload through the queue).
+    pub fn to_vec(&self) -> Vec<GQuery> {
+        let mut out = vec![GQuery::default(); self.len()];
+        self.write(0, &mut out);
+        out
+    }
+
+    /// The queries' bytes from byte `at` (a whole query) into `dst` (whole queries): a
+    /// [`super::device::Source::Fill`] writer.
+    pub fn fill(&self, at: usize, mut dst: wgpu::WriteOnly<'_, [u8]>) {
+        let mut run = [GQuery::default(); FILL_RUN];
+        let (first, n) = (at / Self::SIZE, dst.len() / Self::SIZE);
+        let mut j = 0;
+        while j < n {
+            let m = FILL_RUN.min(n - j);
+            self.write(first + j, &mut run[..m]);
+            dst.slice(j * Self::SIZE..(j + m) * Self::SIZE)
+                .copy_from_slice(bytemuck::cast_slice(&run[..m]));
+            j += m;
+        }
+    }
+}
+
 /// A query's device result in scene units.
 pub fn stats_of(r: &QResult, cell: f64) -> CylStats {
     let pair = |a: f32, b: f32| a as f64 + b as f64;
@@ -105,5 +157,62 @@ pub fn stats_of(r: &QResult, cell: f64) -> CylStats {
         side_pos: r.side as u64,
         sum_d2: pair(r.d2, r.d2_c) * cell * cell,
         sum_offset: DVec3::new(pair(r.ox, r.ox_c), pair(r.oy, r.oy_c), pair(r.oz, r.oz_c)) * cell,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geom::{p64, Aabb, Segment};
+
+    /// A grid of a few points and `n` queries of different lengths and directions, with
+    /// their `k`s.
+    fn setup(n: usize) -> (Grid, Vec<Query>, Vec<u64>) {
+        let pts: Vec<[f32; 3]> = (0..500)
+            .map(|i| {
+                let t = i as f32 * 0.01;
+                [t, (3.0 * t).sin(), (2.0 * t).cos()]
+            })
+            .collect();
+        let mut b = Aabb::empty();
+        for p in &pts {
+            b.extend(p64(*p));
+        }
+        let grid = Grid::build(&pts, b, 0.1);
+        let qs = (0..n)
+            .map(|i| {
+                let a = i as f64 * 0.37;
+                let p1 = DVec3::new(a.sin(), a.cos(), 0.1 * a);
+                let p2 = p1 + DVec3::new(0.3, 0.1 * a.cos(), -0.2) * (1.0 + 0.01 * i as f64);
+                Query::new(Segment::new(p1, p2), 0.02 + 0.001 * (i % 7) as f64)
+            })
+            .collect();
+        let ks = (0..n as u64).map(|i| i * 3 + 1).collect();
+        (grid, qs, ks)
+    }
+
+    #[test]
+    fn queries_filled_in_place_are_the_queries_made_one_by_one() {
+        // 1,000 queries: pieces of 512 and a tail, written through `Source::Fill`'s
+        // offsets; the last queries have no `k` (0).
+        let (grid, qs, mut ks) = setup(1000);
+        ks.truncate(990);
+        let gq = GQueries {
+            grid: &grid,
+            qs: &qs,
+            ks: &ks,
+        };
+        let want: Vec<GQuery> = (0..qs.len())
+            .map(|i| gquery(&grid, &qs[i], ks.get(i).copied().unwrap_or(0)))
+            .collect();
+        assert_eq!(gq.to_vec(), want);
+        let mut bytes = vec![0u8; qs.len() * GQueries::SIZE];
+        let piece = super::super::device::FILL_PIECE;
+        for (k, chunk) in bytes.chunks_mut(piece).enumerate() {
+            gq.fill(k * piece, wgpu::WriteOnly::from(chunk));
+        }
+        let got: Vec<GQuery> = bytemuck::pod_collect_to_vec(&bytes);
+        assert_eq!(got, want);
+        assert!(got[995].k == 0 && got[5].k == 16 && got[5] != got[6]);
     }
 }

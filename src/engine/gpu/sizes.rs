@@ -4,9 +4,10 @@
 //! launchers). [`super::batch`] sizes and binds a try; [`super::stages`] records its
 //! dispatches over them.
 
-use super::device::{Context, Reusable, Upload};
+use super::device::{Context, Fill, Reusable, Source, Upload};
 use super::layout::*;
 use super::pipelines::ListKernel;
+use super::query::GQueries;
 use super::resources::{Buffers, Limits};
 
 /// What a batch asks of the evaluation kernel.
@@ -173,7 +174,7 @@ impl Bound {
         kind: Kind,
         sz: &Sizes,
         params_bytes: u64,
-        gq: &[GQuery],
+        gq: &GQueries,
         fit: &[FitQuery],
         rerun: bool,
         own: &[&'static BufferSpec],
@@ -200,10 +201,20 @@ impl Bound {
             // Staged for the try's encoder ([`Uploads::record`]), else through the queue.
             let tex = b.qtex.holding(ctx, gq.len()).clone();
             let fit = bytemuck::cast_slice(fit);
-            let mut parts = vec![(Upload::Texture(&tex), bytemuck::cast_slice(gq))];
-            parts.extend(frames.as_ref().map(|f| (Upload::Buffer(f), fit)));
+            let fill: &Fill = &|at, dst| gq.fill(at, dst);
+            let queries = Source::Fill {
+                len: gq.len() * GQueries::SIZE,
+                unit: GQueries::SIZE,
+                fill,
+            };
+            let mut parts = vec![(Upload::Texture(&tex), queries)];
+            parts.extend(
+                frames
+                    .as_ref()
+                    .map(|f| (Upload::Buffer(f), Source::Bytes(fit))),
+            );
             if !b.uploads.stage(ctx, &parts) {
-                b.qtex.write(ctx, gq);
+                b.qtex.write(ctx, &gq.to_vec());
                 if let Some(f) = &frames {
                     ctx.queue.write_buffer(f, 0, fit);
                 }
