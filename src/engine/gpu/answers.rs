@@ -75,6 +75,9 @@ impl GpuEngine {
         each: &mut dyn FnMut(usize, Output) -> Result<(), EngineError>,
     ) -> Result<(), EngineError> {
         let t = std::time::Instant::now();
+        // The queries' upload is parallel work: the workers, asleep since the caller's
+        // last parallel loop, wake while the batch is sized.
+        super::device::wake_workers();
         let mut waited = 0.0;
         let mut todo: Vec<std::ops::Range<usize>> = (0..queries.len())
             .step_by(self.opts.max_queries)

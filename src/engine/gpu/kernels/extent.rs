@@ -93,7 +93,7 @@ impl GpuEngine {
         self.run_list(b, &EXTENT, queries, &frames, &mut |first, o| {
             let n = o.results.len();
             let qs = &queries[first..first + n];
-            let extents: Vec<ExtentOut> = o.list_out();
+            let extents = o.list_out::<ExtentOut>();
             per_query(&mut out[first..first + n], &o, 64, |i, flags, e| {
                 let q = &qs[i];
                 let device = o.results[i].status & STATUS_HOST == 0 && !o.bad;

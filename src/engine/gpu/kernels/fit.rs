@@ -142,7 +142,7 @@ impl GpuEngine {
             let n = o.results.len();
             let qs = &queries[first..first + n];
             let spans = host::spans(&o.flags, n);
-            let fits: Vec<FitOut> = o.list_out();
+            let fits = o.list_out::<FitOut>();
             out[first..first + n]
                 .par_iter_mut()
                 .zip(&mut on_device[first..first + n])

@@ -53,14 +53,14 @@ static BUFFERS: [BufferSpec; 2] = [
 const FRAMES: usize = 0;
 const OUT: usize = 1;
 
-/// A list kernel's output, one `T` a query, as the device wrote it.
+/// A list kernel's output, one `T` a query, as the device wrote it (read in place).
 pub(super) trait ListOut {
-    fn list_out<T: bytemuck::Pod>(&self) -> Vec<T>;
+    fn list_out<T: bytemuck::Pod>(&self) -> std::borrow::Cow<'_, [T]>;
 }
 
 impl ListOut for Output {
-    fn list_out<T: bytemuck::Pod>(&self) -> Vec<T> {
-        bytemuck::pod_collect_to_vec(&self.back)
+    fn list_out<T: bytemuck::Pod>(&self) -> std::borrow::Cow<'_, [T]> {
+        super::super::device::pods(&self.back)
     }
 }
 
