@@ -53,51 +53,45 @@ impl Output {
     }
 }
 
-/// A sub-batch's results, one a query: where they lie in the mapped staging buffer (read
-/// in place, as [`Back`]: a copy was 48 bytes a query of fresh writes), or made on the
-/// host.
-pub enum Results {
+/// A sub-batch's results, one a query: read in place (a copy was 48 bytes a query of
+/// fresh writes), or made on the host.
+pub type Results = InPlace<QResult>;
+
+/// A sub-batch's bytes past its results and counters (a list kernel's outputs, the
+/// members, the nearest plans): in place, or a copy where part of them came back in a
+/// round trip of their own.
+pub type Back = InPlace<u8>;
+
+/// `T`s where they lie in the mapped staging buffer, or made on the host.
+pub enum InPlace<T> {
     Mapped(device::Mapped),
-    Owned(Vec<QResult>),
+    Owned(Vec<T>),
 }
 
-impl Default for Results {
-    fn default() -> Results {
-        Results::Owned(Vec::new())
-    }
-}
-
-impl std::ops::Deref for Results {
-    type Target = [QResult];
-    fn deref(&self) -> &[QResult] {
-        match self {
-            // (Checked aligned where it was made.)
-            Results::Mapped(m) => bytemuck::cast_slice(m),
-            Results::Owned(v) => v,
+impl<T: bytemuck::Pod> InPlace<T> {
+    /// `bytes` as `T`s, in place where they are aligned for them (mapped memory always
+    /// is: wgpu maps at 8 bytes or more), else copied.
+    pub fn of(bytes: device::Mapped) -> InPlace<T> {
+        match bytemuck::try_cast_slice::<u8, T>(&bytes) {
+            Ok(_) => InPlace::Mapped(bytes),
+            Err(_) => InPlace::Owned(bytemuck::pod_collect_to_vec(&bytes)),
         }
     }
 }
 
-/// A sub-batch's bytes past its results and counters (a list kernel's outputs, the
-/// members, the nearest plans): where they lie in the mapped staging buffer, or a copy
-/// where part of them came back in a round trip of their own.
-pub enum Back {
-    Mapped(device::Mapped),
-    Owned(Vec<u8>),
-}
-
-impl Default for Back {
-    fn default() -> Back {
-        Back::Owned(Vec::new())
+impl<T> Default for InPlace<T> {
+    fn default() -> InPlace<T> {
+        InPlace::Owned(Vec::new())
     }
 }
 
-impl std::ops::Deref for Back {
-    type Target = [u8];
-    fn deref(&self) -> &[u8] {
+impl<T: bytemuck::Pod> std::ops::Deref for InPlace<T> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
         match self {
-            Back::Mapped(m) => m,
-            Back::Owned(v) => v,
+            // (Checked aligned where it was made.)
+            InPlace::Mapped(m) => bytemuck::cast_slice(m),
+            InPlace::Owned(v) => v,
         }
     }
 }
@@ -406,12 +400,7 @@ fn attempt(
 /// past the counters stay where they are.
 fn read(bytes: device::Mapped, kind: Kind, sz: &Sizes, flag_cap: u32) -> Readback {
     let (r, c) = (sz.results as usize, sz.ctl as usize);
-    // In place where the mapping is aligned for them (it always is: wgpu maps at 8 bytes
-    // or more, and they start the buffer).
-    let results = match bytemuck::try_cast_slice::<u8, QResult>(&bytes[..r]) {
-        Ok(_) => Results::Mapped(bytes.part(0..r)),
-        Err(_) => Results::Owned(bytemuck::pod_collect_to_vec(&bytes[..r])),
-    };
+    let results = Results::of(bytes.part(0..r));
     let ctlw = device::pods::<u32>(&bytes[r..r + c]);
     let (items, n_flags) = (ctlw[0], ctlw[1]);
     let head = CTL_HEAD as usize;
@@ -436,7 +425,7 @@ fn read(bytes: device::Mapped, kind: Kind, sz: &Sizes, flag_cap: u32) -> Readbac
             results,
             flags,
             bad,
-            back: Back::Mapped(bytes.from(r + c)),
+            back: Back::of(bytes.from(r + c)),
             ..Default::default()
         },
         waited: 0.0,
