@@ -225,19 +225,8 @@ impl Grid {
             .map(|(i, p)| u64::from(grid.cell_of(p64(*p))) << 32 | i as u64)
             .collect();
         radix_sort_high(&mut items, total);
-        // The first point of each cell (and the end), in one sequential walk: every cell
-        // up to a point's own starts where the first point beyond them is.
-        let mut start: Vec<u32> = Vec::with_capacity(total + 1);
-        for (j, &it) in items.iter().enumerate() {
-            let cell = (it >> 32) as usize;
-            if start.len() <= cell {
-                start.resize(cell + 1, j as u32);
-            }
-        }
-        start.resize(total + 1, items.len() as u32);
-        let ids: Vec<u32> = items.iter().map(|&it| it as u32).collect();
+        let (start, ids, sorted) = starts_ids_points(&items, total, points, SORTED_RUN);
         drop(items);
-        let sorted: Vec<[f32; 3]> = ids.par_iter().map(|&i| points[i as usize]).collect();
         grid.cell_start = start;
         grid.points = sorted;
         grid.ids = ids;
@@ -256,10 +245,13 @@ impl Grid {
         self.points.is_empty()
     }
 
+    /// The cell layer of coordinate `v` on `axis`, clamped into the grid: the floor of
+    /// its offset in cells. The cast truncates, which is the floor from 0 up, and
+    /// saturates (below 0 and NaN give 0), so no `floor` is called: on the x86-64
+    /// baseline (no SSE4.1) `f64::floor` is a call into libm, three per point.
     #[inline]
     fn axis_cell(&self, v: f64, axis: usize) -> u32 {
-        let c = ((v - self.origin[axis]) / self.cell).floor();
-        c.clamp(0.0, (self.dims[axis] - 1) as f64) as u32
+        (((v - self.origin[axis]) / self.cell) as u32).min(self.dims[axis] - 1)
     }
 
     /// Linear index (x fastest) of the cell holding `p` (clamped into the grid).
@@ -412,18 +404,18 @@ impl Grid {
         if lo.is_nan() || hi.is_nan() || lo > hi {
             return None;
         }
+        // The layers' floors, clamped into the grid, by saturating casts as in
+        // `axis_cell` (neither is NaN here).
+        let last = self.dims[axis] - 1;
+        let layer = |v: f64| (v as u32).min(last);
         if self.open {
             // Open borders: a span beyond the grid falls in its border layer.
-            let a = lo.floor().clamp(0.0, n - 1.0) as u32;
-            let b = hi.floor().clamp(0.0, n - 1.0) as u32;
-            return Some((a, b));
+            return Some((layer(lo), layer(hi)));
         }
         if hi < 0.0 || lo >= n {
             return None;
         }
-        let a = lo.floor().max(0.0) as u32;
-        let b = (hi.floor().min(n - 1.0)) as u32;
-        Some((a, b))
+        Some((layer(lo), layer(hi)))
     }
 }
 
@@ -437,6 +429,63 @@ fn prefetch<T>(x: &T) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = x;
+}
+
+/// Sorted items per task of [`starts_ids_points`].
+const SORTED_RUN: usize = 1 << 15;
+
+/// From `items` (`cell << 32 | id`, sorted by cell) over `total` cells: the first point
+/// of each cell and the end (`total + 1` starts), the ids, and the points of `points` in
+/// that order, in one pass over the items by all cores, `run` items a task.
+///
+/// A task's items write the starts of the cells from the one after its first item's
+/// predecessor's cell up to its last item's cell: each cell's start is written by the
+/// task holding the first item at or beyond it, so the tasks' shares of the starts are
+/// disjoint and tile them (the cells after the last item's start at the end).
+fn starts_ids_points(
+    items: &[u64],
+    total: usize,
+    points: &[[f32; 3]],
+    run: usize,
+) -> (Vec<u32>, Vec<u32>, Vec<[f32; 3]>) {
+    let cell = |k: usize| (items[k] >> 32) as usize;
+    let n = items.len();
+    let mut start = vec![0u32; total + 1];
+    let mut ids = vec![0u32; n];
+    let mut sorted = vec![[0f32; 3]; n];
+    // Each task's share of the starts: from past its predecessor's last cell.
+    let run = run.max(1);
+    let mut shares = Vec::with_capacity(n.div_ceil(run));
+    let mut rest = &mut start[..];
+    let mut done = 0;
+    for j0 in (0..n).step_by(run) {
+        let j1 = (j0 + run).min(n);
+        let end = cell(j1 - 1) + 1;
+        let (share, tail) = std::mem::take(&mut rest).split_at_mut(end - done);
+        shares.push((j0, share, done));
+        rest = tail;
+        done = end;
+    }
+    rest.fill(n as u32);
+    ids.par_chunks_mut(run)
+        .zip(sorted.par_chunks_mut(run))
+        .zip(shares)
+        .for_each(|((ids, sorted), (j0, share, first))| {
+            let mut next = first;
+            for (k, (id, p)) in ids.iter_mut().zip(sorted.iter_mut()).enumerate() {
+                let j = j0 + k;
+                let c = cell(j);
+                // Cells `next..=c` start at `j`: the empty ones before `c`, and `c`.
+                if c >= next {
+                    share[next - first..=c - first].fill(j as u32);
+                    next = c + 1;
+                }
+                let i = items[j] as u32;
+                *id = i;
+                *p = points[i as usize];
+            }
+        });
+    (start, ids, sorted)
 }
 
 /// Sorts `items` by their high 32 bits (all below `bound`), stably. Small sorts (or keys
@@ -671,6 +720,85 @@ mod tests {
             }
         }
         assert!(seen.iter().all(|&x| x));
+    }
+
+    #[test]
+    fn starts_ids_and_points_by_tasks_are_the_sequential_walks() {
+        // Cells with many points (one spanning several tasks), empty cells between and
+        // after them, and a run of one item a task.
+        let mut s = Rng::new(11);
+        let total = 300;
+        let mut items: Vec<u64> = (0..2000u64)
+            .map(|i| {
+                let c = if i % 7 == 0 {
+                    150
+                } else {
+                    (uni(&mut s) * 200.0) as u64 * 3 / 2
+                };
+                c << 32 | i
+            })
+            .collect();
+        items.sort_by_key(|&it| it >> 32);
+        let points: Vec<[f32; 3]> = (0..2000).map(|i| [i as f32, -(i as f32), 0.5]).collect();
+        let mut want: Vec<u32> = Vec::new();
+        for (j, &it) in items.iter().enumerate() {
+            let c = (it >> 32) as usize;
+            while want.len() <= c {
+                want.push(j as u32);
+            }
+        }
+        want.resize(total + 1, items.len() as u32);
+        for run in [1, 3, 64, 1000, 5000] {
+            let (start, ids, sorted) = starts_ids_points(&items, total, &points, run);
+            assert_eq!(start, want, "run {run}");
+            for (j, &it) in items.iter().enumerate() {
+                assert_eq!(ids[j], it as u32);
+                assert_eq!(sorted[j], points[it as u32 as usize]);
+            }
+        }
+        let (start, ids, sorted) = starts_ids_points(&[], 5, &points, 4);
+        assert_eq!((start, ids.len(), sorted.len()), (vec![0; 6], 0, 0));
+    }
+
+    #[test]
+    fn cell_layers_are_the_floors_clamped_into_the_grid() {
+        let g = Grid {
+            origin: DVec3::new(-1.0, 0.5, 2.0),
+            cell: 0.25,
+            dims: [8, 3, 1],
+            open: false,
+            cell_start: vec![0; 25],
+            points: vec![[0.0; 3]],
+            ids: vec![0],
+        };
+        for v in [
+            -3.0f64,
+            -1.0001,
+            -1.0,
+            -0.76,
+            -0.75,
+            -0.5,
+            0.0,
+            0.99,
+            1.0,
+            9.0,
+            f64::NAN,
+        ] {
+            let want = ((v + 1.0) / 0.25).floor().clamp(0.0, 7.0) as u32;
+            assert_eq!(g.axis_cell(v, 0), want, "x {v}");
+        }
+        for v in [0.4f64, 0.5, 0.74, 0.75, 1.24, 1.25, 2.0] {
+            let want = ((v - 0.5) / 0.25).floor().clamp(0.0, 2.0) as u32;
+            assert_eq!(g.axis_cell(v, 1), want, "y {v}");
+        }
+        assert_eq!(g.cell_span((-0.9, -0.3), 0), Some((0, 2)));
+        assert_eq!(g.cell_span((-5.0, -0.3), 0), Some((0, 2)));
+        assert_eq!(g.cell_span((0.3, 5.0), 0), Some((5, 7)));
+        assert_eq!(g.cell_span((-5.0, -1.5), 0), None);
+        assert_eq!(g.cell_span((1.0, 5.0), 0), None);
+        let open = Grid { open: true, ..g };
+        assert_eq!(open.cell_span((-5.0, -1.5), 0), Some((0, 0)));
+        assert_eq!(open.cell_span((1.0, f64::INFINITY), 0), Some((7, 7)));
     }
 
     #[test]
