@@ -431,6 +431,9 @@ fn prefetch<T>(x: &T) {
     let _ = x;
 }
 
+/// How many items ahead [`starts_ids_points`] asks for the point it will gather.
+const GATHER_AHEAD: usize = 16;
+
 /// Sorted items per task of [`starts_ids_points`].
 const SORTED_RUN: usize = 1 << 15;
 
@@ -483,6 +486,9 @@ fn starts_ids_points(
                 let i = items[j] as u32;
                 *id = i;
                 *p = points[i as usize];
+                if let Some(&ahead) = items.get(j + GATHER_AHEAD) {
+                    prefetch(&points[(ahead as u32) as usize]);
+                }
             }
         });
     (start, ids, sorted)
