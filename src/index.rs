@@ -245,13 +245,19 @@ impl Grid {
         self.points.is_empty()
     }
 
-    /// The cell layer of coordinate `v` on `axis`, clamped into the grid: the floor of
-    /// its offset in cells. The cast truncates, which is the floor from 0 up, and
-    /// saturates (below 0 and NaN give 0), so no `floor` is called: on the x86-64
-    /// baseline (no SSE4.1) `f64::floor` is a call into libm, three per point.
+    /// The cell layer of coordinate `v` on `axis`, clamped into the grid.
     #[inline]
     fn axis_cell(&self, v: f64, axis: usize) -> u32 {
-        (((v - self.origin[axis]) / self.cell) as u32).min(self.dims[axis] - 1)
+        self.layer((v - self.origin[axis]) / self.cell, axis)
+    }
+
+    /// The layer on `axis` at `cells` cells from the grid's corner, clamped into the
+    /// grid: its floor. The cast truncates, which is the floor from 0 up, and saturates
+    /// (below 0 and NaN give 0), so no `floor` is called: on the x86-64 baseline (no
+    /// SSE4.1) `f64::floor` is a call into libm, three per point.
+    #[inline]
+    fn layer(&self, cells: f64, axis: usize) -> u32 {
+        (cells as u32).min(self.dims[axis] - 1)
     }
 
     /// Linear index (x fastest) of the cell holding `p` (clamped into the grid).
@@ -404,18 +410,14 @@ impl Grid {
         if lo.is_nan() || hi.is_nan() || lo > hi {
             return None;
         }
-        // The layers' floors, clamped into the grid, by saturating casts as in
-        // `axis_cell` (neither is NaN here).
-        let last = self.dims[axis] - 1;
-        let layer = |v: f64| (v as u32).min(last);
         if self.open {
             // Open borders: a span beyond the grid falls in its border layer.
-            return Some((layer(lo), layer(hi)));
+            return Some((self.layer(lo, axis), self.layer(hi, axis)));
         }
         if hi < 0.0 || lo >= n {
             return None;
         }
-        Some((layer(lo), layer(hi)))
+        Some((self.layer(lo, axis), self.layer(hi, axis)))
     }
 }
 
